@@ -1,0 +1,46 @@
+# diffsolids: two commands do everything on a fresh machine.
+#   make demo   create .venv when missing, install, run the flagship demo
+#   make test   same setup, then ruff, the serial tests and the MPI tests (2 ranks)
+# PYTHON=/path/to/python3.12 overrides the interpreter used to create the venv.
+
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.diffsolids-installed
+NPROC ?= 2
+export PYTHON
+
+.PHONY: setup demo demos test test-serial test-mpi lint bench clean
+
+$(STAMP): pyproject.toml
+	@set -e; \
+	if [ ! -x "$(PY)" ]; then \
+	  interp=$$(.ci/find-python); \
+	  echo "creating $(VENV) with $$interp"; \
+	  "$$interp" -m venv "$(VENV)"; \
+	fi
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[dolfinx,test]"
+	@touch $(STAMP)
+
+setup: $(STAMP)
+
+demo: $(STAMP)
+	$(PY) demos/beam_swing.py
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/ruff check .
+
+test-serial: $(STAMP)
+	$(PY) -m pytest -n $(NPROC) --dist loadfile tests
+
+test-mpi: $(STAMP)
+	$(VENV)/bin/mpiexec -n 2 $(PY) -m pytest -p no:cacheprovider tests/mpi
+
+test: lint test-serial test-mpi
+
+bench: $(STAMP)
+	@set -e; for f in tests/benchmarks/bench_*.py; do echo "== $$f"; $(PY) $$f; done
+
+clean:
+	rm -rf output .pytest_cache build src/*.egg-info

@@ -1,0 +1,42 @@
+"""UFL form library (installed as ``diffsolids.forms``).
+
+Pure UFL: functions of UFL objects that return UFL expressions. No PETSc, no solver state. Every
+physical term of an incremental potential and every objective integrand lives here, so that the
+shape, state and parameter derivatives all come from ``ufl.derivative``.
+"""
+
+from diffsolids.forms.damping import damping_potential, green_strain_rate
+from diffsolids.forms.elasticity import (
+    STRAIN_ENERGIES,
+    cauchy_stress,
+    first_piola_kirchhoff,
+    lame_parameters,
+    linear_energy,
+    neo_hookean_energy,
+    st_venant_kirchhoff_energy,
+    strain_energy,
+    von_mises,
+)
+from diffsolids.forms.inertia import inertia_energy
+from diffsolids.forms.kinematics import deformation_gradient, green_strain, small_strain
+from diffsolids.forms.loads import body_force_potential, traction_potential
+
+__all__ = [
+    "STRAIN_ENERGIES",
+    "body_force_potential",
+    "cauchy_stress",
+    "damping_potential",
+    "deformation_gradient",
+    "first_piola_kirchhoff",
+    "green_strain",
+    "green_strain_rate",
+    "inertia_energy",
+    "lame_parameters",
+    "linear_energy",
+    "neo_hookean_energy",
+    "small_strain",
+    "st_venant_kirchhoff_energy",
+    "strain_energy",
+    "traction_potential",
+    "von_mises",
+]

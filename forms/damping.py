@@ -1,0 +1,23 @@
+"""Strain-rate viscous damping (paper sec. 8.1, Brown et al. 2018).
+
+The Green strain rate is discretised as Edot = (E(F^i) - E(F^{i-1})) / dt, which only needs
+Fdot = (F^i - F^{i-1}) / dt: E^i - E^{i-1} = (Fdot^T F^i + F^{i-1,T} Fdot) dt / 2. With the
+dissipation potential D(Edot) = psi Edot:Edot + phi/2 tr(Edot)^2, the term dt * D is a potential in
+u^i whose gradient is the force with Piola stress F (2 psi Edot + phi tr(Edot) I).
+"""
+
+import ufl
+from diffsolids.forms.kinematics import deformation_gradient, green_strain
+
+__all__ = ["damping_potential", "green_strain_rate"]
+
+
+def green_strain_rate(u, u_prev, dt):
+    """Edot = (E(F(u)) - E(F(u_prev))) / dt."""
+    return (green_strain(deformation_gradient(u)) - green_strain(deformation_gradient(u_prev))) / dt
+
+
+def damping_potential(u, u_prev, dt, psi, phi):
+    """Incremental damping potential dt * (psi Edot:Edot + phi/2 tr(Edot)^2)."""
+    Edot = green_strain_rate(u, u_prev, dt)
+    return dt * (psi * ufl.inner(Edot, Edot) + 0.5 * phi * ufl.tr(Edot) ** 2)

@@ -1,0 +1,100 @@
+"""Strain energy densities and stresses.
+
+Every energy takes the displacement ``u`` and Lamé parameters; parameters may be any UFL
+expression (constants, DG0/CG1 fields, or expressions of Young's modulus and Poisson's ratio),
+so derivatives with respect to them come from ``ufl.derivative``.
+"""
+
+from collections.abc import Callable
+
+import ufl
+from diffsolids.forms.kinematics import deformation_gradient, green_strain, small_strain
+
+__all__ = [
+    "STRAIN_ENERGIES",
+    "cauchy_stress",
+    "first_piola_kirchhoff",
+    "lame_parameters",
+    "linear_energy",
+    "neo_hookean_energy",
+    "st_venant_kirchhoff_energy",
+    "strain_energy",
+    "von_mises",
+]
+
+
+def lame_parameters(E, nu, plane_stress: bool = False):
+    """Lamé parameters (lambda, mu) from Young's modulus and Poisson's ratio.
+
+    Plane stress uses the effective 2D first parameter lambda = nu E / (1 - nu^2).
+    """
+    mu = E / (2 * (1 + nu))
+    if plane_stress:
+        return E * nu / (1 - nu * nu), mu
+    return E * nu / ((1 + nu) * (1 - 2 * nu)), mu
+
+
+def linear_energy(u, lmbda, mu):
+    """Small-strain energy mu eps:eps + lambda/2 tr(eps)^2."""
+    eps = small_strain(u)
+    return mu * ufl.inner(eps, eps) + 0.5 * lmbda * ufl.tr(eps) ** 2
+
+
+def st_venant_kirchhoff_energy(u, lmbda, mu):
+    """St. Venant-Kirchhoff energy mu E:E + lambda/2 tr(E)^2 of the Green strain."""
+    E = green_strain(deformation_gradient(u))
+    return mu * ufl.inner(E, E) + 0.5 * lmbda * ufl.tr(E) ** 2
+
+
+def neo_hookean_energy(u, lmbda, mu):
+    """Neo-Hookean energy mu/2 (tr F^T F - d - 2 ln J) + lambda/2 (ln J)^2."""
+    F = deformation_gradient(u)
+    d = F.ufl_shape[0]
+    lnJ = ufl.ln(ufl.det(F))
+    return 0.5 * mu * (ufl.tr(F.T * F) - d - 2 * lnJ) + 0.5 * lmbda * lnJ**2
+
+
+STRAIN_ENERGIES: dict[str, Callable] = {
+    "linear": linear_energy,
+    "st_venant_kirchhoff": st_venant_kirchhoff_energy,
+    "neo_hookean": neo_hookean_energy,
+}
+
+
+def strain_energy(name: str, u, lmbda, mu):
+    """Strain energy density of the constitutive law ``name`` (a key of STRAIN_ENERGIES)."""
+    return STRAIN_ENERGIES[name](u, lmbda, mu)
+
+
+def first_piola_kirchhoff(name: str, u, lmbda, mu):
+    """First Piola-Kirchhoff stress dpsi/dF (for "linear": the Cauchy stress C:eps)."""
+    F = ufl.variable(deformation_gradient(u))
+    # Express every energy as a function of F so that ufl.diff applies uniformly.
+    grad_u = F - ufl.Identity(F.ufl_shape[0])
+    eps = ufl.sym(grad_u)
+    if name == "linear":
+        psi = mu * ufl.inner(eps, eps) + 0.5 * lmbda * ufl.tr(eps) ** 2
+    elif name == "st_venant_kirchhoff":
+        E = green_strain(F)
+        psi = mu * ufl.inner(E, E) + 0.5 * lmbda * ufl.tr(E) ** 2
+    else:
+        lnJ = ufl.ln(ufl.det(F))
+        d = F.ufl_shape[0]
+        psi = 0.5 * mu * (ufl.tr(F.T * F) - d - 2 * lnJ) + 0.5 * lmbda * lnJ**2
+    return ufl.diff(psi, F)
+
+
+def cauchy_stress(name: str, u, lmbda, mu):
+    """Cauchy stress sigma = P F^T / J (the small-strain stress for "linear")."""
+    P = first_piola_kirchhoff(name, u, lmbda, mu)
+    if name == "linear":
+        return P
+    F = deformation_gradient(u)
+    return P * F.T / ufl.det(F)
+
+
+def von_mises(sigma):
+    """Von Mises equivalent stress of a 2x2 (plane) or 3x3 Cauchy stress."""
+    d = sigma.ufl_shape[0]
+    s = sigma - ufl.tr(sigma) / d * ufl.Identity(d)  # (in-plane) deviator
+    return ufl.sqrt(1.5 * ufl.inner(s, s))

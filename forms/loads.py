@@ -1,0 +1,15 @@
+"""Potentials of external loads (conservative, dead loads)."""
+
+import ufl
+
+__all__ = ["body_force_potential", "traction_potential"]
+
+
+def body_force_potential(u, density, acceleration):
+    """-rho g . u for a body-force acceleration g (e.g. gravity)."""
+    return -density * ufl.dot(acceleration, u)
+
+
+def traction_potential(u, traction):
+    """-t . u for a dead traction t (force per reference area)."""
+    return -ufl.dot(traction, u)

@@ -1,0 +1,24 @@
+"""Meshes with body (cell) and boundary (facet) tags: built-in boxes, gmsh and meshio files."""
+
+from diffsolids.mesh.domain import Domain, create_box, create_rectangle, tag_facets
+from diffsolids.mesh.quality import (
+    check_orientation,
+    inverted_cells,
+    min_scaled_jacobian,
+    signed_cell_volumes,
+)
+from diffsolids.mesh.readers import from_geo, from_gmsh_model, read_mesh
+
+__all__ = [
+    "Domain",
+    "check_orientation",
+    "create_box",
+    "create_rectangle",
+    "from_geo",
+    "from_gmsh_model",
+    "inverted_cells",
+    "min_scaled_jacobian",
+    "read_mesh",
+    "signed_cell_volumes",
+    "tag_facets",
+]

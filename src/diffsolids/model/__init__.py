@@ -1,0 +1,33 @@
+"""Model definition: materials, terms of the incremental potential, boundary conditions."""
+
+from diffsolids.model.boundary_conditions import DirichletCondition, RealisedDirichlet
+from diffsolids.model.materials import LinearElastic, Material, NeoHookean, StVenantKirchhoff
+from diffsolids.model.model import Model
+from diffsolids.model.terms import (
+    BodyForce,
+    Damping,
+    ElasticEnergy,
+    EnergyTerm,
+    Inertia,
+    StepFields,
+    Term,
+    Traction,
+)
+
+__all__ = [
+    "BodyForce",
+    "Damping",
+    "DirichletCondition",
+    "ElasticEnergy",
+    "EnergyTerm",
+    "Inertia",
+    "LinearElastic",
+    "Material",
+    "Model",
+    "NeoHookean",
+    "RealisedDirichlet",
+    "StVenantKirchhoff",
+    "StepFields",
+    "Term",
+    "Traction",
+]

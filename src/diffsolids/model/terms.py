@@ -1,0 +1,217 @@
+"""Terms of an incremental potential expressed in UFL.
+
+Every force of the model is a term with an energy (a scalar UFL form in the fields of a step).
+Residual, Newton Jacobian, and all partial derivatives used by the adjoint (w.r.t. the current
+and previous displacements, the shape and any parameter coefficient) come from ``ufl.derivative``
+of the summed energy, so a new force is one new term and nothing else changes.
+"""
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import override
+
+import ufl
+from dolfinx import fem
+
+from diffsolids import forms
+
+__all__ = [
+    "BodyForce",
+    "Damping",
+    "ElasticEnergy",
+    "EnergyTerm",
+    "Inertia",
+    "StepFields",
+    "Term",
+    "Traction",
+]
+
+
+@dataclass
+class StepFields:
+    """The UFL coefficients of one step's incremental potential.
+
+    Attributes:
+        u: Unknown displacement u^i.
+        u_prev: Previous displacement u^{i-1} (damping, lagged friction).
+        u_tilde: BDF predictor (inertia).
+        v: Velocity v^i (used by objectives).
+        t: Time of the step.
+        dt: Time-step size.
+        beta_dt: beta_m dt of the BDF order used by the step.
+        X: Rest (reference) coordinates.
+        dx: Volume measure with body tags and quadrature degree.
+        ds: Boundary measure with facet tags and quadrature degree.
+        coefficients: Named parameter coefficients (material fields, loads).
+    """
+
+    u: fem.Function
+    u_prev: fem.Function
+    u_tilde: fem.Function
+    v: fem.Function
+    t: fem.Constant
+    dt: fem.Constant
+    beta_dt: fem.Constant
+    X: ufl.SpatialCoordinate
+    dx: ufl.Measure
+    ds: ufl.Measure
+    coefficients: dict = field(default_factory=dict)
+
+
+class Term:
+    """A contribution to the incremental potential of a step.
+
+    Attributes:
+        name: Human-readable name.
+        dynamic_only: Only part of time-dependent (BDF) steps (inertia, damping).
+        quadratic: The energy is quadratic in u (its Hessian does not depend on u).
+    """
+
+    name: str = "term"
+    dynamic_only: bool = False
+    quadratic: bool = False
+
+    def energy(self, f: StepFields) -> ufl.Form:
+        """The term's incremental potential as a scalar UFL form."""
+        raise NotImplementedError
+
+    def magnitude(self, f: StepFields) -> ufl.Form:
+        """A form bounding the magnitude of the energy's addends (roundoff estimate)."""
+        return abs(self.energy_density(f)) * self.measure(f)
+
+    def energy_density(self, f: StepFields):
+        """The integrand of the energy (override together with :meth:`measure`)."""
+        raise NotImplementedError
+
+    def measure(self, f: StepFields) -> ufl.Measure:
+        """The integration measure of :meth:`energy_density`."""
+        return f.dx
+
+
+class _DensityTerm(Term):
+    @override
+    def energy(self, f: StepFields) -> ufl.Form:
+        return self.energy_density(f) * self.measure(f)
+
+
+class ElasticEnergy(_DensityTerm):
+    """Strain energy of the bodies using one constitutive law.
+
+    Args:
+        law: Key of ``forms.STRAIN_ENERGIES``.
+        bodies: Body ids using the law, or None for the whole mesh.
+        lame: Callable returning (lambda, mu) UFL expressions from the step fields.
+    """
+
+    def __init__(self, law: str, bodies: Sequence[int] | None, lame: Callable):
+        self.law, self.bodies, self.lame = law, bodies, lame
+        self.name = f"elastic[{law}]"
+        self.quadratic = law == "linear"
+
+    @override
+    def energy_density(self, f: StepFields):
+        lmbda, mu = self.lame(f)
+        return forms.strain_energy(self.law, f.u, lmbda, mu)
+
+    @override
+    def measure(self, f: StepFields) -> ufl.Measure:
+        return f.dx if self.bodies is None else f.dx(tuple(self.bodies))
+
+
+class Inertia(_DensityTerm):
+    """rho / (2 (beta dt)^2) |u - u_tilde|^2 (paper eq. 4)."""
+
+    name = "inertia"
+    dynamic_only = True
+    quadratic = True
+
+    @override
+    def energy_density(self, f: StepFields):
+        return forms.inertia_energy(f.u, f.u_tilde, f.coefficients["density"], f.beta_dt)
+
+
+class Damping(_DensityTerm):
+    """Strain-rate viscous damping dt * D((E^i - E^{i-1}) / dt) (paper sec. 8.1)."""
+
+    name = "damping"
+    dynamic_only = True
+
+    @override
+    def energy_density(self, f: StepFields):
+        c = f.coefficients
+        return forms.damping_potential(f.u, f.u_prev, f.dt, c["damping_psi"], c["damping_phi"])
+
+
+class BodyForce(_DensityTerm):
+    """Body force rho g on some or all bodies; ``g`` is the named Constant coefficient."""
+
+    def __init__(self, coefficient: str, bodies: Sequence[int] | None = None):
+        self.coefficient, self.bodies = coefficient, bodies
+        self.name = coefficient
+        self.quadratic = True
+
+    @override
+    def energy_density(self, f: StepFields):
+        c = f.coefficients
+        return forms.body_force_potential(f.u, c["density"], c[self.coefficient])
+
+    @override
+    def measure(self, f: StepFields) -> ufl.Measure:
+        return f.dx if self.bodies is None else f.dx(tuple(self.bodies))
+
+
+class Traction(_DensityTerm):
+    """Dead traction on tagged facets; ``t`` is the named Constant coefficient."""
+
+    def __init__(self, coefficient: str, facet_tag: int):
+        self.coefficient, self.facet_tag = coefficient, facet_tag
+        self.name = coefficient
+        self.quadratic = True
+
+    @override
+    def energy_density(self, f: StepFields):
+        return forms.traction_potential(f.u, f.coefficients[self.coefficient])
+
+    @override
+    def measure(self, f: StepFields) -> ufl.Measure:
+        return f.ds(self.facet_tag)
+
+
+class EnergyTerm(Term):
+    """A user-written term: ``energy(fields) -> scalar UFL form``.
+
+    Args:
+        energy: Callable building the form from :class:`StepFields`.
+        name: Name in logs.
+        quadratic: Declare the energy quadratic in u (enables Jacobian reuse).
+        dynamic_only: Only include the term in BDF steps.
+    """
+
+    def __init__(
+        self,
+        energy: Callable[[StepFields], ufl.Form],
+        name: str = "user",
+        quadratic: bool = False,
+        dynamic_only: bool = False,
+    ):
+        self._energy, self.name = energy, name
+        self.quadratic, self.dynamic_only = quadratic, dynamic_only
+
+    @override
+    def energy(self, f: StepFields) -> ufl.Form:
+        return self._energy(f)
+
+    @override
+    def magnitude(self, f: StepFields) -> ufl.Form:
+        form = self._energy(f)
+        return sum(
+            abs(i.integrand())
+            * ufl.Measure(
+                i.integral_type(),
+                domain=i.ufl_domain(),
+                subdomain_id=i.subdomain_id(),
+                subdomain_data=i.subdomain_data(),
+                metadata=i.metadata(),
+            )
+            for i in form.integrals()
+        )

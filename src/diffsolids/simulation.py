@@ -1,0 +1,238 @@
+"""Forward simulation: a Model advanced by an Integrator, one Newton solve per step."""
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from dolfinx import fem
+
+from diffsolids.errors import NewtonConvergenceError, ParameterError
+from diffsolids.integrators import Integrator, StepCoefficients
+from diffsolids.solvers import NewtonSolver, SolverOptions
+
+__all__ = ["Simulation", "StepRecord", "Trajectory"]
+
+logger = logging.getLogger("diffsolids")
+
+
+@dataclass
+class StepRecord:
+    """Log of one step."""
+
+    step: int
+    time: float
+    order: int
+    iterations: int
+    residual: float
+    energy: float
+    seconds: float
+
+
+@dataclass
+class Trajectory:
+    """States u^i, v^i (local arrays incl. ghosts) for i = 0..N and per-step records."""
+
+    times: list[float] = field(default_factory=list)
+    u: list[np.ndarray] = field(default_factory=list)
+    v: list[np.ndarray] = field(default_factory=list)
+    records: list[StepRecord] = field(default_factory=list)
+
+    @property
+    def num_steps(self) -> int:
+        """N (the trajectory holds N + 1 states)."""
+        return len(self.u) - 1
+
+    def newton_iterations(self) -> int:
+        """Total Newton iterations over all steps."""
+        return sum(r.iterations for r in self.records)
+
+
+def _initial_array(V: fem.FunctionSpace, value, name: str) -> np.ndarray:
+    f = fem.Function(V)
+    if value is None:
+        return f.x.array.copy()
+    if isinstance(value, fem.Function) or callable(value):
+        f.interpolate(value)
+    else:
+        vec = np.asarray(value, dtype=float)
+        d = V.mesh.geometry.dim
+        if vec.size == d:
+            f.x.array[:] = np.tile(vec, len(f.x.array) // d)
+        elif vec.shape == f.x.array.shape:
+            f.x.array[:] = vec
+        else:
+            raise ParameterError(f"{name}: expected a vector of length {d} or a nodal array")
+    if not np.all(np.isfinite(f.x.array)):
+        raise ParameterError(f"{name} has non-finite values")
+    f.x.scatter_forward()
+    return f.x.array.copy()
+
+
+class Simulation:
+    """Runs a Model through the steps of an Integrator.
+
+    Args:
+        model: The scene.
+        integrator: Static or BDF.
+        solver_options: Newton options.
+        u0: Initial displacement (function of x, vector, nodal array or Function; default 0).
+        v0: Initial velocity (BDF only; default 0).
+        output: Optional TrajectoryWriter (or path ending in .bp / .xdmf) for time series.
+        progress: Show a progress bar (default: when stderr is a terminal).
+        callback: Called as ``callback(step, simulation)`` after every step.
+    """
+
+    def __init__(
+        self,
+        model,
+        integrator: Integrator,
+        solver_options: SolverOptions | None = None,
+        u0=None,
+        v0=None,
+        output=None,
+        progress: bool | None = None,
+        callback: Callable | None = None,
+    ):
+        self.model = model
+        self.integrator = integrator
+        self.solver = NewtonSolver(model, integrator.dynamic, solver_options)
+        V = model.V
+        self.u0 = _initial_array(V, u0, "initial displacement u0")
+        self.v0 = _initial_array(V, v0, "initial velocity v0")
+        if v0 is not None and not integrator.dynamic:
+            raise ParameterError("an initial velocity needs a dynamic (BDF) integrator")
+        self.output = output
+        self.progress = progress
+        self.callback = callback
+        self.trajectory: Trajectory | None = None
+
+    # -- step set-up shared with the adjoint -----------------------------------------------------
+    def load_step(self, i: int, traj: Trajectory) -> StepCoefficients:
+        """Set time, loads, Dirichlet values and history coefficients of step ``i``."""
+        integ = self.integrator
+        c = integ.coefficients(i)
+        f = self.model.fields
+        self.model.update_time(integ.time(i))
+        f.dt.value = integ.dt
+        f.beta_dt.value = c.beta_dt
+        f.u_prev.x.array[:] = traj.u[i - 1]
+        if integ.dynamic:
+            u_tilde = f.u_tilde.x.array
+            u_tilde[:] = 0.0
+            for j, a in enumerate(c.alpha, start=1):
+                u_tilde -= a * (traj.u[i - j] + c.beta_dt * traj.v[i - j])
+        return c
+
+    def velocity(
+        self, i: int, u_i: np.ndarray, traj: Trajectory, c: StepCoefficients
+    ) -> np.ndarray:
+        """v^i = (u^i + sum_j alpha_j u^{i-j}) / (beta dt)."""
+        v = u_i.copy()
+        for j, a in enumerate(c.alpha, start=1):
+            v += a * traj.u[i - j]
+        return v / c.beta_dt
+
+    def _initial_guess(self, i: int, traj: Trajectory) -> None:
+        u = self.model.fields.u
+        prev = traj.u[i - 1]
+        guess = prev + self.integrator.dt * traj.v[i - 1] if self.integrator.dynamic else prev
+        u.x.array[:] = guess
+        for d in self.model.dirichlet:
+            for bc in d.bcs:
+                bc.set(u.x.array)
+        # keep the extrapolated guess only if it inverts nothing
+        if self.solver.step_bounds and self.integrator.dynamic and self._guess_inverts(u.x.array):
+            u.x.array[:] = prev
+            for d in self.model.dirichlet:
+                for bc in d.bcs:
+                    bc.set(u.x.array)
+
+    def _guess_inverts(self, arr: np.ndarray) -> bool:
+        guard = self.solver.step_bounds[0]
+        zero = self.solver._work
+        zero.set(0.0)
+        x = self.solver.x
+        x.array_w[:] = arr[: len(x.array_r)]
+        return guard.max_step(x, zero) <= 0.0
+
+    # -- run -----------------------------------------------------------------------------
+    def run(self) -> Trajectory:
+        """Solve all steps and return the trajectory (also kept as ``self.trajectory``)."""
+        from diffsolids.io.progress import progress_bar
+
+        integ = self.integrator
+        traj = Trajectory(times=[0.0], u=[self.u0.copy()], v=[self.v0.copy()])
+        writer = self._open_writer()
+        if writer:
+            writer.write(0.0, traj.u[0], traj.v[0])
+        with progress_bar(integ.num_steps, self.model.domain.comm, self.progress) as bar:
+            for i in range(1, integ.num_steps + 1):
+                self._step(i, traj)
+                if writer:
+                    writer.write(traj.times[i], traj.u[i], traj.v[i])
+                bar.update(1)
+                if self.callback:
+                    self.callback(i, self)
+        if writer:
+            writer.close()
+        self.trajectory = traj
+        return traj
+
+    def _step(self, i: int, traj: Trajectory) -> None:
+        t0 = time.perf_counter()
+        c = self.load_step(i, traj)
+        for term in self.model.numeric_terms:
+            term.begin_step(i, traj, c, self)
+        if i == 1:
+            u = self.model.fields.u
+            u.x.array[:] = traj.u[0]
+            for d in self.model.dirichlet:
+                for bc in d.bcs:
+                    bc.set(u.x.array)
+            self.solver.set_reference_force()
+        self._initial_guess(i, traj)
+        try:
+            result = self.solver.solve(i)
+        except NewtonConvergenceError:
+            logger.error("step %d (t = %g) failed", i, self.integrator.time(i))
+            raise
+        u_i = self.model.fields.u.x.array.copy()
+        v_i = (
+            self.velocity(i, u_i, traj, c)
+            if self.integrator.dynamic
+            else ((u_i - traj.u[i - 1]) / c.dt)
+        )
+        traj.times.append(self.integrator.time(i))
+        traj.u.append(u_i)
+        traj.v.append(v_i)
+        rec = StepRecord(
+            i,
+            traj.times[-1],
+            c.order,
+            result.iterations,
+            result.residual,
+            result.energy,
+            time.perf_counter() - t0,
+        )
+        traj.records.append(rec)
+        logger.info(
+            "step %4d  t=%-10.4g order=%d  newton=%2d  residual=%.3e  energy=%.6e  (%.2fs)",
+            i,
+            rec.time,
+            rec.order,
+            rec.iterations,
+            rec.residual,
+            rec.energy,
+            rec.seconds,
+        )
+
+    def _open_writer(self):
+        if self.output is None:
+            return None
+        if isinstance(self.output, str | bytes) or hasattr(self.output, "__fspath__"):
+            from diffsolids.io.output import TrajectoryWriter
+
+            return TrajectoryWriter(self.model, self.output)
+        return self.output

@@ -1,0 +1,259 @@
+"""Newton solver for one step's incremental potential.
+
+PETSc SNES (newtonls) with the potential as SNES objective, a line-search pre-check that bounds
+the step (no inverted element; the contact term adds its collision-free bound to the same hook)
+and a residual tolerance scaled by a characteristic force of the simulation.
+"""
+
+from dataclasses import dataclass, field
+
+import dolfinx.fem.petsc as fem_petsc
+import dolfinx.la.petsc
+import numpy as np
+import ufl
+from dolfinx import fem
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from diffsolids.errors import NewtonConvergenceError
+from diffsolids.solvers.forms import compile_form
+from diffsolids.solvers.inversion import InversionGuard
+
+__all__ = ["NewtonResult", "NewtonSolver", "SolverOptions"]
+
+_DEFAULT_PETSC = {
+    "snes_type": "newtonls",
+    "snes_linesearch_type": "bt",
+    "ksp_type": "preonly",
+    "pc_type": "lu",
+    "pc_factor_mat_solver_type": "mumps",
+}
+
+
+@dataclass
+class SolverOptions:
+    """Options of the per-step Newton solve.
+
+    Attributes:
+        rtol: Converged when ||residual|| <= rtol * f_char, f_char the larger of the simulation's
+            reference force (residual of the initial state) and the step's initial residual.
+        max_iterations: Newton iteration limit per step.
+        petsc_options: PETSc options under the solver prefix (override the defaults: newtonls,
+            bt line search, preonly + MUMPS LU).
+        prefix: PETSc options prefix; command-line options with this prefix also apply.
+        prevent_inversion: Bound every step so that no element inverts.
+        step_safety: Fraction of the largest safe step actually taken when a bound is active.
+    """
+
+    rtol: float = 1e-9
+    max_iterations: int = 50
+    petsc_options: dict = field(default_factory=dict)
+    prefix: str = "diffsolids_"
+    prevent_inversion: bool = True
+    step_safety: float = 0.9
+
+
+@dataclass
+class NewtonResult:
+    """Outcome of one converged step."""
+
+    iterations: int
+    residual: float
+    energy: float
+    characteristic_force: float
+
+
+class NewtonSolver:
+    """Minimises the incremental potential of a step with SNES.
+
+    Args:
+        model: The Model (its ``fields.u`` is the unknown and the initial guess).
+        dynamic: Include inertia and damping terms (BDF steps).
+        options: Solver options.
+    """
+
+    def __init__(self, model, dynamic: bool, options: SolverOptions | None = None):
+        self.model = model
+        self.options = options or SolverOptions()
+        f = model.fields
+        V = model.V
+        self.u = f.u
+        self.comm = V.mesh.comm
+        potential = model.potential(dynamic)
+        residual = ufl.derivative(potential, f.u, ufl.TestFunction(V))
+        jacobian = ufl.derivative(residual, f.u, ufl.TrialFunction(V))
+        self.energy_form = compile_form(potential)
+        self.residual_form = compile_form(residual)
+        self.jacobian_form = compile_form(jacobian)
+        self.magnitude_form = compile_form(model.magnitude(dynamic))
+        self.numeric_terms = model.numeric_terms
+        self.quadratic = model.is_quadratic(dynamic)
+        self.A = fem_petsc.create_matrix(self.jacobian_form)
+        self.b = fem_petsc.create_vector(V)
+        self.x = fem_petsc.create_vector(V)
+        self._work = fem_petsc.create_vector(V)
+        self.step_bounds: list = []
+        if self.options.prevent_inversion:
+            self.step_bounds.append(InversionGuard(V, f.dx.metadata()["quadrature_degree"]))
+        self.reference_force = 0.0
+        self._jacobian_key = None
+        self._make_snes()
+
+    # -- PETSc setup ---------------------------------------------------------------------
+    def _make_snes(self) -> None:
+        snes = PETSc.SNES().create(self.comm)
+        snes.setOptionsPrefix(self.options.prefix)
+        opts = PETSc.Options()
+        opts.prefixPush(self.options.prefix)
+        pushed = {**_DEFAULT_PETSC, **self.options.petsc_options}
+        previous = {k: opts[k] if opts.hasName(k) else None for k in pushed}
+        for k, v in pushed.items():
+            if previous[k] is None or k in self.options.petsc_options:
+                opts[k] = v
+        snes.setFunction(self._residual, self.b)
+        snes.setJacobian(self._jacobian, self.A)
+        snes.setObjective(self._objective)
+        snes.setLineSearchPreCheck(self._precheck)
+        snes.setConvergenceTest(self._converged)
+        snes.setTolerances(max_it=self.options.max_iterations)
+        snes.setFromOptions()
+        for k, v in previous.items():  # leave the global options database as we found it
+            if v is None:
+                opts.delValue(k)
+        opts.prefixPop()
+        self.snes = snes
+
+    # -- evaluation helpers ----------------------------------------------------------------
+    def _assign(self, x: PETSc.Vec) -> None:
+        dolfinx.la.petsc._ghost_update(x, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
+        fem_petsc.assign(x, self.u)
+
+    def energy(self) -> float:
+        """Incremental potential at the current ``u`` (all ranks)."""
+        e = self.comm.allreduce(fem.assemble_scalar(self.energy_form), op=MPI.SUM)
+        return e + sum(t.energy(self.u) for t in self.numeric_terms)
+
+    def assemble_residual(self, b: PETSc.Vec) -> None:
+        """Residual at the current ``u``; Dirichlet rows hold u - g (zero on admissible u)."""
+        with b.localForm() as loc:
+            loc.set(0.0)
+        fem_petsc.assemble_vector(b, self.residual_form)
+        dolfinx.la.petsc._ghost_update(b, PETSc.InsertMode.ADD, PETSc.ScatterMode.REVERSE)
+        for term in self.numeric_terms:
+            term.add_residual(self.u, b)
+        fem_petsc.set_bc(b, self.model.bcs, self.u.x.petsc_vec, -1.0)
+        dolfinx.la.petsc._ghost_update(b, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
+
+    def assemble_jacobian(self, A: PETSc.Mat) -> None:
+        """Jacobian at the current ``u`` with identity Dirichlet rows and columns."""
+        A.zeroEntries()
+        fem_petsc.assemble_matrix(A, self.jacobian_form, self.model.bcs, diag=1.0)
+        for term in self.numeric_terms:
+            term.add_jacobian(self.u, A, self.model.dirichlet_dofs())
+        A.assemble()
+
+    def residual_norm(self) -> float:
+        """Norm of the residual at the current ``u``."""
+        self.assemble_residual(self._work)
+        return self._work.norm()
+
+    # -- SNES callbacks ----------------------------------------------------------------------
+    def _residual(self, snes, x, b) -> None:
+        self._assign(x)
+        self.assemble_residual(b)
+
+    def _jacobian(self, snes, x, A, P) -> None:
+        if self.quadratic and self._jacobian_key == self._current_key():
+            return  # the Hessian of a quadratic potential does not change: keep the factors
+        self._assign(x)
+        self.assemble_jacobian(A)
+        self._jacobian_key = self._current_key()
+
+    def _current_key(self):
+        f = self.model.fields
+        return (float(f.beta_dt.value), float(f.dt.value))
+
+    def _objective(self, snes, x) -> float:
+        self._assign(x)
+        e = self.energy()
+        ls = self._line_search
+        if not np.isfinite(e):
+            return np.finfo(float).max / 1e10
+        if ls is None:
+            return e
+        if ls["f0"] is None:
+            ls["f0"] = e
+            return e
+        if abs(e - ls["f0"]) <= 1e-10 * (self._magnitude + abs(ls["f0"])):
+            # The energy change is below its roundoff: judge the trial point by its residual.
+            better = self.residual_norm() < ls["fnorm"]
+            return ls["f0"] - ls["slope"] if better else ls["f0"] + ls["slope"]
+        return e
+
+    def _precheck(self, x, y, *args) -> None:
+        F = self.snes.getFunction()[0]
+        slope = y.dot(F)  # the trial point is x - lambda y: descent needs y . F > 0
+        if not slope > 0:
+            # Not a descent direction (indefinite Hessian): fall back to the gradient direction.
+            y.scale(0.0)
+            y.axpy(1.0, F)
+            slope = y.dot(F)
+            self.fallbacks += 1
+        bound = np.inf
+        if self.step_bounds:
+            y.scale(-1.0)
+            bound = min(b.max_step(x, y) for b in self.step_bounds)
+            y.scale(-1.0)
+        if bound * self.options.step_safety < 1.0:
+            scale = self.options.step_safety * bound
+            y.scale(scale)
+            slope *= scale
+            self.bounded_steps += 1
+        self._line_search = {"f0": None, "slope": abs(slope), "fnorm": self.snes.getFunctionNorm()}
+
+    def _converged(self, snes, it, norms):
+        fnorm = norms[2]
+        if it == 0:
+            self._f_char = max(self.reference_force, fnorm)
+        self._fnorm = fnorm
+        R = PETSc.SNES.ConvergedReason
+        if not np.isfinite(fnorm):
+            return R.DIVERGED_FNORM_NAN
+        if fnorm <= self.options.rtol * self._f_char:
+            return R.CONVERGED_FNORM_ABS
+        if it >= self.options.max_iterations:
+            return R.DIVERGED_MAX_IT
+        return R.ITERATING
+
+    # -- public ------------------------------------------------------------------------------
+    def set_reference_force(self) -> float:
+        """Use the residual norm at the current ``u`` as the simulation's characteristic force."""
+        self.reference_force = self.residual_norm()
+        return self.reference_force
+
+    def solve(self, step: int) -> NewtonResult:
+        """Minimise from the current ``u`` (which must satisfy the Dirichlet conditions).
+
+        Raises:
+            NewtonConvergenceError: The solve failed; names the step, iterations and residual.
+        """
+        self._line_search = None
+        self.fallbacks = 0
+        self.bounded_steps = 0
+        self._magnitude = abs(
+            self.comm.allreduce(fem.assemble_scalar(self.magnitude_form), op=MPI.SUM)
+        )
+        self.u.x.scatter_forward()
+        self.x.array_w[:] = self.u.x.petsc_vec.array_r
+        self.snes.solve(None, self.x)
+        reason = self.snes.getConvergedReason()
+        its = self.snes.getIterationNumber()
+        self._assign(self.x)
+        if reason <= 0:
+            names = {
+                v: k for k, v in vars(PETSc.SNES.ConvergedReason).items() if isinstance(v, int)
+            }
+            raise NewtonConvergenceError(
+                step, its, self._fnorm, self.options.rtol * self._f_char, names.get(reason, reason)
+            )
+        return NewtonResult(its, self._fnorm, self.energy(), self._f_char)
