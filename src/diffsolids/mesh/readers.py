@@ -69,9 +69,10 @@ def _mesh_geo_on_root(path, dim, mesh_size, numbers) -> int:
     gmsh = _gmsh()
     gmsh.clear()
     for name, value in (numbers or {}).items():
-        gmsh.onelab.setNumber(name, [float(value)])
         gmsh.parser.setNumber(name, [float(value)])
-    gmsh.open(str(path))
+    # gmsh.open would clear the parser variables just set; merge keeps them (DefineConstant then
+    # leaves them alone, like -setnumber on the command line).
+    gmsh.merge(str(path))
     if mesh_size is not None:
         gmsh.option.setNumber("Mesh.CharacteristicLengthMax", float(mesh_size))
     dim = dim or gmsh.model.getDimension()
