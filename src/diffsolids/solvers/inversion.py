@@ -7,6 +7,8 @@ from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from diffsolids.errors import ParameterError
+
 __all__ = ["InversionGuard"]
 
 
@@ -17,12 +19,20 @@ class InversionGuard:
     vanishes at a = -1/mu for the real eigenvalues mu < 0 of F0^{-1} D; the bound is the smallest
     such a over all points (vectorised over cells and points).
 
+    Since |mu| <= |F0^{-1} D|_F, points with |F0^{-1} D|_F <= 1 / limit bound no step shorter
+    than ``limit``: their eigenvalues are skipped (in a converging Newton solve, nearly all).
+
     Args:
         V: Displacement space.
         quadrature_degree: Degree of the quadrature whose points are checked.
+        limit: Only bounds below this matter to the caller (e.g. 1 / step safety for a Newton
+            step of length 1); larger bounds are reported as inf.
     """
 
-    def __init__(self, V: fem.FunctionSpace, quadrature_degree: int):
+    def __init__(self, V: fem.FunctionSpace, quadrature_degree: int, limit: float = np.inf):
+        if not limit > 0:
+            raise ParameterError(f"InversionGuard limit {limit} must be positive")
+        self.limit = float(limit)
         mesh = V.mesh
         self.d = mesh.geometry.dim
         self.x = fem.Function(V)
@@ -42,21 +52,43 @@ class InversionGuard:
         target.x.scatter_forward()
 
     def max_step(self, x: PETSc.Vec, dx: PETSc.Vec) -> float:
-        """Largest a in (0, inf] with det(F(x + s dx)) > 0 for all s in [0, a)."""
+        """Largest a in (0, inf] with det(F(x + s dx)) > 0 for all s in [0, a).
+
+        Returns 0 when ``x`` itself has inverted points and inf when the bound is at least
+        ``limit``.
+        """
         self._load(self.x, x)
         self._load(self.dx, dx)
         values = self.expr.eval(self.x.function_space.mesh, self.cells)
         d = self.d
-        vals = values.reshape(len(self.cells), -1, 2, d, d).reshape(-1, 2, d, d)
-        F0, D = vals[:, 0], vals[:, 1]
+        vals = values.reshape(-1, 2, d, d)
+        adj, det = _adjugate(vals[:, 0])
         local = np.inf
-        if len(F0):
-            mu = np.linalg.eigvals(np.linalg.solve(F0, D))
-            # near-real pairs count as real: conservative where roots nearly coincide
-            real = np.abs(mu.imag) <= 1e-6 * np.maximum(np.abs(mu.real), 1e-300)
-            neg = real & (mu.real < 0)
-            if neg.any():
-                local = float(np.min(-1.0 / mu.real[neg]))
-            if np.any(np.linalg.det(F0) <= 0):
-                local = 0.0
-        return self.comm.allreduce(local, op=MPI.MIN)
+        if np.any(det <= 0):
+            local = 0.0
+        elif len(det):
+            M = adj @ vals[:, 1] / det[:, None, None]  # F0^{-1} D
+            norm = np.sqrt(np.einsum("pij,pij->p", M, M))
+            relevant = norm > 1.0 / self.limit
+            if relevant.any():
+                mu = np.linalg.eigvals(M[relevant])
+                # near-real pairs count as real: conservative where roots nearly coincide
+                real = np.abs(mu.imag) <= 1e-6 * np.maximum(np.abs(mu.real), 1e-300)
+                neg = real & (mu.real < 0)
+                if neg.any():
+                    local = float(np.min(-1.0 / mu.real[neg]))
+        bound = self.comm.allreduce(local, op=MPI.MIN)
+        return bound if bound < self.limit else np.inf
+
+
+def _adjugate(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Adjugates and determinants of a stack of 2x2 or 3x3 matrices (closed form)."""
+    if F.shape[1] == 2:
+        adj = np.empty_like(F)
+        adj[:, 0, 0], adj[:, 1, 1] = F[:, 1, 1], F[:, 0, 0]
+        adj[:, 0, 1], adj[:, 1, 0] = -F[:, 0, 1], -F[:, 1, 0]
+        return adj, F[:, 0, 0] * F[:, 1, 1] - F[:, 0, 1] * F[:, 1, 0]
+    r0, r1, r2 = F[:, 0], F[:, 1], F[:, 2]
+    # columns of adj(F) are cross products of the rows: F adj(F) = det(F) I
+    adj = np.stack([np.cross(r1, r2), np.cross(r2, r0), np.cross(r0, r1)], axis=2)
+    return adj, np.einsum("pi,pi->p", r0, adj[:, :, 0])

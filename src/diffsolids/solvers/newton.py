@@ -94,7 +94,11 @@ class NewtonSolver:
         self._work = fem_petsc.create_vector(V)
         self.step_bounds: list = []
         if self.options.prevent_inversion:
-            self.step_bounds.append(InversionGuard(V, f.dx.metadata()["quadrature_degree"]))
+            # steps bounded at or beyond 1 / step_safety are taken in full: no need to know more
+            guard = InversionGuard(
+                V, f.dx.metadata()["quadrature_degree"], limit=1.0 / self.options.step_safety
+            )
+            self.step_bounds.append(guard)
         self.reference_force = 0.0
         self._jacobian_key = None
         self._make_snes()
