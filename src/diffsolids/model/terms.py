@@ -114,6 +114,17 @@ class ElasticEnergy(_DensityTerm):
         return forms.strain_energy(self.law, f.u, lmbda, mu)
 
     @override
+    def magnitude(self, f: StepFields) -> ufl.Form:
+        if self.law == "linear":
+            return super().magnitude(f)
+        # Near F = I the finite-strain densities cancel addends of size mu (tr F^T F + d)
+        # (e.g. Neo-Hookean tr C - d - 2 ln J): their roundoff scales with those addends.
+        lmbda, mu = self.lame(f)
+        F = forms.deformation_gradient(f.u)
+        addends = mu * (ufl.tr(F.T * F) + len(f.u)) + abs(lmbda)
+        return (abs(self.energy_density(f)) + addends) * self.measure(f)
+
+    @override
     def measure(self, f: StepFields) -> ufl.Measure:
         return f.dx if self.bodies is None else f.dx(tuple(self.bodies))
 
