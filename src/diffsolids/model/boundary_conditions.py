@@ -52,6 +52,7 @@ class RealisedDirichlet:
         )
         if not comps or any(c < 0 or c >= self.dim for c in comps):
             raise ParameterError(f"Dirichlet components {comps} invalid for dimension {self.dim}")
+        self.components = comps
         self._nparams = _num_params(condition.value)
         fdim = mesh.topology.dim - 1
         facets = None if callable(condition.where) else domain.facets_of(condition.where)
@@ -71,6 +72,11 @@ class RealisedDirichlet:
             raise TagError(f"Dirichlet condition on {condition.where!r} constrains no dof")
         self.dofs = np.unique(np.concatenate([bc.dof_indices()[0] for bc in self.bcs]))
         self.update(0.0)
+
+    def set_value(self, value) -> None:
+        """Replace the prescribed value (same forms as DirichletCondition.value)."""
+        self._nparams = _num_params(value)
+        self.condition.value = value
 
     def update(self, t: float) -> None:
         """Set the prescribed values at time ``t``."""

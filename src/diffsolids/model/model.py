@@ -4,9 +4,9 @@ Every coefficient the physics depends on is registered in ``Model.coefficients``
 fields, densities, damping, loads), so controls and the adjoint find them by name.
 """
 
+import functools
 from collections.abc import Callable, Mapping, Sequence
 
-import basix.ufl
 import numpy as np
 import ufl
 from dolfinx import default_scalar_type, fem
@@ -41,7 +41,8 @@ class Model:
         materials: One Material for all bodies, or ``{body: Material}`` covering every body.
         degree: Lagrange degree of the displacement (1, 2 or 3).
         plane_stress: In 2D, use plane stress instead of plane strain.
-        quadrature_degree: Quadrature degree of all terms (default ``2 * degree``).
+        quadrature_degree: Quadrature degree of mass-type terms (inertia, loads; default
+            ``2 * degree``); terms of the strain (elasticity, damping) use two less.
         fields: Optional parameter fields replacing per-body constants, e.g.
             ``{"E": Function}`` on a DG0 or CG1 space.
         damping: Include the damping term even if all damping parameters are zero
@@ -79,8 +80,8 @@ class Model:
         if len(params) > 1:
             raise ParameterError("all bodies must give elastic parameters the same way")
         self.parametrisation = params.pop()
-        self.coefficients: dict[str, fem.Function | fem.Constant] = {}
-        self._load_updates: list[tuple[fem.Constant, Callable]] = []
+        self.coefficients: dict[str, fem.Function] = {}
+        self._load_updates: list[tuple[fem.Function, Callable]] = []
         self._make_parameter_fields(fields or {})
         self.fields = self._make_fields(quadrature_degree or 2 * degree)
         self.terms: list[Term] = self._elastic_terms()
@@ -159,6 +160,7 @@ class Model:
     def _make_fields(self, qdeg: int) -> StepFields:
         mesh = self.domain.mesh
         md = {"quadrature_degree": qdeg}
+        md_strain = {"quadrature_degree": max(qdeg - 2, 0)}
         c = lambda v: fem.Constant(mesh, default_scalar_type(v))  # noqa: E731
         return StepFields(
             u=fem.Function(self.V, name="displacement"),
@@ -171,6 +173,9 @@ class Model:
             X=ufl.SpatialCoordinate(mesh),
             dx=ufl.Measure("dx", domain=mesh, subdomain_data=self.domain.cell_tags, metadata=md),
             ds=ufl.Measure("ds", domain=mesh, subdomain_data=self.domain.facet_tags, metadata=md),
+            dx_strain=ufl.Measure(
+                "dx", domain=mesh, subdomain_data=self.domain.cell_tags, metadata=md_strain
+            ),
             coefficients=self.coefficients,
         )
 
@@ -202,19 +207,21 @@ class Model:
         self.terms.append(term)
         return term
 
-    def _vector_constant(self, name: str, value) -> fem.Constant:
+    def _uniform_vector_field(self, name: str, value) -> fem.Function:
+        """A load vector as a uniform DG0 field, so UFL can differentiate with respect to it."""
         if name in self.coefficients:
             raise ParameterError(f"a coefficient named {name!r} already exists")
-        mesh = self.domain.mesh
         initial = value(0.0) if callable(value) else value
         arr = np.broadcast_to(np.asarray(initial, dtype=float), (self.dim,)).copy()
         if not np.all(np.isfinite(arr)):
             raise ParameterError(f"{name} = {arr} is not finite")
-        const = fem.Constant(mesh, arr)
-        self.coefficients[name] = const
+        Q = fem.functionspace(self.domain.mesh, ("DG", 0, (self.dim,)))
+        field = fem.Function(Q, name=name)
+        field.x.array.reshape(-1, self.dim)[:] = arr
+        self.coefficients[name] = field
         if callable(value):
-            self._load_updates.append((const, value))
-        return const
+            self._load_updates.append((field, value))
+        return field
 
     def add_body_force(
         self, acceleration, bodies: Sequence[int | str] | None = None, name: str | None = None
@@ -222,7 +229,7 @@ class Model:
         """Body force rho g (e.g. gravity), ``acceleration`` a vector or ``g(t)``."""
         name = name or f"body_force_{len([t for t in self.terms if isinstance(t, BodyForce)])}"
         ids = None if bodies is None else [self.domain.body_id(b) for b in bodies]
-        self._vector_constant(name, acceleration)
+        self._uniform_vector_field(name, acceleration)
         return self.add_term(BodyForce(name, ids))
 
     def add_gravity(self, g: float = 9.81, axis: int | None = None) -> Term:
@@ -235,7 +242,7 @@ class Model:
         """Dead traction on tagged facets, ``traction`` a vector or ``t(t)``."""
         tag = self.domain.facet_id(facet_tag)
         name = name or f"traction_{tag}"
-        self._vector_constant(name, traction)
+        self._uniform_vector_field(name, traction)
         return self.add_term(Traction(name, tag))
 
     def add_dirichlet(
@@ -282,11 +289,11 @@ class Model:
     def update_time(self, t: float) -> None:
         """Set time-dependent loads, Dirichlet values and the time constant to time ``t``."""
         self.fields.t.value = t
-        for const, fn in self._load_updates:
+        for field, fn in self._load_updates:
             arr = np.broadcast_to(np.asarray(fn(t), dtype=float), (self.dim,))
             if not np.all(np.isfinite(arr)):
                 raise ParameterError(f"load value {arr} at t = {t} is not finite")
-            const.value[:] = arr
+            field.x.array.reshape(-1, self.dim)[:] = arr
         for d in self.dirichlet:
             d.update(t)
 
@@ -295,8 +302,7 @@ class Model:
         dx = self.fields.dx
         return dx if body is None else dx(self.domain.body_id(body))
 
-    def element(self):
-        """The basix element of the displacement space."""
-        return basix.ufl.element(
-            "Lagrange", self.domain.mesh.basix_cell(), self.degree, shape=(self.dim,)
-        )
+    @functools.cached_property
+    def shape_space(self) -> fem.FunctionSpace:
+        """P1 vector space of the rest coordinates (shape derivatives live here)."""
+        return fem.functionspace(self.domain.mesh, ("Lagrange", 1, (self.dim,)))

@@ -40,8 +40,10 @@ class StepFields:
         dt: Time-step size.
         beta_dt: beta_m dt of the BDF order used by the step.
         X: Rest (reference) coordinates.
-        dx: Volume measure with body tags and quadrature degree.
-        ds: Boundary measure with facet tags and quadrature degree.
+        dx: Volume measure with body tags, quadrature exact for mass-type integrands.
+        ds: Boundary measure with facet tags and the same quadrature degree.
+        dx_strain: Volume measure for integrands of the strain (two degrees less: exact for
+            linear elasticity, one point per cell with P1).
         coefficients: Named parameter coefficients (material fields, loads).
     """
 
@@ -55,6 +57,7 @@ class StepFields:
     X: ufl.SpatialCoordinate
     dx: ufl.Measure
     ds: ufl.Measure
+    dx_strain: ufl.Measure
     coefficients: dict = field(default_factory=dict)
 
 
@@ -126,7 +129,7 @@ class ElasticEnergy(_DensityTerm):
 
     @override
     def measure(self, f: StepFields) -> ufl.Measure:
-        return f.dx if self.bodies is None else f.dx(tuple(self.bodies))
+        return f.dx_strain if self.bodies is None else f.dx_strain(tuple(self.bodies))
 
 
 class Inertia(_DensityTerm):
@@ -151,6 +154,10 @@ class Damping(_DensityTerm):
     def energy_density(self, f: StepFields):
         c = f.coefficients
         return forms.damping_potential(f.u, f.u_prev, f.dt, c["damping_psi"], c["damping_phi"])
+
+    @override
+    def measure(self, f: StepFields) -> ufl.Measure:
+        return f.dx_strain
 
 
 class BodyForce(_DensityTerm):

@@ -1,0 +1,164 @@
+"""Linear solves of the adjoint: exact transposed Jacobians, reusing forward factorisations.
+
+The step Jacobian is symmetric (Hessian of a potential; Dirichlet rows and columns are identity),
+so K^T lambda = b is K lambda = b. The matrix is always the exact Hessian at u^i. Factorisations
+are reused where that stays exact:
+* quadratic potentials (linear elasticity): K is the forward matrix itself; the forward LU solves
+  the adjoint directly (one factorisation per distinct beta dt);
+* otherwise the closest available LU (the forward's last Newton factorisation of the same step
+  when the forward kept it, else the latest one) preconditions GMRES on the exact K applied
+  matrix-free (a couple of iterations, converged to round-off); when GMRES does not converge
+  quickly, K is assembled and factorised and preconditions the following steps.
+"""
+
+from dataclasses import dataclass
+
+from petsc4py import PETSc
+
+from diffsolids.solvers.action import JacobianAction
+
+__all__ = ["AdjointLinearSolver", "AdjointSolverOptions"]
+
+
+@dataclass
+class AdjointSolverOptions:
+    """Options of the adjoint linear solves.
+
+    Attributes:
+        rtol: Relative residual tolerance of the Krylov solves.
+        max_krylov: GMRES iterations before the matrix is refactorised.
+        refactor_above: Refactorise for the next steps when a solve needed more iterations.
+    """
+
+    rtol: float = 1e-12
+    max_krylov: int = 30
+    refactor_above: int = 12
+
+
+class _FrozenPC:
+    """petsc4py python PC applying an existing factorisation (never re-set-up)."""
+
+    def __init__(self, pc: PETSc.PC):
+        self.pc = pc
+
+    def apply(self, pc, x, y):
+        self.pc.apply(x, y)
+
+
+class AdjointLinearSolver:
+    """Solves K(u^i) lambda = b for the steps of a backward sweep.
+
+    Args:
+        newton: The forward NewtonSolver (its forms, Dirichlet conditions and last factors).
+        options: Krylov and refactorisation options.
+    """
+
+    def __init__(self, newton, options: AdjointSolverOptions | None = None):
+        self.newton = newton
+        self.options = options or AdjointSolverOptions()
+        self.comm = newton.comm
+        self._mats = [newton.create_matrix(), newton.create_matrix()]
+        self.action = JacobianAction(newton)
+        self._factor_ksps: dict = {}
+        self._precond = None  # (PETSc.PC, index of the frozen matrix or -1 for the forward one)
+        self.stats = {"krylov_iterations": 0, "factorisations": 0, "direct_solves": 0}
+        self._gmres = PETSc.KSP().create(self.comm)
+        self._gmres.setType("gmres")
+        self._gmres.setTolerances(rtol=self.options.rtol, atol=0.0, max_it=self.options.max_krylov)
+        self._gmres.setGMRESRestart(self.options.max_krylov)
+        self._gmres.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
+        self._gmres.getPC().setType("python")
+
+    def begin(self) -> None:
+        """Start a sweep right after a forward run: the forward's last factors are current."""
+        store = self.newton.factor_store
+        self._stored = dict(store.factors) if store is not None else {}
+        # Without a store the SNES's KSP still holds the factors of the last Newton iterate.
+        self._precond = None if store is not None else (self.newton.snes.getKSP().getPC(), -1)
+        self.stats = {"krylov_iterations": 0, "factorisations": 0, "direct_solves": 0}
+        self._quadratic_cache = {}
+
+    def _factorise(self, A: PETSc.Mat) -> PETSc.KSP:
+        ksp = PETSc.KSP().create(self.comm)
+        ksp.setOperators(A)
+        ksp.setType("preonly")
+        pc = ksp.getPC()
+        pc.setType("lu")
+        pc.setFactorSolverType("mumps")
+        ksp.setUp()
+        self.stats["factorisations"] += 1
+        return ksp
+
+    def solve(self, b: PETSc.Vec, x: PETSc.Vec, step: int) -> int:
+        """Solve with the exact Jacobian of ``step`` at the model's current u.
+
+        Returns:
+            Krylov iterations (0 for a direct solve).
+        """
+        if self.newton.quadratic:
+            return self._solve_quadratic(b, x)
+        if step in self._stored:  # the forward's own last factors of this step
+            self._precond = (self._stored[step].getPC(), -1)
+        frozen = -1 if self._precond is None else self._precond[1]
+        work = 1 if frozen == 0 else 0
+        its = None
+        if self._precond is not None:
+            its = self._krylov(self.action.mat, self._precond[0], b, x)
+        if its is None or its > self.options.refactor_above:
+            A = self._mats[work]
+            self.newton.assemble_jacobian(A, exact=True)
+            ksp = self._factorise(A)
+            if work in self._factor_ksps:
+                self._factor_ksps[work].destroy()
+            self._factor_ksps[work] = ksp
+            self._precond = (ksp.getPC(), work)
+            if its is None:
+                ksp.solve(b, x)
+                self.stats["direct_solves"] += 1
+                its = 0
+        return its
+
+    def _solve_quadratic(self, b: PETSc.Vec, x: PETSc.Vec) -> int:
+        """Constant Jacobian (per beta dt): direct solves with one factorisation each."""
+        newton = self.newton
+        key = newton._current_key()
+        if key == newton._jacobian_key:  # the forward factors are of this very matrix
+            newton.snes.getKSP().solve(b, x)
+        else:
+            if key not in self._quadratic_cache:
+                A = newton.create_matrix()
+                newton.assemble_jacobian(A, exact=True)
+                self._quadratic_cache[key] = self._factorise(A)
+            self._quadratic_cache[key].solve(b, x)
+        self.stats["direct_solves"] += 1
+        return 0
+
+    def _krylov(self, A, pc, b, x) -> int | None:
+        ksp = self._gmres
+        ksp.setOperators(A)
+        ksp.getPC().setPythonContext(_FrozenPC(pc))
+        x.set(0.0)
+        ksp.solve(b, x)
+        its = ksp.getIterationNumber()
+        self.stats["krylov_iterations"] += its
+        if ksp.getConvergedReason() <= 0:
+            return None
+        return its
+
+    def check(self, b: PETSc.Vec, x: PETSc.Vec) -> float:
+        """Relative residual of a solution (for tests)."""
+        A = self._mats[0]
+        self.newton.assemble_jacobian(A, exact=True)
+        r = b.duplicate()
+        A.mult(x, r)
+        r.axpy(-1.0, b)
+        bn = b.norm()
+        if bn == 0:
+            return r.norm()
+        return r.norm() / bn
+
+    def destroy(self) -> None:
+        """Free PETSc objects."""
+        for ksp in [*self._factor_ksps.values(), *getattr(self, "_quadratic_cache", {}).values()]:
+            ksp.destroy()
+        self._gmres.destroy()

@@ -1,0 +1,189 @@
+"""The discrete adjoint of a forward run: one linear solve per step, backward in time.
+
+Reverse-mode differentiation of exactly what the forward computed. With BDF_m (start-up orders
+m_i = min(i, m)) step i solves G_i(u^i; u_tilde^i, u^{i-1}, X, q) = 0 with the predictor
+u_tilde^i = -sum_j alpha_j (u^{i-j} + beta dt v^{i-j}) and then sets
+v^i = (u^i + sum_j alpha_j u^{i-j}) / (beta dt). Walking i = N..1 with accumulated adjoints
+ubar^i, vbar^i (seeded with dJ/du^i, dJ/dv^i):
+  1. vbar^i is complete: push it through the velocity formula into ubar^i and ubar^{i-j};
+  2. solve K_i lambda_i = -ubar^i (K_i = dG_i/du^i, symmetric; zero on Dirichlet rows);
+  3. push lambda_i into the inputs of G_i: ubar^{i-j} and vbar^{i-j} through u_tilde, ubar^{i-1}
+     through damping (and contact through lagged friction and the BDF velocity), and X, q.
+At i = 0, ubar^0 and vbar^0 are dJ/du^0 and dJ/dv^0. This is the recurrence of paper eqs. 12-15
+and appendix A.2 written with the eliminated velocity: lambda_i plays the role of p_i (scaled by
+beta dt), the pushes of step 1 and 3 are the mu/nu recurrences, the start-up steps use their own
+alpha and beta (consistency), and the mass-matrix shape derivative (appendix A.3) is the
+coordinate derivative of the inertia term inside L_i.
+"""
+
+import logging
+import time
+
+import dolfinx.la
+import numpy as np
+from dolfinx import fem
+
+from diffsolids.adjoint.forms import AdjointForms
+from diffsolids.adjoint.linear import AdjointLinearSolver, AdjointSolverOptions
+from diffsolids.adjoint.sensitivities import Sensitivities, Targets
+
+__all__ = ["BackwardSweep"]
+
+logger = logging.getLogger("diffsolids")
+
+
+class BackwardSweep:
+    """Computes Sensitivities of an objective for the last forward run of a Simulation.
+
+    Args:
+        simulation: The Simulation (its model, integrator, Newton solver).
+        leaves: Integral leaves of the objective.
+        targets: Sensitivities to compute.
+        options: Adjoint linear-solver options.
+    """
+
+    def __init__(
+        self, simulation, leaves, targets: Targets, options: AdjointSolverOptions | None = None
+    ):
+        self.sim = simulation
+        self.model = simulation.model
+        self.targets = targets
+        self.forms = AdjointForms(self.model, simulation.integrator.dynamic, leaves, targets)
+        self.linear = AdjointLinearSolver(simulation.solver, options)
+        V = self.model.V
+        imap = V.dofmap.index_map
+        self.bs = V.dofmap.index_map_bs
+        self.owned = imap.size_local * self.bs
+        self.bc_dofs = self.model.dirichlet_dofs()
+        self._rhs = simulation.solver.create_matrix().createVecRight()
+        self._sol = self._rhs.duplicate()
+        self.stats: dict = {}
+
+    # -- assembly helpers ----------------------------------------------------------------
+    def _assemble(self, form) -> np.ndarray:
+        """Owned entries of an assembled vector form (ghost contributions summed)."""
+        vec = fem.assemble_vector(form)
+        vec.scatter_reverse(dolfinx.la.InsertMode.add)
+        n = vec.index_map.size_local * vec.block_size
+        return vec.array[:n]
+
+    def _add(self, target: np.ndarray, form) -> None:
+        if form is not None:
+            target[: self.owned] += self._assemble(form)
+
+    # -- the sweep ----------------------------------------------------------------------------
+    def run(self, traj, leaf_weights: dict) -> Sensitivities:
+        """Backward sweep over ``traj`` with chain-rule weights ``leaf_weights[leaf][i]``."""
+        t0 = time.perf_counter()
+        sim, forms = self.sim, self.forms
+        n = len(traj.u[0])
+        N = traj.num_steps
+        ubar = [np.zeros(n) for _ in range(N + 1)]
+        vbar = [np.zeros(n) for _ in range(N + 1)]
+        sens = self._empty_sensitivities(N)
+        self.linear.begin()
+        krylov = []
+        for i in range(N, 0, -1):
+            c = sim.load_step(i, traj)
+            self._load_state(traj, i)
+            for term in self.model.numeric_terms:
+                term.begin_step(i, traj, c, sim)
+            active = forms.set_weights(leaf_weights, i)
+            if active:
+                self._add(ubar[i], forms.objective_u)
+                self._add(vbar[i], forms.objective_v)
+            # 1. v^i = (u^i + sum_j alpha_j u^{i-j}) / (beta dt)
+            ubar[i] += vbar[i] / c.beta_dt
+            for j, a in enumerate(c.alpha, start=1):
+                ubar[i - j] += a * vbar[i] / c.beta_dt
+            # 2. K_i lambda_i = -ubar^i on free dofs
+            krylov.append(self._solve(ubar[i], i))
+            # 3. push lambda_i (and the objective's own partials) into the inputs of step i
+            if forms.history_tilde is not None:
+                g = self._assemble(forms.history_tilde)
+                for j, a in enumerate(c.alpha, start=1):
+                    ubar[i - j][: self.owned] -= a * g
+                    vbar[i - j][: self.owned] -= a * c.beta_dt * g
+            self._add(ubar[i - 1], forms.history_prev)
+            self._numeric_history(ubar, i)
+            self._parameters(sens)
+            if self.targets.dirichlet:
+                ubar[i][: self.owned] += self._assemble(forms.jacobian_action)
+                sens.dirichlet[i] = ubar[i]
+        self._initial_step(traj, leaf_weights, ubar, vbar, sens)
+        self.stats = {
+            "seconds": time.perf_counter() - t0,
+            **self.linear.stats,
+            "krylov_per_step": krylov[::-1],
+        }
+        return sens
+
+    def _empty_sensitivities(self, N: int) -> Sensitivities:
+        sens = Sensitivities()
+        if self.targets.shape:
+            S = self.model.shape_space
+            sens.shape = np.zeros(S.dofmap.index_map.size_local * S.dofmap.index_map_bs)
+        for name in self.targets.coefficients:
+            V = self.model.coefficients[name].function_space
+            sens.coefficients[name] = np.zeros(
+                V.dofmap.index_map.size_local * V.dofmap.index_map_bs
+            )
+        sens.dirichlet = [None] * (N + 1)
+        return sens
+
+    def _load_state(self, traj, i: int) -> None:
+        f = self.model.fields
+        f.u.x.array[:] = traj.u[i]
+        f.v.x.array[:] = traj.v[i]
+
+    def _solve(self, ubar_i: np.ndarray, step: int) -> int:
+        rhs, sol = self._rhs, self._sol
+        rhs.array_w[:] = -ubar_i[: self.owned]
+        owned_bc = self.bc_dofs[self.bc_dofs < self.owned]
+        rhs.array_w[owned_bc] = 0.0
+        its = self.linear.solve(rhs, sol, step)
+        lam = self.forms.lam
+        lam.x.petsc_vec.array_w[:] = sol.array_r
+        lam.x.scatter_forward()
+        return its
+
+    def _numeric_history(self, ubar, i: int) -> None:
+        lam = self.forms.lam.x.array
+        for term in self.model.numeric_terms:
+            for j, g in term.adjoint_history(self.model.fields.u, lam).items():
+                ubar[i - j][: self.owned] += g[: self.owned]
+
+    def _parameters(self, sens: Sensitivities) -> None:
+        """Coefficient and shape partials of L_i + J_i (also used at step 0 with lambda = 0)."""
+        for name, form in self.forms.coefficients.items():
+            if form is not None:
+                sens.coefficients[name] += self._assemble(form)
+        if self.forms.shape is not None:
+            sens.shape += self._assemble(self.forms.shape)
+            lam = self.forms.lam.x.array
+            for term in self.model.numeric_terms:
+                if np.any(lam):
+                    sens.shape += term.adjoint_shape(self.model.fields.u, lam)[: len(sens.shape)]
+        lam = self.forms.lam.x.array
+        for name in self.targets.contact:
+            for term in self.model.numeric_terms:
+                contrib = getattr(term, f"adjoint_{name}")(self.model.fields.u, lam)
+                sens.contact[name] = sens.contact.get(name, 0.0) + contrib
+
+    def _initial_step(self, traj, leaf_weights, ubar, vbar, sens) -> None:
+        """Step 0: objective partials at u^0, v^0 (lambda = 0) and the initial sensitivities."""
+        forms = self.forms
+        self.model.update_time(0.0)
+        self._load_state(traj, 0)
+        forms.lam.x.array[:] = 0.0
+        if forms.set_weights(leaf_weights, 0):
+            self._add(ubar[0], forms.objective_u)
+            self._add(vbar[0], forms.objective_v)
+            for name, form in forms.coefficients.items():
+                if form is not None:
+                    sens.coefficients[name] += self._assemble(form)
+            if forms.shape is not None:
+                sens.shape += self._assemble(forms.shape)
+        sens.u0, sens.v0 = ubar[0], vbar[0]
+        if self.targets.dirichlet:
+            sens.dirichlet[0] = ubar[0]

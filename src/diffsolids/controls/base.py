@@ -1,0 +1,110 @@
+"""Controls: map one flat parameter vector q to what the physics reads, and gradients back."""
+
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+
+import numpy as np
+
+from diffsolids.adjoint.sensitivities import Sensitivities, Targets
+from diffsolids.errors import DiffsolidsError
+
+__all__ = ["Control", "ControlError", "ControlSet"]
+
+
+class ControlError(DiffsolidsError, ValueError):
+    """A control that does not fit the simulation, or a parameter vector of the wrong size."""
+
+
+class Control(ABC):
+    """A block of the parameter vector.
+
+    Subclasses define ``size``, read and write the parameters, name the sensitivities they need,
+    and pull those back to dJ/dq (the chain rule of their parametrisation).
+    """
+
+    name: str = "control"
+
+    @property
+    @abstractmethod
+    def size(self) -> int:
+        """Number of parameters."""
+
+    @abstractmethod
+    def value(self) -> np.ndarray:
+        """Current parameters (identical on all ranks)."""
+
+    @abstractmethod
+    def assign(self, q: np.ndarray) -> None:
+        """Apply parameters to the model/simulation."""
+
+    @abstractmethod
+    def targets(self) -> Targets:
+        """Sensitivities needed by :meth:`pullback`."""
+
+    @abstractmethod
+    def pullback(self, sens: Sensitivities) -> np.ndarray:
+        """dJ/dq from the sensitivities (identical on all ranks)."""
+
+    def check(self, simulation) -> None:  # noqa: B027 (optional hook)
+        """Raise ControlError if the control does not belong to ``simulation``."""
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper bounds of the parameters (default unbounded)."""
+        return np.full(self.size, -np.inf), np.full(self.size, np.inf)
+
+
+class ControlSet:
+    """Several controls concatenated into one flat parameter vector."""
+
+    def __init__(self, controls: Sequence[Control], simulation):
+        if isinstance(controls, Control):
+            controls = [controls]
+        if not controls:
+            raise ControlError("at least one control is needed")
+        self.controls = list(controls)
+        for c in self.controls:
+            c.check(simulation)
+        self.offsets = np.cumsum([0] + [c.size for c in self.controls])
+
+    @property
+    def size(self) -> int:
+        """Total number of parameters."""
+        return int(self.offsets[-1])
+
+    def value(self) -> np.ndarray:
+        """Current concatenated parameters."""
+        return np.concatenate([c.value() for c in self.controls])
+
+    def split(self, q) -> list[np.ndarray]:
+        """Blocks of q per control (validates the length and finiteness)."""
+        q = np.asarray(q, dtype=float)
+        if q.ndim != 1 or q.size != self.size:
+            raise ControlError(
+                f"parameter vector has length {q.size if q.ndim == 1 else q.shape}, "
+                f"the controls expect {self.size} "
+                f"({', '.join(f'{c.name}: {c.size}' for c in self.controls)})"
+            )
+        if not np.all(np.isfinite(q)):
+            raise ControlError("parameter vector has non-finite entries")
+        return [q[a:b] for a, b in zip(self.offsets[:-1], self.offsets[1:], strict=True)]
+
+    def assign(self, q) -> None:
+        """Apply the concatenated parameters."""
+        for c, block in zip(self.controls, self.split(q), strict=True):
+            c.assign(block)
+
+    def targets(self) -> Targets:
+        """Union of the controls' targets."""
+        t = Targets()
+        for c in self.controls:
+            t = t | c.targets()
+        return t
+
+    def pullback(self, sens: Sensitivities) -> np.ndarray:
+        """Concatenated gradient."""
+        return np.concatenate([c.pullback(sens) for c in self.controls])
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Concatenated bounds."""
+        lo, hi = zip(*(c.bounds() for c in self.controls), strict=True)
+        return np.concatenate(lo), np.concatenate(hi)

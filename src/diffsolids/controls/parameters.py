@@ -1,0 +1,153 @@
+"""Controls of model coefficients: material fields, density, damping, load vectors."""
+
+from typing import override
+
+import numpy as np
+from mpi4py import MPI
+
+from diffsolids.adjoint.sensitivities import Sensitivities, Targets
+from diffsolids.controls.base import Control, ControlError
+from diffsolids.controls.ordering import CanonicalLayout
+
+__all__ = ["ParameterControl"]
+
+_MODES = ("field", "bodies", "uniform", "scale")
+
+
+class ParameterControl(Control):
+    """A coefficient of the model as parameters.
+
+    Args:
+        model: The Model owning the coefficient.
+        name: Coefficient name in ``model.coefficients`` ("E", "nu", "lmbda", "mu", "density",
+            "damping_psi", "damping_phi", "gravity", "traction_<tag>", ...).
+        mode: "field" (every dof, canonical order), "bodies" (one value per listed body and
+            component, DG0 coefficients), "uniform" (one value per component everywhere) or
+            "scale" (one factor multiplying the current field, e.g. a load magnitude).
+        bodies: Bodies of mode "bodies" (default: all).
+        log: Parametrise by the logarithm (value = exp(q)), for positive parameters.
+        lower: Lower bound of q (scalar or array).
+        upper: Upper bound of q.
+    """
+
+    def __init__(
+        self,
+        model,
+        name: str,
+        mode: str = "field",
+        bodies=None,
+        log: bool = False,
+        lower=-np.inf,
+        upper=np.inf,
+    ):
+        if name not in model.coefficients:
+            raise ControlError(
+                f"the model has no coefficient {name!r}; it has {sorted(model.coefficients)}"
+            )
+        if mode not in _MODES:
+            raise ControlError(f"unknown parameter mode {mode!r}; choose from {_MODES}")
+        self.model, self.coefficient_name, self.mode, self.log = model, name, mode, log
+        self.name = f"{name}[{mode}{', log' if log else ''}]"
+        self.function = model.coefficients[name]
+        V = self.function.function_space
+        self.bs = V.dofmap.index_map_bs
+        self.owned = V.dofmap.index_map.size_local
+        self.comm = model.domain.comm
+        self._lower, self._upper = lower, upper
+        self.base = self.function.x.array.copy()
+        self._scale = 1.0
+        if mode == "field":
+            self.layout = CanonicalLayout(V)
+        elif mode == "bodies":
+            if V.element.basix_element.degree != 0:
+                raise ControlError(f"per-body control of {name!r} needs a DG0 coefficient")
+            ids = model.domain.body_ids if bodies is None else bodies
+            self.bodies = [model.domain.body_id(b) for b in ids]
+            self._cells = [model.domain.cells_of(b) for b in self.bodies]
+        if log and np.any(self._physical_values() <= 0):
+            raise ControlError(f"log parametrisation of {name!r} needs positive values")
+
+    @override
+    def check(self, simulation) -> None:
+        if simulation.model is not self.model:
+            raise ControlError(f"control {self.name} belongs to a different model")
+
+    @override
+    @property
+    def size(self) -> int:
+        if self.mode == "field":
+            return self.layout.size
+        if self.mode == "bodies":
+            return len(self.bodies) * self.bs
+        return self.bs if self.mode == "uniform" else 1
+
+    def _to_physical(self, q):
+        return np.exp(q) if self.log else q
+
+    def _physical_values(self) -> np.ndarray:
+        arr = self.function.x.array.reshape(-1, self.bs)
+        if self.mode == "field":
+            return self.layout.gather(self.function.x.array)
+        if self.mode == "bodies":
+            vals = np.zeros((len(self.bodies), self.bs))
+            for k, cells in enumerate(self._cells):
+                owned = cells[cells < self.owned]
+                local = arr[owned].mean(axis=0) if len(owned) else np.full(self.bs, -np.inf)
+                vals[k] = self.comm.allreduce(local, op=MPI.MAX)
+            return vals.ravel()
+        if self.mode == "uniform":
+            n = self.comm.allreduce(len(arr[: self.owned]), op=MPI.SUM)
+            return self.comm.allreduce(arr[: self.owned].sum(axis=0), op=MPI.SUM) / n
+        return np.array([self._scale])
+
+    @override
+    def value(self) -> np.ndarray:
+        phys = self._physical_values()
+        return np.log(phys) if self.log else phys.copy()
+
+    @override
+    def assign(self, q: np.ndarray) -> None:
+        p = self._to_physical(np.asarray(q, dtype=float))
+        arr = self.function.x.array
+        if self.mode == "field":
+            self.layout.scatter(p, self.function)
+        elif self.mode == "bodies":
+            view = arr.reshape(-1, self.bs)
+            for k, cells in enumerate(self._cells):
+                view[cells] = p[k * self.bs : (k + 1) * self.bs]
+        elif self.mode == "uniform":
+            arr.reshape(-1, self.bs)[:] = p
+        else:
+            arr[:] = self.base * p[0]
+            self._scale = float(p[0])
+        self.model.validate_parameters()
+
+    @override
+    def targets(self) -> Targets:
+        return Targets(coefficients=frozenset({self.coefficient_name}))
+
+    @override
+    def pullback(self, sens: Sensitivities) -> np.ndarray:
+        g_local = sens.coefficients[self.coefficient_name][: self.owned * self.bs]
+        if self.mode == "field":
+            g = self.layout.gather(g_local)
+        elif self.mode == "bodies":
+            view = g_local.reshape(-1, self.bs)
+            local = np.array([view[c[c < self.owned]].sum(axis=0) for c in self._cells])
+            g = self.comm.allreduce(local, op=MPI.SUM).ravel()
+        elif self.mode == "uniform":
+            g = self.comm.allreduce(g_local.reshape(-1, self.bs).sum(axis=0), op=MPI.SUM)
+        else:
+            g = np.array(
+                [self.comm.allreduce(float(g_local @ self.base[: len(g_local)]), op=MPI.SUM)]
+            )
+        if self.log:
+            g = g * np.exp(self.value())
+        return g
+
+    @override
+    def bounds(self):
+        return (
+            np.broadcast_to(self._lower, self.size).astype(float),
+            np.broadcast_to(self._upper, self.size).astype(float),
+        )

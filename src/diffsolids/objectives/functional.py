@@ -1,0 +1,480 @@
+"""Objectives as expression trees over per-step integrals (paper sec. 9.1, eq. 23).
+
+An objective is a scalar built from *step series*: the values s_i, i = 0..N, of a quantity at
+every step. Leaves are :class:`Integral` (a UFL integral of the step's fields, evaluated at u^i,
+v^i); series combine elementwise (+, -, *, /, powers, functions) and reduce to scalars with time
+weights (:func:`time_integral`, :func:`final_value`). Scalars combine again (sums, products,
+powers, quotients) and with discrete regularisers. The chain rule runs through the tree once per
+gradient and leaves every Integral with a weight per step, so the adjoint assembles a single
+combined form per step.
+"""
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import override
+
+import numpy as np
+import ufl
+
+from diffsolids.errors import DiffsolidsError
+
+__all__ = [
+    "Integral",
+    "Objective",
+    "ObjectiveError",
+    "Regulariser",
+    "Series",
+    "TimeGrid",
+    "final_value",
+    "time_integral",
+]
+
+
+class ObjectiveError(DiffsolidsError, ValueError):
+    """An objective that cannot be evaluated (unknown steps, tags, non-finite values)."""
+
+
+@dataclass(frozen=True)
+class TimeGrid:
+    """Steps 0..N of size dt of the simulation an objective is evaluated on."""
+
+    num_steps: int
+    dt: float
+    dynamic: bool
+
+
+def _wrap(other, kind):
+    if isinstance(other, kind):
+        return other
+    if np.isscalar(other):
+        return (ConstantSeries if kind is Series else ConstantObjective)(float(other))
+    return NotImplemented
+
+
+class _Algebra:
+    """Elementwise algebra shared by series and scalar objectives."""
+
+    _kind: type
+
+    def __add__(self, other):
+        other = _wrap(other, self._kind)
+        return NotImplemented if other is NotImplemented else self._binary(other, "+")
+
+    __radd__ = __add__
+
+    def __sub__(self, other):
+        other = _wrap(other, self._kind)
+        return NotImplemented if other is NotImplemented else self._binary(other, "-")
+
+    def __rsub__(self, other):
+        other = _wrap(other, self._kind)
+        return NotImplemented if other is NotImplemented else other._binary(self, "-")
+
+    def __mul__(self, other):
+        other = _wrap(other, self._kind)
+        return NotImplemented if other is NotImplemented else self._binary(other, "*")
+
+    __rmul__ = __mul__
+
+    def __truediv__(self, other):
+        other = _wrap(other, self._kind)
+        return NotImplemented if other is NotImplemented else self._binary(other, "/")
+
+    def __rtruediv__(self, other):
+        other = _wrap(other, self._kind)
+        return NotImplemented if other is NotImplemented else other._binary(self, "/")
+
+    def __pow__(self, p: float):
+        return self.apply(lambda x: x**p, lambda x: p * x ** (p - 1), f"pow{p}")
+
+    def __neg__(self):
+        return self * -1.0
+
+    def _binary(self, other, op):
+        raise NotImplementedError
+
+    def apply(self, fn: Callable, dfn: Callable, name: str = "fn"):
+        """Elementwise ``fn`` with derivative ``dfn`` (e.g. ``np.sqrt`` and its derivative)."""
+        raise NotImplementedError
+
+
+def _binary_grad(op, a, b):
+    if op == "+":
+        return 1.0, 1.0
+    if op == "-":
+        return 1.0, -1.0
+    if op == "*":
+        return b, a
+    return 1.0 / b, -a / b**2
+
+
+def _binary_value(op, a, b):
+    if op == "+":
+        return a + b
+    if op == "-":
+        return a - b
+    if op == "*":
+        return a * b
+    return a / b
+
+
+class Series(_Algebra):
+    """Values of a quantity at every step 0..N."""
+
+    def leaves(self) -> list["Integral"]:
+        """Integrals this series depends on."""
+        raise NotImplementedError
+
+    def values(self, table: dict) -> np.ndarray:
+        """Values at all steps from the leaf value table (NaN where not evaluated)."""
+        raise NotImplementedError
+
+    def backward(self, table: dict, seed: np.ndarray, out: dict) -> None:
+        """Accumulate d(objective)/d(leaf value at step i) into ``out[leaf]``."""
+        raise NotImplementedError
+
+    def _binary(self, other, op):
+        return BinarySeries(self, other, op)
+
+    @override
+    def apply(self, fn, dfn, name="fn"):
+        return MappedSeries(self, fn, dfn, name)
+
+
+Series._kind = Series
+
+
+class Integral(Series):
+    """A UFL integral of the step fields: ``integrand(fields) -> scalar form``.
+
+    ``fields`` is the model's :class:`~diffsolids.model.StepFields` (u, v, X, t, dx, ds,
+    coefficients) holding u^i, v^i when step i is evaluated; any UFL expression of them works.
+    """
+
+    def __init__(self, integrand: Callable, name: str = "integral"):
+        self.integrand, self.name = integrand, name
+
+    def form(self, fields) -> ufl.Form:
+        """The scalar UFL form of this integral."""
+        return self.integrand(fields)
+
+    @override
+    def leaves(self):
+        return [self]
+
+    @override
+    def values(self, table):
+        return table[self]
+
+    @override
+    def backward(self, table, seed, out):
+        out[self] = out.get(self, 0.0) + seed
+
+
+class ConstantSeries(Series):
+    """The same value at every step."""
+
+    def __init__(self, value: float):
+        self.value = value
+
+    @override
+    def leaves(self):
+        return []
+
+    @override
+    def values(self, table):
+        n = len(next(iter(table.values()))) if table else 1
+        return np.full(n, self.value)
+
+    @override
+    def backward(self, table, seed, out):
+        pass
+
+
+class BinarySeries(Series):
+    """Elementwise a (op) b."""
+
+    def __init__(self, a: Series, b: Series, op: str):
+        self.a, self.b, self.op = a, b, op
+
+    @override
+    def leaves(self):
+        return self.a.leaves() + self.b.leaves()
+
+    @override
+    def values(self, table):
+        return _binary_value(self.op, self.a.values(table), self.b.values(table))
+
+    @override
+    def backward(self, table, seed, out):
+        da, db = _binary_grad(self.op, self.a.values(table), self.b.values(table))
+        self.a.backward(table, _masked(seed, da), out)
+        self.b.backward(table, _masked(seed, db), out)
+
+
+class MappedSeries(Series):
+    """Elementwise fn(a)."""
+
+    def __init__(self, a: Series, fn, dfn, name):
+        self.a, self.fn, self.dfn, self.name = a, fn, dfn, name
+
+    @override
+    def leaves(self):
+        return self.a.leaves()
+
+    @override
+    def values(self, table):
+        return self.fn(self.a.values(table))
+
+    @override
+    def backward(self, table, seed, out):
+        self.a.backward(table, _masked(seed, self.dfn(self.a.values(table))), out)
+
+
+def _masked(seed, factor):
+    """Seed * factor, exactly zero where seed is zero (factor may be NaN there)."""
+    seed = np.asarray(seed, dtype=float)
+    factor = np.broadcast_to(np.asarray(factor, dtype=float), seed.shape)
+    return np.where(seed != 0.0, seed * np.where(seed != 0.0, factor, 0.0), 0.0)
+
+
+# -- scalar objectives -------------------------------------------------------------------------
+class Objective(_Algebra):
+    """A scalar objective J."""
+
+    def leaves(self) -> list[Integral]:
+        """Integrals the objective depends on."""
+        raise NotImplementedError
+
+    def regularisers(self) -> list["Regulariser"]:
+        """Discrete regularisers the objective depends on."""
+        raise NotImplementedError
+
+    def value(self, table: dict, reg: dict, grid: TimeGrid) -> float:
+        """J from leaf values (``table``) and regulariser values (``reg``)."""
+        raise NotImplementedError
+
+    def backward(self, table, reg, grid, seed: float, out: dict, reg_out: dict) -> None:
+        """Accumulate dJ/d(leaf at step i) into ``out`` and dJ/d(regulariser) into ``reg_out``."""
+        raise NotImplementedError
+
+    def requirements(self, grid: TimeGrid) -> dict:
+        """Steps at which each leaf must be evaluated: ``{leaf: set of steps}``."""
+        raise NotImplementedError
+
+    def _binary(self, other, op):
+        return BinaryObjective(self, other, op)
+
+    @override
+    def apply(self, fn, dfn, name="fn"):
+        return MappedObjective(self, fn, dfn, name)
+
+
+Objective._kind = Objective
+
+
+def _merge(*dicts) -> dict:
+    out: dict = {}
+    for d in dicts:
+        for k, v in d.items():
+            out.setdefault(k, set()).update(v)
+    return out
+
+
+class ConstantObjective(Objective):
+    """A constant."""
+
+    def __init__(self, value: float):
+        self.c = value
+
+    @override
+    def leaves(self):
+        return []
+
+    @override
+    def regularisers(self):
+        return []
+
+    @override
+    def value(self, table, reg, grid):
+        return self.c
+
+    @override
+    def requirements(self, grid):
+        return {}
+
+    @override
+    def backward(self, table, reg, grid, seed, out, reg_out):
+        pass
+
+
+class BinaryObjective(Objective):
+    """a (op) b of scalar objectives."""
+
+    def __init__(self, a: Objective, b: Objective, op: str):
+        self.a, self.b, self.op = a, b, op
+
+    @override
+    def leaves(self):
+        return self.a.leaves() + self.b.leaves()
+
+    @override
+    def regularisers(self):
+        return self.a.regularisers() + self.b.regularisers()
+
+    @override
+    def value(self, table, reg, grid):
+        return _binary_value(
+            self.op, self.a.value(table, reg, grid), self.b.value(table, reg, grid)
+        )
+
+    @override
+    def requirements(self, grid):
+        return _merge(self.a.requirements(grid), self.b.requirements(grid))
+
+    @override
+    def backward(self, table, reg, grid, seed, out, reg_out):
+        a, b = self.a.value(table, reg, grid), self.b.value(table, reg, grid)
+        da, db = _binary_grad(self.op, a, b)
+        self.a.backward(table, reg, grid, seed * da, out, reg_out)
+        self.b.backward(table, reg, grid, seed * db, out, reg_out)
+
+
+class MappedObjective(Objective):
+    """fn(a) of a scalar objective."""
+
+    def __init__(self, a: Objective, fn, dfn, name):
+        self.a, self.fn, self.dfn, self.name = a, fn, dfn, name
+
+    @override
+    def leaves(self):
+        return self.a.leaves()
+
+    @override
+    def regularisers(self):
+        return self.a.regularisers()
+
+    @override
+    def value(self, table, reg, grid):
+        return float(self.fn(self.a.value(table, reg, grid)))
+
+    @override
+    def requirements(self, grid):
+        return self.a.requirements(grid)
+
+    @override
+    def backward(self, table, reg, grid, seed, out, reg_out):
+        a = self.a.value(table, reg, grid)
+        self.a.backward(table, reg, grid, seed * float(self.dfn(a)), out, reg_out)
+
+
+def step_weights(spec, grid: TimeGrid) -> np.ndarray:
+    """Weights w_0..w_N of a time reduction.
+
+    Args:
+        spec: "uniform" (w_0 = 0, w_i = dt), "trapezoidal", "final" (w_N = 1), a sequence of step
+            indices (weight 1 each; negative indices count from the end) or an array of N + 1
+            weights.
+        grid: The simulation's steps.
+    """
+    n = grid.num_steps
+    w = np.zeros(n + 1)
+    if isinstance(spec, str):
+        if spec == "uniform":
+            w[1:] = grid.dt
+        elif spec == "trapezoidal":
+            w[:] = grid.dt
+            w[0] = w[-1] = grid.dt / 2
+        elif spec == "final":
+            w[-1] = 1.0
+        else:
+            raise ObjectiveError(f"unknown time weighting {spec!r}")
+        return w
+    arr = np.asarray(spec)
+    if arr.dtype.kind in "iu":
+        if np.any(arr > n) or np.any(arr < -(n + 1)):
+            raise ObjectiveError(f"objective refers to steps {arr.tolist()} but the run has 0..{n}")
+        np.add.at(w, arr, 1.0)
+        return w
+    if arr.shape != (n + 1,):
+        raise ObjectiveError(f"expected {n + 1} time weights, got shape {arr.shape}")
+    return arr.astype(float)
+
+
+class TimeIntegral(Objective):
+    """sum_i w_i s_i of a series (paper eq. 4 objective with weights w_i)."""
+
+    def __init__(self, series: Series, spec):
+        self.series, self.spec = series, spec
+
+    @override
+    def leaves(self):
+        return self.series.leaves()
+
+    @override
+    def regularisers(self):
+        return []
+
+    @override
+    def value(self, table, reg, grid):
+        w = step_weights(self.spec, grid)
+        s = self.series.values(table)
+        return float(np.sum(np.where(w != 0.0, w * np.where(w != 0.0, s, 0.0), 0.0)))
+
+    @override
+    def backward(self, table, reg, grid, seed, out, reg_out):
+        self.series.backward(table, seed * step_weights(self.spec, grid), out)
+
+    @override
+    def requirements(self, grid):
+        steps = set(np.flatnonzero(step_weights(self.spec, grid)).tolist())
+        return {leaf: set(steps) for leaf in self.series.leaves()}
+
+
+def time_integral(series: Series, weights: str | Sequence = "uniform") -> Objective:
+    """Reduce a series with time weights ("uniform", "trapezoidal", "final", steps, array)."""
+    if not isinstance(series, Series):
+        raise ObjectiveError("time_integral expects a Series (e.g. an Integral)")
+    return TimeIntegral(series, weights)
+
+
+def final_value(series: Series) -> Objective:
+    """The series at the last step (static problems: the solution)."""
+    return TimeIntegral(series, "final")
+
+
+class Regulariser(Objective):
+    """A discrete term of the rest shape and/or parameter fields (not of the trajectory).
+
+    Subclasses implement :meth:`evaluate` returning the value and :meth:`gradient` returning a
+    dict of partial derivatives keyed like the adjoint's sensitivities ("shape" on the P1
+    vector space of the mesh, or a coefficient name).
+    """
+
+    @override
+    def leaves(self):
+        return []
+
+    @override
+    def regularisers(self):
+        return [self]
+
+    @override
+    def value(self, table, reg, grid):
+        return reg[self]
+
+    @override
+    def requirements(self, grid):
+        return {}
+
+    @override
+    def backward(self, table, reg, grid, seed, out, reg_out):
+        reg_out[self] = reg_out.get(self, 0.0) + seed
+
+    def evaluate(self, model) -> float:
+        """Value of the regulariser for the model's current shape and parameters."""
+        raise NotImplementedError
+
+    def gradient(self, model) -> dict[str, np.ndarray]:
+        """Partial derivatives (owned entries, local layout of the target)."""
+        raise NotImplementedError

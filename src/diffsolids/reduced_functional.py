@@ -1,0 +1,188 @@
+"""J(q): forward simulation, objective and adjoint gradient behind one callable."""
+
+import logging
+import time
+from collections.abc import Sequence
+
+import numpy as np
+from dolfinx import fem
+from mpi4py import MPI
+
+from diffsolids.adjoint import AdjointSolverOptions, BackwardSweep, Sensitivities
+from diffsolids.controls import Control, ControlSet
+from diffsolids.errors import DiffsolidsError
+from diffsolids.objectives import Objective, ObjectiveError, TimeGrid
+from diffsolids.solvers import compile_form
+from diffsolids.solvers.newton import FactorStore
+
+__all__ = ["AdjointError", "ReducedFunctional"]
+
+logger = logging.getLogger("diffsolids")
+
+
+class AdjointError(DiffsolidsError, RuntimeError):
+    """A gradient requested in a state where it cannot be computed."""
+
+
+class ReducedFunctional:
+    """The objective as a function of the control parameters, with its adjoint gradient.
+
+    Args:
+        simulation: The forward Simulation.
+        objective: A scalar Objective.
+        controls: One Control or a sequence (concatenated into one parameter vector).
+        adjoint_options: Options of the adjoint linear solves.
+        factor_memory_mb: Memory (per rank) for keeping each forward step's last Newton
+            factorisation as the adjoint preconditioner of that step (0 disables).
+
+    Example:
+        ``rf = ReducedFunctional(sim, objective, [ParameterControl(model, "E", "bodies")])``;
+        ``j, g = rf.value_and_gradient(q)``.
+    """
+
+    def __init__(
+        self,
+        simulation,
+        objective: Objective,
+        controls: Control | Sequence[Control],
+        adjoint_options: AdjointSolverOptions | None = None,
+        factor_memory_mb: float = 2000.0,
+    ):
+        if not isinstance(objective, Objective):
+            raise ObjectiveError(
+                "objective must be an Objective (e.g. time_integral(Integral(...)))"
+            )
+        self.simulation = simulation
+        self.objective = objective
+        self.controls = ControlSet(controls, simulation)
+        self.adjoint_options = adjoint_options
+        self.model = simulation.model
+        self.comm = self.model.domain.comm
+        self.leaves = list(dict.fromkeys(objective.leaves()))
+        self.regularisers = list(dict.fromkeys(objective.regularisers()))
+        self._value_forms = {
+            leaf: compile_form(leaf.form(self.model.fields)) for leaf in self.leaves
+        }
+        self._sweep: BackwardSweep | None = None
+        if factor_memory_mb > 0 and simulation.integrator.num_steps > 1:
+            simulation.solver.factor_store = FactorStore(factor_memory_mb)
+        self._state = None  # (q, trajectory, table, reg values, J)
+        self.timings: dict[str, float] = {}
+
+    @property
+    def size(self) -> int:
+        """Number of parameters."""
+        return self.controls.size
+
+    def initial_parameters(self) -> np.ndarray:
+        """The controls' current parameters."""
+        return self.controls.value()
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Parameter bounds of the controls."""
+        return self.controls.bounds()
+
+    @property
+    def grid(self) -> TimeGrid:
+        """Steps of the simulation."""
+        integ = self.simulation.integrator
+        return TimeGrid(integ.num_steps, integ.dt, integ.dynamic)
+
+    # -- forward ---------------------------------------------------------------------------
+    def forward(self, q) -> float:
+        """Assign q, run the simulation and evaluate J."""
+        q = np.array(q, dtype=float)
+        self.controls.assign(q)
+        t0 = time.perf_counter()
+        traj = self.simulation.run()
+        self.timings["forward"] = time.perf_counter() - t0
+        table = self._evaluate_leaves(traj)
+        reg = {r: r.evaluate(self.model) for r in self.regularisers}
+        J = float(self.objective.value(table, reg, self.grid))
+        if not np.isfinite(J):
+            raise ObjectiveError(f"the objective is not finite (J = {J})")
+        self._state = (q, traj, table, reg, J)
+        return J
+
+    def _evaluate_leaves(self, traj) -> dict:
+        grid = self.grid
+        needed = self.objective.requirements(grid)
+        f = self.model.fields
+        table = {leaf: np.full(grid.num_steps + 1, np.nan) for leaf in self.leaves}
+        steps = sorted(set().union(*needed.values())) if needed else []
+        for i in steps:
+            if i > 0:
+                self.simulation.load_step(i, traj)
+            else:
+                self.model.update_time(0.0)
+            f.u.x.array[:] = traj.u[i]
+            f.v.x.array[:] = traj.v[i]
+            for leaf, leaf_steps in needed.items():
+                if i in leaf_steps:
+                    local = fem.assemble_scalar(self._value_forms[leaf])
+                    table[leaf][i] = self.comm.allreduce(local, op=MPI.SUM)
+        return table
+
+    def __call__(self, q) -> float:
+        """J(q) (reuses the last forward run when q is unchanged)."""
+        q = np.asarray(q, dtype=float)
+        if self._state is not None and np.array_equal(self._state[0], q):
+            return self._state[4]
+        return self.forward(q)
+
+    # -- gradient ----------------------------------------------------------------------------
+    def derivative(self) -> np.ndarray:
+        """dJ/dq at the last forward run.
+
+        Raises:
+            AdjointError: No forward run yet.
+        """
+        if self._state is None:
+            raise AdjointError(
+                "no forward solve yet: call rf(q) or rf.forward(q) before the gradient"
+            )
+        _, traj, table, reg, _ = self._state
+        grid = self.grid
+        leaf_weights: dict = {}
+        reg_weights: dict = {}
+        self.objective.backward(table, reg, grid, 1.0, leaf_weights, reg_weights)
+        if self._sweep is None:
+            self._sweep = BackwardSweep(
+                self.simulation, self.leaves, self.controls.targets(), self.adjoint_options
+            )
+        t0 = time.perf_counter()
+        sens = self._sweep.run(traj, leaf_weights)
+        self._add_regularisers(sens, reg_weights)
+        g = self.controls.pullback(sens)
+        self.timings["gradient"] = time.perf_counter() - t0
+        if not np.all(np.isfinite(g)):
+            raise ObjectiveError("the gradient has non-finite entries")
+        return g
+
+    def _add_regularisers(self, sens: Sensitivities, reg_weights: dict) -> None:
+        for reg, seed in reg_weights.items():
+            for key, g in reg.gradient(self.model).items():
+                if key == "shape" and sens.shape is not None:
+                    sens.shape += seed * g[: len(sens.shape)]
+                elif key in sens.coefficients:
+                    sens.coefficients[key] += seed * g[: len(sens.coefficients[key])]
+
+    def gradient(self, q) -> np.ndarray:
+        """dJ/dq at q (runs the forward problem if q changed)."""
+        self(q)
+        return self.derivative()
+
+    def value_and_gradient(self, q) -> tuple[float, np.ndarray]:
+        """(J(q), dJ/dq)."""
+        J = self(q)
+        return J, self.derivative()
+
+    @property
+    def trajectory(self):
+        """Trajectory of the last forward run."""
+        return None if self._state is None else self._state[1]
+
+    @property
+    def adjoint_stats(self) -> dict:
+        """Statistics of the last backward sweep."""
+        return {} if self._sweep is None else self._sweep.stats

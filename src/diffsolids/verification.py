@@ -1,0 +1,174 @@
+"""Gradient verification: Taylor tests, central finite differences, reproducibility.
+
+Usable from pytest and from users' scripts; every function returns a result object with a
+readable report (``print(result)``).
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = [
+    "FiniteDifferenceResult",
+    "TaylorResult",
+    "check_reproducible",
+    "finite_difference_check",
+    "taylor_test",
+]
+
+
+@dataclass
+class TaylorResult:
+    """Remainders of J(q + h dq) around q for decreasing h.
+
+    Attributes:
+        steps: The h values.
+        first_order: |J(q + h dq) - J(q)| (rate ~1).
+        second_order: |J(q + h dq) - J(q) - h dJ.dq| (rate ~2 if dJ is right).
+        rates_first: log2 ratios of consecutive first-order remainders.
+        rates_second: log2 ratios of consecutive second-order remainders.
+        directional_derivative: dJ(q).dq from the gradient.
+    """
+
+    steps: np.ndarray
+    first_order: np.ndarray
+    second_order: np.ndarray
+    rates_first: np.ndarray
+    rates_second: np.ndarray
+    directional_derivative: float
+
+    @property
+    def min_rate(self) -> float:
+        """Smallest second-order rate."""
+        return float(np.min(self.rates_second))
+
+    def __str__(self) -> str:
+        lines = [
+            f"Taylor test (dJ.dq = {self.directional_derivative:.6e})",
+            f"{'h':>10} {'|R0|':>12} {'rate':>6} {'|R1|':>12} {'rate':>6}",
+        ]
+        for k, h in enumerate(self.steps):
+            r0 = f"{self.rates_first[k - 1]:6.2f}" if k else " " * 6
+            r1 = f"{self.rates_second[k - 1]:6.2f}" if k else " " * 6
+            lines.append(
+                f"{h:10.3e} {self.first_order[k]:12.4e} {r0} {self.second_order[k]:12.4e} {r1}"
+            )
+        return "\n".join(lines)
+
+
+def taylor_test(
+    rf, q, dq, h0: float | None = None, num: int = 4, factor: float = 0.5
+) -> TaylorResult:
+    """Taylor remainder test of a ReducedFunctional (or any object with __call__ and gradient).
+
+    Args:
+        rf: Callable J(q) with ``gradient(q)``.
+        q: Expansion point.
+        dq: Direction.
+        h0: Largest step (default 1e-2 * (1 + |q|) / |dq|).
+        num: Number of steps.
+        factor: Ratio of consecutive steps.
+    """
+    q = np.asarray(q, dtype=float)
+    dq = np.asarray(dq, dtype=float)
+    J0 = rf(q)
+    g = rf.gradient(q)
+    dJ = float(g @ dq)
+    if h0 is None:
+        h0 = 1e-2 * (1.0 + np.linalg.norm(q[dq != 0])) / max(np.linalg.norm(dq), 1e-300)
+    hs = h0 * factor ** np.arange(num)
+    r0, r1 = [], []
+    for h in hs:
+        Jh = rf(q + h * dq)
+        r0.append(abs(Jh - J0))
+        r1.append(abs(Jh - J0 - h * dJ))
+    r0, r1 = np.array(r0), np.array(r1)
+    rate = lambda r: np.log(r[:-1] / r[1:]) / np.log(1.0 / factor)  # noqa: E731
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return TaylorResult(hs, r0, r1, rate(r0), rate(r1), dJ)
+
+
+@dataclass
+class FiniteDifferenceResult:
+    """Central finite differences of J along dq for a sweep of steps.
+
+    Attributes:
+        adjoint: dJ.dq from the gradient.
+        steps: Step sizes tried.
+        finite_differences: (J(q + h dq) - J(q - h dq)) / (2h) per step.
+        relative_errors: |fd - adjoint| / max(|adjoint|, |fd|) per step.
+        best_step: Step with the smallest error.
+        relative_error: Smallest relative error over the sweep.
+    """
+
+    adjoint: float
+    steps: np.ndarray
+    finite_differences: np.ndarray
+    relative_errors: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def best_index(self) -> int:
+        """Index of the best step."""
+        return int(np.argmin(self.relative_errors))
+
+    @property
+    def best_step(self) -> float:
+        """Step with the smallest error."""
+        return float(self.steps[self.best_index])
+
+    @property
+    def relative_error(self) -> float:
+        """Smallest relative error over the sweep."""
+        return float(self.relative_errors[self.best_index])
+
+    def __str__(self) -> str:
+        lines = [
+            f"central differences vs adjoint dJ.dq = {self.adjoint:.10e}",
+            f"{'h':>10} {'fd':>18} {'rel. error':>11}",
+        ]
+        for h, fd, e in zip(self.steps, self.finite_differences, self.relative_errors, strict=True):
+            mark = "  <- best" if h == self.best_step else ""
+            lines.append(f"{h:10.3e} {fd:18.10e} {e:11.3e}{mark}")
+        return "\n".join(lines)
+
+
+def finite_difference_check(rf, q, dq, steps=None, gradient=None) -> FiniteDifferenceResult:
+    """Compare dJ.dq from the adjoint with central differences over a sweep of steps.
+
+    Args:
+        rf: Callable J(q) with ``gradient(q)``.
+        q: Point.
+        dq: Direction.
+        steps: Step sizes (default: 1e-2 .. 1e-7 relative to (1 + |q|) / |dq|).
+        gradient: Precomputed gradient at q (else computed).
+    """
+    q = np.asarray(q, dtype=float)
+    dq = np.asarray(dq, dtype=float)
+    g = rf.gradient(q) if gradient is None else gradient
+    dJ = float(g @ dq)
+    if steps is None:
+        support = dq != 0
+        scale = (1.0 + np.linalg.norm(q[support])) / max(np.linalg.norm(dq), 1e-300)
+        steps = scale * 10.0 ** -np.arange(2.0, 7.5, 0.5)
+    steps = np.asarray(steps, dtype=float)
+    fds = np.array([(rf(q + h * dq) - rf(q - h * dq)) / (2 * h) for h in steps])
+    denom = np.maximum(np.maximum(abs(dJ), np.abs(fds)), 1e-300)
+    errors = np.abs(fds - dJ) / denom
+    return FiniteDifferenceResult(dJ, steps, fds, errors)
+
+
+def check_reproducible(rf, q) -> float:
+    """Run the forward problem twice at q and require bit-identical J.
+
+    Returns:
+        J(q).
+
+    Raises:
+        AssertionError: The two runs differ (a derivative check would be meaningless).
+    """
+    q = np.asarray(q, dtype=float)
+    J1 = rf.forward(q)
+    J2 = rf.forward(q)
+    if J1 != J2:
+        raise AssertionError(f"forward runs are not reproducible: J = {J1!r} then {J2!r}")
+    return J1
