@@ -58,7 +58,9 @@ class AdjointLinearSolver:
         self.options = options or AdjointSolverOptions()
         self.comm = newton.comm
         self._mats = [newton.create_matrix(), newton.create_matrix()]
-        self.action = JacobianAction(newton)
+        # matrix-free when every numeric term can apply its exact Hessian, else assembled
+        matrix_free = all(hasattr(t, "add_hessian_action") for t in newton.numeric_terms)
+        self.action = JacobianAction(newton) if matrix_free else None
         self._factor_ksps: dict = {}
         self._precond = None  # (PETSc.PC, index of the frozen matrix or -1 for the forward one)
         self.stats = {"krylov_iterations": 0, "factorisations": 0, "direct_solves": 0}
@@ -101,12 +103,16 @@ class AdjointLinearSolver:
             self._precond = (self._stored[step].getPC(), -1)
         frozen = -1 if self._precond is None else self._precond[1]
         work = 1 if frozen == 0 else 0
+        A = self._mats[work]
+        if self.action is None:
+            self.newton.assemble_jacobian(A, exact=True)
         its = None
         if self._precond is not None:
-            its = self._krylov(self.action.mat, self._precond[0], b, x)
+            operator = A if self.action is None else self.action.mat
+            its = self._krylov(operator, self._precond[0], b, x)
         if its is None or its > self.options.refactor_above:
-            A = self._mats[work]
-            self.newton.assemble_jacobian(A, exact=True)
+            if self.action is not None:
+                self.newton.assemble_jacobian(A, exact=True)
             ksp = self._factorise(A)
             if work in self._factor_ksps:
                 self._factor_ksps[work].destroy()
