@@ -1,0 +1,7 @@
+"""IPC contact and friction (numpy + ipctk) as a numeric term of the incremental potential."""
+
+from diffsolids.contact.stiffness import suggest_barrier_stiffness
+from diffsolids.contact.surface import CollisionSurface
+from diffsolids.contact.term import ContactRecord, ContactTerm
+
+__all__ = ["CollisionSurface", "ContactRecord", "ContactTerm", "suggest_barrier_stiffness"]

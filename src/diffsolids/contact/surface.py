@@ -1,0 +1,346 @@
+"""The collision surface: the boundary of the mesh as one ipctk CollisionMesh on every rank.
+
+Collision vertices are the mesh vertices on the exterior boundary, for every displacement degree:
+with P2/P3 the surface moves with the displacement at the vertices (the piecewise-linear
+interpolant of u on the boundary). We chose this over splitting boundary facets at the higher-order
+nodes because (1) self-contact stays available without a same-body collision filter (split
+surfaces have primitives h/2 apart that "collide" at rest), (2) the collision surface is the P1
+geometry itself, so the shape derivative with respect to the mesh vertices is direct, and (3) the
+displacement map W (collision vertices x FE nodes) is a 0/1 selection, so the gather, the scatter
+and the chain rule are exact copies. The price: mid-edge nodes of P2/P3 do not carry contact
+forces, so the curved FE surface may sag through an obstacle by O(h^2 curvature) between vertices.
+
+The surface is numbered by the input (file) index of the vertices, independent of the partition,
+so a run on n ranks builds the same collision mesh as a serial run. Each rank contributes the
+values of the vertices whose displacement block it owns (one allgather per evaluation).
+"""
+
+import dolfinx
+import ipctk
+import numpy as np
+import scipy.sparse as sp
+from dolfinx import fem
+from mpi4py import MPI
+from mpi4py.util import dtlib
+from petsc4py import PETSc
+
+from diffsolids.errors import MeshError
+
+__all__ = ["CollisionSurface"]
+
+
+def _vertex_blocks(mesh: dolfinx.mesh.Mesh, space: fem.FunctionSpace) -> np.ndarray:
+    """Block (node) index in ``space`` of every local geometry node (-1 where none).
+
+    Lagrange elements number the vertex dofs first, in the reference vertex order, exactly like
+    the first nodes of the geometry dofmap.
+    """
+    gdofmap = mesh.geometry.dofmaps[0]
+    nv = dolfinx.cpp.mesh.cell_num_vertices(mesh.topology.cell_type)
+    blocks = np.full(mesh.geometry.x.shape[0], -1, dtype=np.int64)
+    blocks[gdofmap[:, :nv]] = space.dofmap.list[:, :nv]
+    return blocks
+
+
+class _OwnedMap:
+    """Which collision vertices a rank owns in some function space, and their blocks."""
+
+    def __init__(self, comm: MPI.Comm, owned_cv: np.ndarray, blocks: np.ndarray, imap, nv: int):
+        self.comm = comm
+        self.cv = owned_cv
+        self.blocks = blocks
+        counts = np.array(comm.allgather(len(owned_cv)), dtype=np.int64)
+        self.counts = counts
+        self.displs = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        order = np.concatenate(comm.allgather(owned_cv)) if comm.size > 1 else owned_cv
+        if len(order) != nv or len(np.unique(order)) != nv:
+            raise MeshError("collision surface vertices are not owned exactly once across ranks")
+        self.order = order
+        global_blocks = imap.local_to_global(blocks.astype(np.int32)) if len(blocks) else []
+        self.global_blocks = np.empty(nv, dtype=np.int64)
+        self.global_blocks[order] = self.allgather(np.asarray(global_blocks, dtype=np.int64))
+
+    def allgather(self, local: np.ndarray) -> np.ndarray:
+        """Concatenate per-rank arrays (first axis = owned collision vertices) in rank order."""
+        if self.comm.size == 1:
+            return local
+        width = int(np.prod(local.shape[1:])) if local.ndim > 1 else 1
+        recv = np.empty((int(self.counts.sum()), *local.shape[1:]), dtype=local.dtype)
+        mpi_type = dtlib.from_numpy_dtype(local.dtype)
+        self.comm.Allgatherv(
+            np.ascontiguousarray(local),
+            [recv, self.counts * width, self.displs * width, mpi_type],
+        )
+        return recv
+
+    def gather(self, per_block: np.ndarray, width: int) -> np.ndarray:
+        """Full (num_vertices, width) array from a local blocked array (owned entries used)."""
+        local = per_block.reshape(-1, width)[self.blocks]
+        full = np.empty((len(self.order), width), dtype=per_block.dtype)
+        full[self.order] = self.allgather(local)
+        return full
+
+
+class CollisionSurface:
+    """The boundary of a Domain as an ipctk CollisionMesh, identical on all ranks.
+
+    Args:
+        domain: Mesh with body tags (cell tags).
+        V: Displacement space (blocked Lagrange of any degree, block size = gdim).
+
+    Attributes:
+        dim: Geometric dimension.
+        num_vertices: Number of collision vertices.
+        rest_positions: (num_vertices, dim) rest coordinates.
+        edges: (num_edges, 2) vertex indices (2D: the boundary facets).
+        faces: (num_faces, 3) vertex indices (3D only).
+        body: Body id (cell tag) of every vertex (the smallest if several bodies meet there).
+        body_ids: Sorted body ids of the domain.
+        mesh: The ipctk CollisionMesh (area Jacobians initialised).
+    """
+
+    def __init__(self, domain, V: fem.FunctionSpace):
+        mesh = domain.mesh
+        self.comm = mesh.comm
+        self.dim = mesh.geometry.dim
+        tdim = mesh.topology.dim
+        if tdim != self.dim:
+            raise MeshError(f"contact needs a volume mesh (tdim {tdim} != gdim {self.dim})")
+        if mesh.geometry.cmaps[0].degree != 1:
+            raise MeshError("contact needs an affine (degree 1) mesh geometry")
+        self.V = V
+        self.bs = V.dofmap.index_map_bs
+        self.body_ids = domain.body_ids
+        self._domain = domain
+        self._facet_data(domain)
+        self._build_ipc_mesh()
+        self._node_blocks = _vertex_blocks(mesh, V)
+        self.displacement = self._owned_map(V, self._node_blocks)
+        self._shape_map: _OwnedMap | None = None
+
+    # -- construction --------------------------------------------------------------------------
+    def _facet_data(self, domain) -> None:
+        mesh = domain.mesh
+        tdim = mesh.topology.dim
+        mesh.topology.create_connectivity(tdim - 1, tdim)
+        facets = dolfinx.mesh.exterior_facet_indices(mesh.topology)
+        f2c = mesh.topology.connectivity(tdim - 1, tdim)
+        cells = f2c.array[f2c.offsets[facets]]
+        num_cells = mesh.topology.index_map(tdim).size_local
+        num_cells += mesh.topology.index_map(tdim).num_ghosts
+        cell_body = np.zeros(num_cells, dtype=np.int64)
+        cell_body[domain.cell_tags.indices] = domain.cell_tags.values
+        nodes = dolfinx.mesh.entities_to_geometry(mesh, tdim - 1, facets)
+        input_ids = np.asarray(mesh.geometry.input_global_indices, dtype=np.int64)
+        local = (
+            input_ids[nodes].reshape(len(facets), tdim),
+            cell_body[cells],
+            input_ids[nodes.ravel()],
+            mesh.geometry.x[nodes.ravel(), : self.dim],
+        )
+        parts = self.comm.allgather(local)
+        facet_ids = np.concatenate([p[0] for p in parts])
+        facet_body = np.concatenate([p[1] for p in parts])
+        node_ids = np.concatenate([p[2] for p in parts])
+        node_x = np.concatenate([p[3] for p in parts])
+        if len(facet_ids) == 0:
+            raise MeshError("the mesh has no boundary facets")
+        # vertices numbered by input index; facets sorted for a partition-independent order
+        self.vertex_input_ids, first = np.unique(node_ids, return_index=True)
+        self.num_vertices = len(self.vertex_input_ids)
+        self.rest_positions = np.ascontiguousarray(node_x[first], dtype=float)
+        prims = np.searchsorted(self.vertex_input_ids, facet_ids).astype(np.int32)
+        order = np.lexsort(np.sort(prims, axis=1).T[::-1])
+        prims, facet_body = prims[order], facet_body[order]
+        self.primitive_body = facet_body
+        body = np.full(self.num_vertices, np.iinfo(np.int64).max, dtype=np.int64)
+        np.minimum.at(body, prims.ravel(), np.repeat(facet_body, prims.shape[1]))
+        self.body = body
+        self.body_index = np.searchsorted(self.body_ids, body)
+        if self.dim == 2:
+            self.edges = np.ascontiguousarray(prims)
+            self.faces = np.zeros((0, 3), dtype=np.int32)
+        else:
+            self.faces = np.ascontiguousarray(prims)
+            pairs = np.sort(prims[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+            self.edges = np.ascontiguousarray(np.unique(pairs, axis=0), dtype=np.int32)
+
+    def _build_ipc_mesh(self) -> None:
+        self.mesh = ipctk.CollisionMesh(
+            np.asfortranarray(self.rest_positions),
+            np.asfortranarray(self.edges),
+            np.asfortranarray(self.faces),
+        )
+        self.mesh.init_area_jacobians()
+        self._static = None
+
+    def _owned_map(self, space: fem.FunctionSpace, node_blocks: np.ndarray) -> _OwnedMap:
+        mesh = self._domain.mesh
+        imap = space.dofmap.index_map
+        input_ids = np.asarray(mesh.geometry.input_global_indices, dtype=np.int64)
+        pos = np.searchsorted(self.vertex_input_ids, input_ids)
+        pos = np.minimum(pos, self.num_vertices - 1)
+        on_surface = self.vertex_input_ids[pos] == input_ids
+        owned = on_surface & (node_blocks >= 0) & (node_blocks < imap.size_local)
+        nodes = np.flatnonzero(owned)
+        cv = pos[nodes]
+        # a node can be listed once per rank only; several nodes never share a block
+        cv, first = np.unique(cv, return_index=True)
+        nodes = nodes[first]
+        omap = _OwnedMap(self.comm, cv, node_blocks[nodes], imap, self.num_vertices)
+        omap.nodes = nodes
+        return omap
+
+    # -- data movement -------------------------------------------------------------------------
+    def gather(self, values: np.ndarray) -> np.ndarray:
+        """(num_vertices, dim) values at the collision vertices of a local V array (collective).
+
+        Args:
+            values: Local blocked array of V (``u.x.array`` or the owned part of a PETSc Vec).
+        """
+        return self.displacement.gather(np.asarray(values), self.bs)[:, : self.dim]
+
+    def current_rest_positions(self) -> np.ndarray:
+        """Rest coordinates of the collision vertices from the current mesh geometry."""
+        x = self._domain.mesh.geometry.x[:, : self.dim]
+        omap = self.displacement
+        full = np.empty((self.num_vertices, self.dim))
+        full[omap.order] = omap.allgather(np.ascontiguousarray(x[omap.nodes]))
+        return full
+
+    def update_rest_positions(self) -> bool:
+        """Re-read the rest positions from the mesh (shape changes); True if they changed."""
+        X = self.current_rest_positions()
+        if np.array_equal(X, self.rest_positions):
+            return False
+        self.rest_positions = X
+        static = self._static
+        self._build_ipc_mesh()
+        if static is not None:
+            self.set_static(static)
+        return True
+
+    def set_static(self, static: np.ndarray) -> None:
+        """Exclude pairs of primitives whose vertices are all static (fully prescribed)."""
+        self._static = np.asarray(static, dtype=bool)
+        ids = np.arange(self.num_vertices, dtype=np.int32)
+        ids[self._static] = -1
+        self.mesh.can_collide = ipctk.make_vertex_patches_filter(ids)
+
+    def owned_dof_indices(self) -> tuple[np.ndarray, np.ndarray]:
+        """(collision dof indices, local V dof indices) of the dofs this rank owns."""
+        d, bs = self.dim, self.bs
+        omap = self.displacement
+        cdofs = (omap.cv[:, None] * d + np.arange(d)).ravel()
+        vdofs = (omap.blocks[:, None] * bs + np.arange(d)).ravel()
+        return cdofs, vdofs
+
+    def global_dofs(self) -> np.ndarray:
+        """Global (PETSc) index of every collision dof (interleaved, length num_vertices*dim)."""
+        return (self.displacement.global_blocks[:, None] * self.bs + np.arange(self.dim)).ravel()
+
+    def add_to_owned(self, target: np.ndarray, g: np.ndarray) -> None:
+        """target[owned V dofs] += g[collision dofs] (g interleaved, length num_vertices*dim)."""
+        cdofs, vdofs = self.owned_dof_indices()
+        target[vdofs] += g[cdofs]
+
+    def to_local(self, g: np.ndarray, size: int) -> np.ndarray:
+        """A local V-layout array of length ``size`` holding g on the owned collision dofs."""
+        out = np.zeros(size)
+        self.add_to_owned(out, g)
+        return out
+
+    def dof_mask(self, local_dofs: np.ndarray) -> np.ndarray:
+        """Boolean (num_vertices*dim) mask of collision dofs listed in ``local_dofs`` (V local)."""
+        _, vdofs = self.owned_dof_indices()
+        flags = np.isin(vdofs, local_dofs).reshape(-1, self.dim).astype(np.int8)
+        full = np.empty((self.num_vertices, self.dim), dtype=np.int8)
+        full[self.displacement.order] = self.displacement.allgather(flags)
+        return full.ravel().astype(bool)
+
+    # -- shape (P1 geometry space) -----------------------------------------------------------
+    def shape_map(self, S: fem.FunctionSpace) -> _OwnedMap:
+        """Owned collision vertices in the P1 vector space S of the rest coordinates."""
+        if self._shape_map is None or self._shape_map.space is not S:
+            omap = self._owned_map(S, _vertex_blocks(self._domain.mesh, S))
+            omap.space = S
+            self._shape_map = omap
+        return self._shape_map
+
+    def add_matrix(
+        self,
+        A: PETSc.Mat,
+        H: sp.spmatrix,
+        free: np.ndarray,
+        keep: np.ndarray | None = None,
+    ) -> None:
+        """Add the owned rows of a collision-dof matrix H into the global matrix A.
+
+        Args:
+            A: PETSc matrix (not yet finally assembled); global rows and columns. Collective.
+            H: (num_vertices*dim)^2 sparse matrix in collision dofs.
+            free: Boolean mask of collision dofs that are not Dirichlet (rows and columns kept).
+            keep: Optional sorted vertex-block keys (row_vertex * num_vertices + col_vertex);
+                entries outside them are dropped.
+        """
+        # DOLFINx inserts the Dirichlet diagonal last: flush before adding (collective)
+        A.assemblyBegin(PETSc.Mat.AssemblyType.FLUSH)
+        A.assemblyEnd(PETSc.Mat.AssemblyType.FLUSH)
+        rows_c, _ = self.owned_dof_indices()
+        rows_c = rows_c[free[rows_c]]
+        if len(rows_c) == 0 or H.nnz == 0:
+            return
+        Hr = sp.csr_matrix(H)[rows_c].tocoo()
+        mask = free[Hr.col]
+        if keep is not None:
+            mask &= _contains(
+                keep, _block_keys(Hr.row, Hr.col, rows_c, self.dim, self.num_vertices)
+            )
+        r, c, v = Hr.row[mask], Hr.col[mask], Hr.data[mask]
+        csr = sp.csr_matrix((v, (r, c)), shape=(len(rows_c), H.shape[1]))
+        csr.sum_duplicates()
+        gdofs = self.global_dofs()
+        A.setValuesIJV(
+            csr.indptr.astype(PETSc.IntType),
+            gdofs[csr.indices].astype(PETSc.IntType),
+            csr.data,
+            addv=PETSc.InsertMode.ADD_VALUES,
+            rowmap=gdofs[rows_c].astype(PETSc.IntType),
+        )
+
+    def matrix_entries(self, block_keys: np.ndarray, free: np.ndarray):
+        """Global (rows, cols) of the owned free entries of the given vertex blocks."""
+        nv, d = self.num_vertices, self.dim
+        a, b = np.divmod(block_keys, nv)
+        owned = np.zeros(nv, dtype=bool)
+        owned[self.displacement.cv] = True
+        sel = owned[a]
+        a, b = a[sel], b[sel]
+        rows = (a[:, None, None] * d + np.arange(d)[None, :, None]).repeat(d, axis=2).ravel()
+        cols = (b[:, None, None] * d + np.arange(d)[None, None, :]).repeat(d, axis=1).ravel()
+        m = free[rows] & free[cols]
+        gdofs = self.global_dofs()
+        return gdofs[rows[m]], gdofs[cols[m]]
+
+
+def _block_keys(r, c, rows_c, d, nv) -> np.ndarray:
+    return (rows_c[r] // d).astype(np.int64) * nv + c // d
+
+
+def _contains(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    if len(sorted_keys) == 0:
+        return np.zeros(len(keys), dtype=bool)
+    pos = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
+    return sorted_keys[pos] == keys
+
+
+def block_pattern(*matrices: sp.spmatrix, dim: int, num_vertices: int) -> np.ndarray:
+    """Sorted unique vertex-block keys (i * num_vertices + j) of the nonzeros of the matrices."""
+    keys = [np.zeros(0, dtype=np.int64)]
+    for H in matrices:
+        if H is None or H.nnz == 0:
+            continue
+        coo = H.tocoo()
+        nz = coo.data != 0
+        keys.append((coo.row[nz] // dim).astype(np.int64) * num_vertices + coo.col[nz] // dim)
+    return np.unique(np.concatenate(keys))

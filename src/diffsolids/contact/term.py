@@ -1,0 +1,634 @@
+"""IPC contact and lagged smoothed friction as a numeric term of the incremental potential.
+
+Step i adds to the incremental potential (scaled so that elasticity has coefficient 1, paper
+sec. 8.2)
+
+    B(x) + beta dt D(v(u)),    x = X + W u,   v(u) = W (u + sum_j alpha_j u^{i-j}) / (beta dt),
+
+with B = kappa sum_k A_k b(d_k^2, dhat^2) the area-weighted log barrier over the collision set at x
+and D the smoothed IPC friction dissipation potential whose normal forces and tangent bases are
+lagged from x^{i-1} = X + W u^{i-1} once per step. The gradient of the friction part w.r.t. u is
+-F(v) (the friction force) and its Hessian Hess_v D / (beta dt). Static load steps use
+v = (u - u^{i-1}) / dt with coefficient dt (alpha = -1, beta = 1).
+
+All ranks hold the whole collision surface (gathered once per evaluation), run ipctk on it, and
+add only the rows they own.
+"""
+
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import ipctk
+import numpy as np
+import scipy.sparse as sp
+from dolfinx import fem
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from diffsolids.contact.shape import barrier_shape_derivative
+from diffsolids.contact.surface import CollisionSurface, block_pattern
+from diffsolids.errors import IntersectionError, ParameterError
+
+__all__ = ["ContactRecord", "ContactTerm"]
+
+logger = logging.getLogger("diffsolids")
+
+# the CCD checks the step extended by this factor, so that a free full step reports > 1
+_CCD_REACH = 2.0
+
+
+@dataclass
+class ContactRecord:
+    """Contact summary of one converged step.
+
+    Attributes:
+        step: Step index.
+        num_collisions: Active primitive pairs (distance below dhat).
+        min_distance: Smallest distance between active pairs (inf when there are none).
+        normal_force: (num_bodies, dim) total barrier force on each body (rows: ``body_ids``).
+        friction_force: (num_bodies, dim) total friction force on each body.
+    """
+
+    step: int
+    num_collisions: int
+    min_distance: float
+    normal_force: np.ndarray
+    friction_force: np.ndarray
+
+
+@dataclass
+class _Evaluation:
+    """Collision set and derivatives at one surface displacement (cached)."""
+
+    U: np.ndarray
+    x: np.ndarray
+    collisions: ipctk.NormalCollisions
+    token: int
+    energy: float | None = None
+    gradient: np.ndarray | None = None
+    hessian: sp.csc_matrix | None = None
+    projected: sp.csc_matrix | None = None
+    blocks: np.ndarray | None = None
+    extras: dict = field(default_factory=dict)
+
+
+class ContactTerm:
+    """Barrier contact (self-contact included) and lagged friction between the bodies of a Model.
+
+    Bodies are the cell tags of the mesh; every pair of bodies and every body with itself can
+    collide, except pairs of fully prescribed (Dirichlet) vertices, which are static obstacles.
+    Add the term with ``model.add_numeric_term(term)``.
+
+    Args:
+        model: The Model.
+        dhat: Barrier activation distance (length).
+        stiffness: Barrier stiffness kappa (fixed; see :func:`suggest_barrier_stiffness`).
+        friction: Friction coefficient of all pairs of bodies (float), or
+            ``{(body_a, body_b): mu}`` by id or name (unlisted pairs: 0).
+        eps_v: Velocity below which friction is smoothed to static (velocity units).
+        narrow_phase: "additive" (AdditiveCCD) or "tight_inclusion" (TightInclusionCCD(1e-6, 1000)).
+        area_weighting: Weight each pair by its surface area (paper sec. 8.2).
+        min_gap: Initial configurations closer than ``min_gap * dhat`` are refused.
+        num_threads: ipctk threads (default: cores divided by MPI ranks).
+
+    Raises:
+        ParameterError: Non-positive dhat, stiffness or eps_v, negative friction, unknown body.
+    """
+
+    name = "contact"
+    projectable_hessian = True
+
+    def __init__(
+        self,
+        model,
+        dhat: float,
+        stiffness: float,
+        friction: float | Mapping = 0.0,
+        eps_v: float = 1e-3,
+        narrow_phase: str = "additive",
+        area_weighting: bool = True,
+        min_gap: float = 1e-6,
+        num_threads: int | None = None,
+    ):
+        for label, value in (("dhat", dhat), ("stiffness", stiffness), ("eps_v", eps_v)):
+            if not (np.isfinite(value) and value > 0):
+                raise ParameterError(f"contact {label} = {value} must be positive and finite")
+        self.model = model
+        self.comm = model.domain.comm
+        self.dim = model.dim
+        self.dhat = float(dhat)
+        self.stiffness = float(stiffness)
+        self.eps_v = float(eps_v)
+        self.area_weighting = bool(area_weighting)
+        self.min_gap = float(min_gap)
+        if num_threads is None and self.comm.size > 1:
+            import os
+
+            num_threads = max(1, (os.cpu_count() or 1) // self.comm.size)
+        if num_threads is not None:
+            ipctk.set_num_threads(int(num_threads))
+        self.surface = CollisionSurface(model.domain, model.V)
+        self.body_ids = self.surface.body_ids
+        self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness)
+        self.friction_potential = ipctk.FrictionPotential(self.eps_v)
+        self.broad_phase = ipctk.LBVH()
+        if narrow_phase == "additive":
+            self.ccd = ipctk.AdditiveCCD()
+        elif narrow_phase == "tight_inclusion":
+            self.ccd = ipctk.TightInclusionCCD(1e-6, 1000)
+        else:
+            raise ParameterError(
+                f"narrow_phase {narrow_phase!r}: expected 'additive' or 'tight_inclusion'"
+            )
+        ids = self.body_ids
+        self.friction_pairs: list[tuple[int, int]] = [
+            (a, b) for k, a in enumerate(ids) for b in ids[k:]
+        ]
+        self._pair_index = np.zeros((len(ids), len(ids)), dtype=np.int64)
+        for p, (a, b) in enumerate(self.friction_pairs):
+            ia, ib = ids.index(a), ids.index(b)
+            self._pair_index[ia, ib] = self._pair_index[ib, ia] = p
+        self._mu = np.zeros(len(self.friction_pairs))
+        self._set_friction(friction)
+        self.records: list[ContactRecord] = []
+        self.force_function = fem.Function(model.V, name="contact_force")
+        self._token = 0
+        self._eval: _Evaluation | None = None
+        self._step = None
+        self._free_key = None
+        self._free = np.ones(self.surface.num_vertices * self.dim, dtype=bool)
+        self._forward_step: int | None = None
+        self._tangential = None
+
+    # -- parameters ---------------------------------------------------------------------------
+    def _set_friction(self, friction) -> None:
+        if isinstance(friction, Mapping):
+            mu = np.zeros(len(self.friction_pairs))
+            for (a, b), value in friction.items():
+                ia, ib = self.model.domain.body_id(a), self.model.domain.body_id(b)
+                mu[self.pair_index(ia, ib)] = value
+            self.friction_coefficients = mu
+        else:
+            self.friction_coefficients = np.full(len(self.friction_pairs), float(friction))
+
+    def pair_index(self, body_a: int | str, body_b: int | str) -> int:
+        """Index of the pair of bodies in :attr:`friction_pairs`."""
+        ids = self.body_ids
+        ia = ids.index(self.model.domain.body_id(body_a))
+        ib = ids.index(self.model.domain.body_id(body_b))
+        return int(self._pair_index[ia, ib])
+
+    @property
+    def friction_coefficients(self) -> np.ndarray:
+        """Friction coefficient of each pair in :attr:`friction_pairs` (a copy; assign to set)."""
+        return self._mu.copy()
+
+    @friction_coefficients.setter
+    def friction_coefficients(self, values) -> None:
+        mu = np.asarray(values, dtype=float).reshape(-1)
+        if mu.shape != (len(self.friction_pairs),):
+            raise ParameterError(
+                f"{len(mu)} friction coefficients given for {len(self.friction_pairs)} pairs"
+            )
+        if not np.all(np.isfinite(mu)) or np.any(mu < 0):
+            raise ParameterError(f"friction coefficients {mu} must be finite and >= 0")
+        if not np.array_equal(mu, self._mu):
+            self._mu = mu
+            self._tangential = None  # rebuilt lazily for the current step
+
+    def set_friction(self, body_a: int | str, body_b: int | str, mu: float) -> None:
+        """Set the friction coefficient between two bodies (the same body for self-contact)."""
+        values = self._mu.copy()
+        values[self.pair_index(body_a, body_b)] = mu
+        self.friction_coefficients = values
+
+    # -- per-step set-up ---------------------------------------------------------------------
+    def begin_step(self, i: int, traj, coeffs, sim=None) -> None:
+        """Lag friction from u^{i-1} and store the BDF history of step ``i`` (collective)."""
+        surf = self.surface
+        if surf.update_rest_positions():
+            self._token += 1
+        self._update_static()
+        hist = [surf.gather(traj.u[i - j]) for j in range(1, len(coeffs.alpha) + 1)]
+        beta_dt = coeffs.beta_dt
+        v_offset = sum(a * U for a, U in zip(coeffs.alpha, hist, strict=True)) / beta_dt
+        self._step = {
+            "index": i,
+            "alpha": tuple(coeffs.alpha),
+            "beta_dt": beta_dt,
+            "history": hist,
+            "v_offset": v_offset,
+            "lagged": hist[0],
+        }
+        self._token += 1
+        self._eval = None
+        self._tangential = None
+        self._lagged = None
+        forward = len(traj.u) == i
+        if forward and (self._forward_step is None or i != self._forward_step + 1):
+            self.records = []
+            self.check_configuration(hist[0], step=i - 1)
+        self._forward_step = i if forward else None
+
+    def _update_static(self) -> None:
+        bc = self.model.dirichlet_dofs()
+        key = (len(bc), hash(bc.tobytes()))
+        if key == self._free_key:
+            return
+        fixed = self.surface.dof_mask(bc)
+        self._free = ~fixed
+        self._free_key = key
+        self.surface.set_static(fixed.reshape(-1, self.dim).all(axis=1))
+        self._token += 1
+
+    def _free_mask(self, bc_dofs) -> np.ndarray:
+        key = (len(bc_dofs), hash(np.asarray(bc_dofs).tobytes()))
+        if key != self._free_key:
+            self._free = ~self.surface.dof_mask(np.asarray(bc_dofs))
+            self._free_key = key
+        return self._free
+
+    def _build(self, x: np.ndarray, shape_derivatives: bool = False) -> ipctk.NormalCollisions:
+        C = ipctk.NormalCollisions()
+        C.use_area_weighting = self.area_weighting
+        C.enable_shape_derivatives = shape_derivatives
+        C.build(self.surface.mesh, np.asfortranarray(x), self.dhat, 0.0, self.broad_phase)
+        return C
+
+    def _lagged_state(self, shape_derivatives: bool = False):
+        """(positions, collisions) at x^{i-1}; with weight gradients when asked."""
+        key = "lagged_shape" if shape_derivatives else "lagged"
+        cached = getattr(self, "_lagged", None) or {}
+        if key not in cached:
+            x = self.surface.rest_positions + self._step["lagged"]
+            cached[key] = (x, self._build(x, shape_derivatives))
+            self._lagged = cached
+        return cached[key]
+
+    def _labels(self) -> np.ndarray:
+        return self.surface.body_index.astype(float)
+
+    def _tangential_collisions(self, mu_table: np.ndarray, shape_derivatives: bool = False):
+        x, C = self._lagged_state(shape_derivatives)
+        T = ipctk.TangentialCollisions()
+        labels = self._labels()
+
+        def blend(a: float, b: float) -> float:
+            return float(mu_table[round(a), round(b)])
+
+        T.build(self.surface.mesh, np.asfortranarray(x), C, self.barrier, labels, labels, blend)
+        return T
+
+    def _mu_table(self, coefficients: np.ndarray) -> np.ndarray:
+        return coefficients[self._pair_index]
+
+    def _friction(self):
+        """The step's TangentialCollisions with the current coefficients (None if all mu = 0)."""
+        if self._step is None:
+            raise ParameterError("ContactTerm.begin_step must be called before evaluations")
+        if not np.any(self._mu > 0):
+            return None
+        if self._tangential is None:
+            self._tangential = self._tangential_collisions(self._mu_table(self._mu))
+            self._token += 1
+        return self._tangential
+
+    def _velocity(self, U: np.ndarray) -> np.ndarray:
+        return U / self._step["beta_dt"] + self._step["v_offset"]
+
+    # -- evaluation cache --------------------------------------------------------------------
+    def _evaluate(self, u) -> _Evaluation:
+        values = u.x.array if isinstance(u, fem.Function) else u
+        U = self.surface.gather(values)
+        T = self._friction()
+        ev = self._eval
+        if ev is not None and ev.token == self._token and np.array_equal(ev.U, U):
+            return ev
+        x = self.surface.rest_positions + U
+        ev = _Evaluation(U, x, self._build(x), self._token)
+        ev.extras["friction"] = T
+        self._eval = ev
+        return ev
+
+    def _energy(self, ev: _Evaluation) -> float:
+        if ev.energy is None:
+            mesh = self.surface.mesh
+            e = self.barrier(ev.collisions, mesh, np.asfortranarray(ev.x))
+            T = ev.extras["friction"]
+            if T is not None:
+                V = np.asfortranarray(self._velocity(ev.U))
+                e += self._step["beta_dt"] * self.friction_potential(T, mesh, V)
+            ev.energy = float(self.comm.bcast(e, root=0))
+        return ev.energy
+
+    def _gradient(self, ev: _Evaluation) -> np.ndarray:
+        if ev.gradient is None:
+            g = self.barrier.gradient(ev.collisions, self.surface.mesh, np.asfortranarray(ev.x))
+            ev.extras["barrier_gradient"] = g
+            T = ev.extras["friction"]
+            if T is not None:
+                V = np.asfortranarray(self._velocity(ev.U))
+                g = g + self.friction_potential.gradient(T, self.surface.mesh, V)
+            ev.gradient = g
+        return ev.gradient
+
+    def _hessian(self, ev: _Evaluation, project: bool = False) -> sp.csc_matrix:
+        method = ipctk.PSDProjectionMethod.CLAMP if project else ipctk.PSDProjectionMethod.NONE
+        attr = "projected" if project else "hessian"
+        if getattr(ev, attr) is None:
+            mesh = self.surface.mesh
+            H = self.barrier.hessian(ev.collisions, mesh, np.asfortranarray(ev.x), method)
+            T = ev.extras["friction"]
+            if T is not None:
+                V = np.asfortranarray(self._velocity(ev.U))
+                Hf = self.friction_potential.hessian(T, mesh, V, method)
+                H = H + Hf / self._step["beta_dt"]
+            setattr(ev, attr, sp.csc_matrix(H))
+        return getattr(ev, attr)
+
+    def _blocks(self, ev: _Evaluation) -> np.ndarray:
+        """Vertex-block pattern of the Newton matrix at ev (exact Hessian + friction stencils)."""
+        if ev.blocks is None:
+            parts = [self._hessian(ev)]
+            T = ev.extras["friction"]
+            if T is not None:
+                if "friction_pattern" not in self._step:
+                    # at zero sliding velocity the friction Hessian covers every stencil
+                    zero = np.asfortranarray(np.zeros_like(ev.U))
+                    self._step["friction_pattern"] = self.friction_potential.hessian(
+                        T, self.surface.mesh, zero
+                    )
+                parts.append(self._step["friction_pattern"])
+            ev.blocks = block_pattern(*parts, dim=self.dim, num_vertices=self.surface.num_vertices)
+        return ev.blocks
+
+    # -- numeric-term interface (forward) -----------------------------------------------------
+    def energy(self, u: fem.Function) -> float:
+        """Contact part of the incremental potential (identical on all ranks; collective)."""
+        return self._energy(self._evaluate(u))
+
+    def add_residual(self, u: fem.Function, b: PETSc.Vec) -> None:
+        """Add the gradient of the contact potential to the owned rows of ``b`` (collective)."""
+        g = self._gradient(self._evaluate(u))
+        self.surface.add_to_owned(b.array_w, g)
+
+    def add_jacobian(
+        self, u: fem.Function, A: PETSc.Mat, bc_dofs: np.ndarray, project: bool = False
+    ) -> None:
+        """Add the contact Hessian to the owned rows of ``A``, skipping Dirichlet rows/columns.
+
+        Args:
+            u: Current displacement.
+            A: Matrix containing :meth:`matrix_pattern` (not yet assembled).
+            bc_dofs: Local indices of Dirichlet dofs.
+            project: Add the PSD-projected Hessian (Newton fallback) instead of the exact one.
+        """
+        ev = self._evaluate(u)
+        free = self._free_mask(bc_dofs)
+        if project:
+            self.surface.add_matrix(A, self._hessian(ev, True), free, keep=self._blocks(ev))
+        else:
+            self.surface.add_matrix(A, self._hessian(ev), free)
+
+    def add_adjoint_jacobian(self, u: fem.Function, A: PETSc.Mat, bc_dofs: np.ndarray) -> None:
+        """Add the exact (unprojected) Hessian of the contact potential w.r.t. u^i."""
+        self.add_jacobian(u, A, bc_dofs, project=False)
+
+    def add_hessian_action(self, u: fem.Function, direction: np.ndarray, y: PETSc.Vec) -> None:
+        """y[owned rows] += H d with H the exact contact Hessian (matrix-free adjoint; collective).
+
+        Args:
+            u: Current displacement.
+            direction: Local V array of d (ghosts updated, zero on Dirichlet dofs).
+            y: Vector to add to (its Dirichlet rows are overwritten by the caller).
+        """
+        ev = self._evaluate(u)
+        d = self.surface.gather(np.asarray(direction)).ravel()
+        self.surface.add_to_owned(y.array_w, self._hessian(ev) @ d)
+
+    def matrix_pattern(self, u: fem.Function, bc_dofs: np.ndarray):
+        """Global (rows, cols) of the entries :meth:`add_jacobian` may add at ``u`` (owned rows)."""
+        ev = self._evaluate(u)
+        return self.surface.matrix_entries(self._blocks(ev), self._free_mask(bc_dofs))
+
+    def max_step(self, x: PETSc.Vec, dx: PETSc.Vec) -> float:
+        """Largest a such that the surface moves collision-free along x + s dx, s in [0, a).
+
+        The CCD runs on the step extended to ``2 dx``, so a free full step reports a value > 1.
+        """
+        U0 = self.surface.gather(x.array_r)
+        dU = self.surface.gather(dx.array_r)
+        if not np.any(dU):
+            return np.inf
+        x0 = self.surface.rest_positions + U0
+        x1 = x0 + _CCD_REACH * dU
+        toi = ipctk.compute_collision_free_stepsize(
+            self.surface.mesh,
+            np.asfortranarray(x0),
+            np.asfortranarray(x1),
+            0.0,
+            self.broad_phase,
+            self.ccd,
+        )
+        return self.comm.allreduce(float(toi) * _CCD_REACH, op=MPI.MIN)
+
+    # -- configuration checks ----------------------------------------------------------------
+    def _body_label(self, body: int) -> str:
+        names = [k for k, v in self.model.domain.names.items() if v == body]
+        return f"body {body}" + (f" ({names[0]!r})" if names else "")
+
+    def _pair_label(self, a: int, b: int) -> str:
+        if a == b:
+            return f"{self._body_label(a)} with itself"
+        return f"{self._body_label(a)} and {self._body_label(b)}"
+
+    def _pair_meshes(self, x: np.ndarray):
+        """Per pair of bodies: (a, b, sub collision mesh, its positions)."""
+        surf = self.surface
+        prims = surf.edges if self.dim == 2 else surf.faces
+        static = surf._static if surf._static is not None else np.zeros(surf.num_vertices, bool)
+        for a, b in self.friction_pairs:
+            sel = np.isin(surf.primitive_body, (a, b))
+            verts = np.unique(prims[sel])
+            local = np.searchsorted(verts, prims[sel]).astype(np.int32)
+            if self.dim == 2:
+                sub = ipctk.CollisionMesh(np.asfortranarray(surf.rest_positions[verts]), local)
+            else:
+                sub = ipctk.CollisionMesh(
+                    np.asfortranarray(surf.rest_positions[verts]),
+                    np.asfortranarray(_edges_of(local)),
+                    np.asfortranarray(local),
+                )
+            ids = np.arange(len(verts), dtype=np.int32)
+            ids[static[verts]] = -1
+            filt = ipctk.make_vertex_patches_filter(ids)
+            if a != b:
+                filt = filt & ipctk.make_vertex_patches_filter(
+                    (surf.body[verts] == a).astype(np.int32)
+                )
+            sub.can_collide = filt
+            yield a, b, sub, np.asfortranarray(x[verts])
+
+    def check_configuration(self, U: np.ndarray, step: int = 0) -> float:
+        """Refuse intersecting or touching configurations; returns the minimum distance.
+
+        Raises:
+            IntersectionError: Naming the bodies that intersect or are closer than
+                ``min_gap * dhat``.
+        """
+        x = self.surface.rest_positions + U
+        mesh = self.surface.mesh
+        if ipctk.has_intersections(mesh, np.asfortranarray(x), self.broad_phase):
+            pairs = [
+                self._pair_label(a, b)
+                for a, b, sub, xs in self._pair_meshes(x)
+                if ipctk.has_intersections(sub, xs, ipctk.LBVH())
+            ]
+            raise IntersectionError(
+                f"the configuration at step {step} intersects: {'; '.join(pairs) or 'unknown'}"
+                " (separate the bodies or fix the mesh)"
+            )
+        C = self._build(x)
+        d2 = C.compute_minimum_distance(mesh, np.asfortranarray(x)) if len(C) else np.inf
+        dist = float(np.sqrt(d2))
+        if dist <= self.min_gap * self.dhat:
+            pairs = []
+            for a, b, sub, xs in self._pair_meshes(x):
+                Cs = ipctk.NormalCollisions()
+                Cs.build(sub, xs, self.dhat, 0.0, ipctk.LBVH())
+                if len(Cs) and np.sqrt(Cs.compute_minimum_distance(sub, xs)) <= self.min_gap * (
+                    self.dhat
+                ):
+                    pairs.append(self._pair_label(a, b))
+            raise IntersectionError(
+                f"at step {step} {'; '.join(pairs) or 'some bodies'} are {dist:.3e} apart, closer"
+                f" than {self.min_gap:g} dhat = {self.min_gap * self.dhat:.3e}: the barrier"
+                " cannot start from touching bodies (leave a gap)"
+            )
+        return dist
+
+    # -- output ---------------------------------------------------------------------------------
+    def end_step(self, i: int, traj) -> ContactRecord:
+        """Record and log contact forces and the minimum distance of the converged step ``i``."""
+        ev = self._evaluate(traj.u[i])
+        g = self._gradient(ev)
+        gb = ev.extras["barrier_gradient"]
+        nb, d = len(self.body_ids), self.dim
+        normal = np.zeros((nb, d))
+        friction = np.zeros((nb, d))
+        idx = self.surface.body_index
+        np.add.at(normal, idx, -gb.reshape(-1, d))
+        np.add.at(friction, idx, -(g - gb).reshape(-1, d))
+        mesh = self.surface.mesh
+        C = ev.collisions
+        d2 = C.compute_minimum_distance(mesh, np.asfortranarray(ev.x)) if len(C) else np.inf
+        rec = ContactRecord(i, len(C), float(np.sqrt(d2)), normal, friction)
+        self.records.append(rec)
+        f = self.force_function
+        f.x.array[:] = 0.0
+        self.surface.add_to_owned(f.x.array, -g)
+        f.x.scatter_forward()
+        logger.info(
+            "contact step %4d  pairs=%d  min_distance=%.3e  |normal force|=%.3e  "
+            "|friction force|=%.3e",
+            i,
+            rec.num_collisions,
+            rec.min_distance,
+            np.linalg.norm(normal, axis=1).max(initial=0.0),
+            np.linalg.norm(friction, axis=1).max(initial=0.0),
+        )
+        return rec
+
+    # -- adjoint kernels ---------------------------------------------------------------------
+    def _lambda(self, lam) -> np.ndarray:
+        values = lam.x.array if isinstance(lam, fem.Function) else np.asarray(lam)
+        return self.surface.gather(values).ravel()
+
+    def _local(self, g: np.ndarray) -> np.ndarray:
+        return self.surface.to_local(g, len(self.model.fields.u.x.array))
+
+    def _friction_jacobian(self, ev: _Evaluation, T, wrt) -> sp.csc_matrix:
+        V = np.asfortranarray(self._velocity(ev.U))
+        return sp.csc_matrix(
+            self.friction_potential.force_jacobian(
+                T,
+                self.surface.mesh,
+                np.asfortranarray(self.surface.rest_positions),
+                np.asfortranarray(self._step["lagged"]),
+                V,
+                self.barrier,
+                wrt,
+            )
+        )
+
+    def adjoint_history(self, u, lam) -> dict[int, np.ndarray]:
+        """(d g / d u^{i-j})^T lam for j = 1..m_i (owned entries of local V arrays).
+
+        g is the contact part of the step residual: friction depends on u^{i-1} through the
+        lagged normal forces and tangent bases and on u^{i-1}..u^{i-m} through the velocity.
+        """
+        ev = self._evaluate(u)
+        T = ev.extras["friction"]
+        alpha, beta_dt = self._step["alpha"], self._step["beta_dt"]
+        if T is None:
+            n = len(self.model.fields.u.x.array)
+            return {j: np.zeros(n) for j in range(1, len(alpha) + 1)}
+        lam_c = self._lambda(lam)
+        DW = ipctk.FrictionPotential.DiffWRT
+        # g_f = -F(X, U^{i-1}, v):  dg/dU^{i-j} = -dF/dv alpha_j / (beta dt)  (- dF/dU_lag, j = 1)
+        Jv = self._friction_jacobian(ev, T, DW.VELOCITIES)
+        Jl = self._friction_jacobian(ev, T, DW.LAGGED_DISPLACEMENTS)
+        tv = -(Jv.T @ lam_c) / beta_dt
+        out = {}
+        for j, a in enumerate(alpha, start=1):
+            g = a * tv
+            if j == 1:
+                g = g - Jl.T @ lam_c
+            out[j] = self._local(g)
+        return out
+
+    def adjoint_shape(self, u, lam) -> np.ndarray:
+        """(d g / d X)^T lam over the dofs of the P1 rest-coordinate space (owned entries).
+
+        Includes the barrier shape derivative with area-weight terms and the 3D edge-edge
+        mollifier correction, and the friction REST_POSITIONS Jacobian.
+        """
+        ev = self._evaluate(u)
+        lam_c = self._lambda(lam)
+        mesh = self.surface.mesh
+        C = self._build(ev.x, shape_derivatives=True)
+        S = barrier_shape_derivative(C, mesh, np.asfortranarray(ev.x), self.barrier, self.stiffness)
+        g = S.T @ lam_c
+        if np.any(self._mu > 0):
+            T = self._tangential_collisions(self._mu_table(self._mu), shape_derivatives=True)
+            Jx = self._friction_jacobian(ev, T, ipctk.FrictionPotential.DiffWRT.REST_POSITIONS)
+            g = g - Jx.T @ lam_c
+        Sspace = self.model.shape_space
+        smap = self.surface.shape_map(Sspace)
+        bs = Sspace.dofmap.index_map_bs
+        imap = Sspace.dofmap.index_map
+        out = np.zeros((imap.size_local + imap.num_ghosts) * bs)
+        d = self.dim
+        gv = g.reshape(-1, d)
+        out.reshape(-1, bs)[smap.blocks, :d] += gv[smap.cv]
+        return out
+
+    def adjoint_friction(self, u, lam) -> np.ndarray:
+        """(d g / d mu_p)^T lam for each pair p of :attr:`friction_pairs` (global, all ranks)."""
+        ev = self._evaluate(u)
+        lam_c = self._lambda(lam)
+        V = np.asfortranarray(self._velocity(ev.U))
+        out = np.zeros(len(self.friction_pairs))
+        for p in range(len(self.friction_pairs)):
+            unit = np.zeros(len(self.friction_pairs))
+            unit[p] = 1.0
+            T = self._tangential_collisions(self._mu_table(unit))
+            if len(T):
+                out[p] = self.friction_potential.gradient(T, self.surface.mesh, V) @ lam_c
+        return self.comm.bcast(out, root=0)
+
+
+def _edges_of(faces: np.ndarray) -> np.ndarray:
+    pairs = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    return np.unique(pairs, axis=0).astype(np.int32)

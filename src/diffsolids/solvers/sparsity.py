@@ -1,0 +1,129 @@
+"""Jacobian matrices whose sparsity grows beyond the finite-element pattern (contact).
+
+The FE sparsity from DOLFINx couples dofs of the same cell only; a numeric term such as contact
+couples dofs of different bodies, and which ones changes with the configuration. Numeric terms
+with a ``matrix_pattern(u, bc_dofs) -> (rows, cols)`` method (global indices, owned rows) declare
+the entries they will add; :class:`GrowingPattern` keeps a matrix whose exact (preallocated,
+no-malloc) pattern contains the FE pattern and those entries, rebuilding it with the union pattern
+only when new entries appear. While the pattern is unchanged the same matrix object is reused, so
+the direct solver keeps its symbolic factorisation.
+"""
+
+import time
+
+import dolfinx.fem.petsc as fem_petsc
+import numpy as np
+from mpi4py import MPI
+from petsc4py import PETSc
+
+__all__ = ["GrowingPattern", "matrix_with_pattern"]
+
+
+def _keys_of(A: PETSc.Mat) -> np.ndarray:
+    """Sorted global keys row * N + col of the stored entries of the owned rows of A."""
+    indptr, cols, _ = A.getValuesCSR()
+    rstart, rend = A.getOwnershipRange()
+    rows = np.repeat(np.arange(rstart, rend, dtype=np.int64), np.diff(indptr))
+    return np.sort(rows * A.getSize()[1] + cols.astype(np.int64))
+
+
+def matrix_with_pattern(like: PETSc.Mat, keys: np.ndarray) -> PETSc.Mat:
+    """A new matrix shaped like ``like`` whose pattern is exactly ``keys`` (sorted row*N+col).
+
+    The entries are preallocated and inserted as zeros; inserting outside them is an error.
+    """
+    N = like.getSize()[1]
+    rstart, rend = like.getOwnershipRange()
+    rows, cols = np.divmod(keys, N)
+    indptr = np.searchsorted(rows, np.arange(rstart, rend + 1))
+    B = PETSc.Mat().create(like.getComm())
+    B.setSizes(like.getSizes())
+    B.setBlockSizes(*like.getBlockSizes())
+    B.setType(like.getType())
+    B.setPreallocationCSR((indptr.astype(PETSc.IntType), cols.astype(PETSc.IntType)))
+    B.setLGMap(*like.getLGMap())
+    B.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
+    return B
+
+
+class GrowingPattern:
+    """Keeps Jacobian matrices large enough for the numeric terms of a NewtonSolver.
+
+    Args:
+        solver: The NewtonSolver (its Jacobian form, Dirichlet conditions and numeric terms).
+
+    Attributes:
+        rebuilds: Number of matrices rebuilt with a larger pattern.
+        seconds: Time spent checking and rebuilding patterns.
+    """
+
+    def __init__(self, solver):
+        self.solver = solver
+        self.terms = [t for t in solver.numeric_terms if hasattr(t, "matrix_pattern")]
+        self._keys: dict[int, np.ndarray] = {}
+        self._fe_keys: np.ndarray | None = None
+        self.rebuilds = 0
+        self.seconds = 0.0
+
+    @property
+    def active(self) -> bool:
+        """Whether any numeric term declares matrix entries."""
+        return bool(self.terms)
+
+    def _present(self, A: PETSc.Mat) -> np.ndarray:
+        handle = A.handle
+        if handle not in self._keys:
+            if not A.assembled:
+                s = self.solver
+                fem_petsc.assemble_matrix(A, s.jacobian_form, s.model.bcs, diag=1.0)
+                A.assemble()
+            A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
+            self._keys[handle] = _keys_of(A)
+            if self._fe_keys is None:
+                self._fe_keys = self._keys[handle]
+        return self._keys[handle]
+
+    def _needed(self) -> np.ndarray:
+        s = self.solver
+        bc = s.model.dirichlet_dofs()
+        N = s.A.getSize()[1]
+        keys = [np.zeros(0, dtype=np.int64)]
+        for term in self.terms:
+            rows, cols = term.matrix_pattern(s.u, bc)
+            keys.append(np.asarray(rows, dtype=np.int64) * N + np.asarray(cols, dtype=np.int64))
+        return np.unique(np.concatenate(keys))
+
+    def missing(self, A: PETSc.Mat) -> bool:
+        """Whether A lacks entries the terms need at the solver's current u (collective)."""
+        if not self.terms:
+            return False
+        t0 = time.perf_counter()
+        present = self._present(A)
+        needed = self._needed()
+        pos = np.minimum(np.searchsorted(present, needed), max(len(present) - 1, 0))
+        lacking = bool(len(needed)) and not np.all(present[pos] == needed)
+        self.seconds += time.perf_counter() - t0
+        return A.getComm().tompi4py().allreduce(lacking, op=MPI.LOR)
+
+    def ensure(self, A: PETSc.Mat) -> PETSc.Mat:
+        """A itself if it holds all needed entries, else a new matrix with the union pattern.
+
+        The union keeps earlier extra entries unless they outnumber the needed ones 4:1 (then
+        the pattern restarts from FE + needed), so a sliding contact does not grow it forever.
+        """
+        if not self.missing(A):
+            return A
+        t0 = time.perf_counter()
+        present, needed = self._present(A), self._needed()
+        extra = len(present) - len(self._fe_keys)
+        base = present if extra <= 4 * len(needed) + 1000 else self._fe_keys
+        B = matrix_with_pattern(A, np.union1d(base, needed))
+        self._keys[B.handle] = _keys_of(B)
+        B.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
+        self.rebuilds += 1
+        self.seconds += time.perf_counter() - t0
+        return B
+
+    def forget(self, A: PETSc.Mat) -> None:
+        """Drop cached keys of a matrix that is about to be destroyed."""
+        self._keys.pop(A.handle, None)
