@@ -18,6 +18,7 @@ from petsc4py import PETSc
 from diffsolids.errors import NewtonConvergenceError
 from diffsolids.solvers.forms import compile_form
 from diffsolids.solvers.inversion import InversionGuard
+from diffsolids.solvers.sparsity import GrowingPattern
 
 __all__ = ["NewtonResult", "NewtonSolver", "SolverOptions"]
 
@@ -99,6 +100,11 @@ class NewtonSolver:
                 V, f.dx.metadata()["quadrature_degree"], limit=1.0 / self.options.step_safety
             )
             self.step_bounds.append(guard)
+        # numeric terms with a step bound (contact: collision-free CCD fraction)
+        self.step_bounds.extend(t for t in self.numeric_terms if hasattr(t, "max_step"))
+        self.patterns = GrowingPattern(self)
+        self.projected_steps = 0
+        self._restarted_after = 0
         self.reference_force = 0.0
         self._jacobian_key = None
         self._make_snes()
@@ -197,6 +203,14 @@ class NewtonSolver:
     def _precheck(self, x, y, *args) -> None:
         F = self.snes.getFunction()[0]
         slope = y.dot(F)  # the trial point is x - lambda y: descent needs y . F > 0
+        if not slope > 0 and self._projectable():
+            # paper sec. 5: PSD-project the contact Hessian only when the exact one fails
+            self._assign(x)
+            self.assemble_projected_jacobian(self.A)
+            self._jacobian_key = None
+            self.snes.getKSP().solve(F, y)
+            slope = y.dot(F)
+            self.projected_steps += 1
         if not slope > 0:
             # Not a descent direction (indefinite Hessian): fall back to the gradient direction.
             y.scale(0.0)
@@ -217,8 +231,9 @@ class NewtonSolver:
 
     def _converged(self, snes, it, norms):
         fnorm = norms[2]
-        if it == 0:
+        if it == 0 and self._restarted_after == 0:
             self._f_char = max(self.reference_force, fnorm)
+        it += self._restarted_after
         self._fnorm = fnorm
         R = PETSc.SNES.ConvergedReason
         if not np.isfinite(fnorm):
@@ -227,7 +242,41 @@ class NewtonSolver:
             return R.CONVERGED_FNORM_ABS
         if it >= self.options.max_iterations:
             return R.DIVERGED_MAX_IT
+        if it > self._restarted_after and self.patterns.missing(self.A):
+            # the next Jacobian needs entries the matrix lacks: restart with a larger matrix
+            self._restart = True
+            return R.DIVERGED_JACOBIAN_DOMAIN
         return R.ITERATING
+
+    # -- numeric terms: projected Hessians and growing sparsity -------------------------------
+    def _projectable(self) -> bool:
+        return any(getattr(t, "projectable_hessian", False) for t in self.numeric_terms)
+
+    def assemble_projected_jacobian(self, A: PETSc.Mat) -> None:
+        """Newton matrix with the PSD-projected Hessians of the numeric terms that offer one."""
+        A.zeroEntries()
+        fem_petsc.assemble_matrix(A, self.jacobian_form, self.model.bcs, diag=1.0)
+        bc_dofs = self.model.dirichlet_dofs()
+        for term in self.numeric_terms:
+            if getattr(term, "projectable_hessian", False):
+                term.add_jacobian(self.u, A, bc_dofs, project=True)
+            else:
+                term.add_jacobian(self.u, A, bc_dofs)
+        A.assemble()
+
+    def ensure_matrix_pattern(self, A: PETSc.Mat) -> PETSc.Mat:
+        """A, or a new matrix with A's pattern plus the entries numeric terms add at ``u``.
+
+        Call before assembling a Jacobian with numeric terms (contact) into a matrix of your own.
+        """
+        return self.patterns.ensure(A)
+
+    def _use_matrix(self, A: PETSc.Mat) -> None:
+        if A is not self.A:
+            self.patterns.forget(self.A)
+            self.A = A
+            self.snes.setJacobian(self._jacobian, A, A)
+            self._jacobian_key = None
 
     # -- public ------------------------------------------------------------------------------
     def set_reference_force(self) -> float:
@@ -249,9 +298,19 @@ class NewtonSolver:
         )
         self.u.x.scatter_forward()
         self.x.array_w[:] = self.u.x.petsc_vec.array_r
+        self._restarted_after = 0
+        self._restart = False
+        if self.patterns.active:
+            self._use_matrix(self.patterns.ensure(self.A))
         self.snes.solve(None, self.x)
+        while self._restart:
+            self._restart = False
+            self._restarted_after += self.snes.getIterationNumber()
+            self._assign(self.x)
+            self._use_matrix(self.patterns.ensure(self.A))
+            self.snes.solve(None, self.x)
         reason = self.snes.getConvergedReason()
-        its = self.snes.getIterationNumber()
+        its = self._restarted_after + self.snes.getIterationNumber()
         self._assign(self.x)
         if reason <= 0:
             names = {
