@@ -169,12 +169,26 @@ class Simulation:
                     bc.set(u.x.array)
 
     def _guess_inverts(self, arr: np.ndarray) -> bool:
-        guard = self.solver.step_bounds[0]
-        zero = self.solver._work
-        zero.set(0.0)
+        """Whether the guess inverts elements, or the path to it from u^{i-1} is not admissible.
+
+        Step bounds of numeric terms (contact CCD) check the straight path from the previous
+        state, which is intersection-free, to the guess.
+        """
+        numeric = [b for b in self.solver.step_bounds if b in self.model.numeric_terms]
+        guards = [b for b in self.solver.step_bounds if b not in numeric]
+        dx = self.solver._work
+        dx.set(0.0)
         x = self.solver.x
-        x.array_w[:] = arr[: len(x.array_r)]
-        return guard.max_step(x, zero) <= 0.0
+        n = len(x.array_r)
+        x.array_w[:] = arr[:n]
+        if any(g.max_step(x, dx) <= 0.0 for g in guards):
+            return True
+        if not numeric:
+            return False
+        prev = self._guess_origin
+        x.array_w[:] = prev[:n]
+        dx.array_w[:] = arr[:n] - prev[:n]
+        return min(b.max_step(x, dx) for b in numeric) <= 1.0
 
     # -- run -----------------------------------------------------------------------------
     def run(self) -> Trajectory:
@@ -214,6 +228,7 @@ class Simulation:
                 for bc in d.bcs:
                     bc.set(u.x.array)
             self.solver.set_reference_force()
+        self._guess_origin = traj.u[i - 1]
         self._initial_guess(i, traj)
         try:
             result = self.solver.solve(i)
@@ -239,6 +254,9 @@ class Simulation:
             time.perf_counter() - t0,
         )
         traj.records.append(rec)
+        for term in self.model.numeric_terms:
+            if hasattr(term, "end_step"):
+                term.end_step(i, traj)
         logger.info(
             "step %4d  t=%-10.4g order=%d  newton=%2d  residual=%.3e  energy=%.6e  (%.2fs)",
             i,
