@@ -11,7 +11,7 @@ from mpi4py import MPI
 from diffsolids.errors import MeshError
 from diffsolids.mesh import Domain, tag_facets
 
-__all__ = ["combine_meshes", "simplex_box"]
+__all__ = ["combine_meshes", "simplex_ball", "simplex_box"]
 
 
 def simplex_box(corners, n) -> dolfinx.mesh.Mesh:
@@ -93,3 +93,39 @@ def combine_meshes(
     mesh.topology.create_connectivity(tdim - 1, tdim)
     facet_tags = tag_facets(mesh, facets) if facets else None
     return Domain.from_mesh(mesh, cell_tags, facet_tags, names)
+
+
+def simplex_ball(center, radius: float, size: float) -> dolfinx.mesh.Mesh:
+    """A serial disk (2D) or ball (3D) meshed by gmsh, for :func:`combine_meshes`.
+
+    Args:
+        center: Center point (its length sets the dimension).
+        radius: Radius.
+        size: Target edge length.
+    """
+    import gmsh
+    from dolfinx.io import gmsh as gmsh_io
+
+    center = np.asarray(center, dtype=float)
+    dim = len(center)
+    initialised = gmsh.isInitialized()
+    if not initialised:
+        gmsh.initialize(interruptible=False)
+    gmsh.option.setNumber("General.Terminal", 0)
+    gmsh.model.add("simplex_ball")
+    try:
+        if dim == 2:
+            tag = gmsh.model.occ.addDisk(center[0], center[1], 0.0, radius, radius)
+        else:
+            tag = gmsh.model.occ.addSphere(*center, radius)
+        gmsh.model.occ.synchronize()
+        gmsh.model.addPhysicalGroup(dim, [tag], 1)
+        gmsh.option.setNumber("Mesh.CharacteristicLengthMax", size)
+        gmsh.option.setNumber("Mesh.CharacteristicLengthMin", size / 2)
+        gmsh.model.mesh.generate(dim)
+        data = gmsh_io.model_to_mesh(gmsh.model, MPI.COMM_SELF, 0, gdim=dim)
+    finally:
+        gmsh.model.remove()
+        if not initialised:
+            gmsh.finalize()
+    return data.mesh
