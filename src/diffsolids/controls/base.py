@@ -48,9 +48,30 @@ class Control(ABC):
     def check(self, simulation) -> None:  # noqa: B027 (optional hook)
         """Raise ControlError if the control does not belong to ``simulation``."""
 
+    def footprint(self) -> set[tuple]:
+        """What the control writes: ``{(quantity, part)}``, ``part`` None for all of it.
+
+        Two controls of one parameter vector must not write the same part of a quantity (the
+        later assignment would silently override the earlier one).
+        """
+        return {(self.name, None)}
+
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper bounds of the parameters (default unbounded)."""
         return np.full(self.size, -np.inf), np.full(self.size, np.inf)
+
+
+def _check_disjoint(controls: Sequence[Control]) -> None:
+    seen: dict[tuple, Control] = {}
+    for c in controls:
+        for quantity, part in c.footprint():
+            for (q, p), other in seen.items():
+                if q == quantity and (part is None or p is None or p == part):
+                    raise ControlError(
+                        f"controls {other.name} and {c.name} both set {quantity}"
+                        + ("" if part is None or p is None else f" ({part})")
+                    )
+        seen.update(dict.fromkeys(c.footprint(), c))
 
 
 class ControlSet:
@@ -64,6 +85,7 @@ class ControlSet:
         self.controls = list(controls)
         for c in self.controls:
             c.check(simulation)
+        _check_disjoint(self.controls)
         self.offsets = np.cumsum([0] + [c.size for c in self.controls])
 
     @property

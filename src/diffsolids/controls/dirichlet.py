@@ -39,6 +39,12 @@ class DirichletControl(Control):
             raise ControlError("Dirichlet control belongs to a different simulation")
 
     @override
+    def footprint(self) -> set[tuple]:
+        index = self.sim.model.dirichlet.index(self.condition)
+        where = self.condition.condition.where
+        return {(f"Dirichlet condition {index} (on {where!r})", None)}
+
+    @override
     @property
     def size(self) -> int:
         return self.ncomp * self.steps

@@ -40,6 +40,10 @@ class InitialCondition(Control):
             raise ControlError(f"control {self.name} belongs to a different simulation")
 
     @override
+    def footprint(self) -> set[tuple]:
+        return {(f"the initial {self.which}", None)}
+
+    @override
     @property
     def size(self) -> int:
         return self.layout.size
@@ -95,6 +99,10 @@ class RigidVelocity(Control):
     def check(self, simulation) -> None:
         if simulation is not self.sim:
             raise ControlError(f"control {self.name} belongs to a different simulation")
+
+    @override
+    def footprint(self) -> set[tuple]:
+        return {("the initial velocity", f"body {self.body}")}
 
     @override
     @property

@@ -73,6 +73,13 @@ class ParameterControl(Control):
             raise ControlError(f"control {self.name} belongs to a different model")
 
     @override
+    def footprint(self) -> set[tuple]:
+        quantity = f"coefficient {self.coefficient_name!r}"
+        if self.mode == "bodies":
+            return {(quantity, f"body {b}") for b in self.bodies}
+        return {(quantity, None)}
+
+    @override
     @property
     def size(self) -> int:
         if self.mode == "field":
