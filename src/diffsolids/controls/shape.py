@@ -5,6 +5,7 @@ from typing import override
 
 import numpy as np
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 from mpi4py import MPI
 
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
@@ -40,7 +41,9 @@ class ShapeControl(Control):
             marker ``x -> bool`` selecting vertices by rest position.
         exclude_facets: With "boundary": facet tags whose vertices stay fixed.
         linear_map: Optional matrix (num_vertices * dim x k) from k design variables to the
-            displacement of all vertices in canonical order; overrides ``vertices``.
+            displacement of all vertices in canonical order; overrides ``vertices``. A
+            ``scipy.sparse.linalg.LinearOperator`` (e.g. a mesh-motion extension) is used as
+            is; its products must be collective and identical on all ranks.
     """
 
     name = "shape"
@@ -64,7 +67,8 @@ class ShapeControl(Control):
         self.X0 = mesh.geometry.x[:, : self.dim].copy()
         n = self.num_vertices * self.dim
         if linear_map is not None:
-            P = sp.csr_matrix(linear_map)
+            is_op = isinstance(linear_map, spla.LinearOperator)
+            P = linear_map if is_op else sp.csr_matrix(linear_map)
             if P.shape[0] != n:
                 raise ControlError(f"shape linear_map has {P.shape[0]} rows, expected {n}")
         else:
