@@ -86,6 +86,12 @@ class Simulation:
             as given instead of solving steps 1..k, e.g. exact values so that BDF_m runs at full
             order from step k + 1 = m (verification of temporal orders). Their records have
             ``order`` 0 and no Newton iterations.
+
+    Attributes:
+        warm_start: Optional Trajectory (e.g. of the previous optimisation iterate) whose
+            u^i is tried first as the initial Newton guess of step i (same dof layout; skipped
+            where it does not fit or is not admissible). Only the guess changes: the converged
+            states agree with a cold start to the Newton tolerance.
     """
 
     def __init__(
@@ -126,6 +132,7 @@ class Simulation:
         self.progress = progress
         self.callback = callback
         self.trajectory: Trajectory | None = None
+        self.warm_start: Trajectory | None = None
 
     # -- step set-up shared with the adjoint -----------------------------------------------------
     def load_step(self, i: int, traj: Trajectory) -> StepCoefficients:
@@ -156,6 +163,14 @@ class Simulation:
     def _initial_guess(self, i: int, traj: Trajectory) -> None:
         u = self.model.fields.u
         prev = traj.u[i - 1]
+        warm = self.warm_start
+        if warm is not None and i < len(warm.u) and warm.u[i].shape == prev.shape:
+            u.x.array[:] = warm.u[i]
+            for d in self.model.dirichlet:
+                for bc in d.bcs:
+                    bc.set(u.x.array)
+            if not self.solver.step_bounds or not self._guess_inverts(u.x.array):
+                return
         guess = prev + self.integrator.dt * traj.v[i - 1] if self.integrator.dynamic else prev
         u.x.array[:] = guess
         for d in self.model.dirichlet:
