@@ -7,11 +7,13 @@ from collections.abc import Sequence
 import numpy as np
 from dolfinx import fem
 from mpi4py import MPI
+from petsc4py import PETSc
 
 from diffsolids.adjoint import AdjointSolverOptions, BackwardSweep, Sensitivities
 from diffsolids.controls import Control, ControlSet
 from diffsolids.errors import DiffsolidsError
 from diffsolids.objectives import Objective, ObjectiveError, TimeGrid
+from diffsolids.objectives.terms import objective_terms
 from diffsolids.solvers import compile_form
 from diffsolids.solvers.newton import FactorStore
 
@@ -176,6 +178,56 @@ class ReducedFunctional:
         """(J(q), dJ/dq)."""
         J = self(q)
         return J, self.derivative()
+
+    def term_values(self) -> dict[str, float]:
+        """Values of the objective's additive terms at the last forward run (they sum to J).
+
+        Raises:
+            AdjointError: No forward run yet.
+        """
+        if self._state is None:
+            raise AdjointError("no forward solve yet: call rf(q) before term_values()")
+        _, _, table, reg, _ = self._state
+        return {t.label: t.value(table, reg, self.grid) for t in objective_terms(self.objective)}
+
+    def snapshot(self):
+        """An opaque record of the last forward run (parameters, trajectory, values)."""
+        return self._state
+
+    def restore(self, snapshot) -> None:
+        """Return to a :meth:`snapshot`: assign its parameters and make it the last forward run.
+
+        The controls (model coefficients, mesh) are reset even if a later ``assign`` failed
+        half-way; the gradient then refers to the snapshot's point.
+        """
+        if snapshot is None:
+            raise AdjointError("cannot restore an empty snapshot (no forward run was recorded)")
+        self.controls.assign(snapshot[0])
+        self._state = snapshot
+        self.simulation.trajectory = snapshot[1]
+
+    def tao_objective_gradient(self, tao, x, g) -> float:
+        """PETSc TAO objective-and-gradient callback: returns J(x) and fills ``g``.
+
+        ``x`` and ``g`` are either sequential Vecs holding the full parameter vector on every
+        rank (all ranks running the same TAO solve on ``COMM_SELF``) or one distributed Vec
+        (gathered to every rank here).
+
+        Example:
+            ``tao.setObjectiveGradient(rf.tao_objective_gradient, g)``.
+        """
+        if x.getComm().getSize() > 1:
+            scatter, full = PETSc.Scatter.toAll(x)
+            scatter.scatter(x, full, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
+            q = full.getArray(readonly=True).copy()
+            scatter.destroy()
+            full.destroy()
+        else:
+            q = x.getArray(readonly=True).copy()
+        J, grad = self.value_and_gradient(q)
+        start, end = g.getOwnershipRange()
+        g.setArray(grad[start:end])
+        return J
 
     @property
     def trajectory(self):
