@@ -1,0 +1,615 @@
+"""L-BFGS with a projected, safeguarded backtracking line search (paper sec. 5, Algorithm 1).
+
+Every trial point of the line search is checked before it counts: the step is projected onto
+the parameter bounds and limited per control block, and a trial whose controls cannot be
+applied (inverted elements of a shape update, intersecting rest configurations) or whose forward
+solve fails (Newton failure, non-finite objective, any DiffsolidsError) is *invalid*: the model
+returns to the last accepted point and the step is shortened. Only trials that are valid and
+satisfy the Armijo condition are accepted.
+
+Remeshing hook: an optional ``remesher`` object with
+
+- ``needs_remesh(rf, q) -> bool``, called after every accepted iterate, and
+- ``remesh(rf, q) -> (new_rf, new_q)``, building the scene on a new mesh. The L-BFGS memory is
+  reset afterwards; the iteration count and history continue.
+- optionally ``save_checkpoint(directory, rf)`` (called on all ranks after a remesh when the run
+  writes checkpoints) and ``load_checkpoint(directory, rf) -> new_rf`` (called on resume with
+  the freshly built original functional; returns the functional on the saved mesh).
+
+An ``inner_product`` (``g -> M^{-1} g`` for an SPD operator M) is the initial inverse Hessian
+of L-BFGS; if it has a method ``rebuild(rf)``, that is called after a remesh and its result
+used from then on.
+"""
+
+import logging
+import time
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from mpi4py import MPI
+
+from diffsolids.errors import DiffsolidsError
+from diffsolids.io.progress import progress_bar
+from diffsolids.optimize.bounds import (
+    active_set,
+    block_limits,
+    check_bounds,
+    project,
+    projected_gradient,
+    step_limit,
+)
+from diffsolids.optimize.checkpoint import Checkpoint
+from diffsolids.optimize.lbfgs import LBFGSMemory
+from diffsolids.optimize.monitor import (
+    IterationRecord,
+    OptimizationOutput,
+    log_iteration,
+)
+from diffsolids.optimize.options import LBFGSOptions, OptimizationError, OptimizationWarning
+
+__all__ = ["LBFGS", "OptimizationResult", "minimize"]
+
+logger = logging.getLogger("diffsolids")
+
+_CONVERGED = ("gradient_atol", "gradient_rtol", "step", "objective")
+
+
+@dataclass
+class OptimizationResult:
+    """Outcome of an optimisation.
+
+    Attributes:
+        q: The last accepted parameters.
+        objective: J(q).
+        gradient: dJ/dq at q.
+        iterations: Accepted steps (including those before a resumption).
+        reason: Why the run stopped: "gradient_atol", "gradient_rtol", "step", "objective",
+            "max_iterations", "line_search" (no acceptable step found) or "user: <name>".
+        message: Readable explanation.
+        history: One record per iterate, starting with the initial point.
+        num_forward: Forward solves of this process (line-search trials and restarts).
+        num_gradient: Adjoint gradients of this process.
+        num_invalid_trials: Invalid trials of this process.
+        functional: The reduced functional at the end (a new one after remeshing).
+        resumed_from: Iteration the run resumed from (None for a fresh run).
+    """
+
+    q: np.ndarray
+    objective: float
+    gradient: np.ndarray
+    iterations: int
+    reason: str
+    message: str
+    history: list[IterationRecord] = field(default_factory=list)
+    num_forward: int = 0
+    num_gradient: int = 0
+    num_invalid_trials: int = 0
+    functional: object = None
+    resumed_from: int | None = None
+
+    @property
+    def converged(self) -> bool:
+        """Stopped by a convergence criterion (gradient, step, objective or a user condition)."""
+        return self.reason in _CONVERGED or self.reason.startswith("user")
+
+    def __str__(self) -> str:
+        return (
+            f"optimisation stopped after {self.iterations} iterations ({self.reason}): "
+            f"{self.message}; J = {self.objective:.10e}"
+        )
+
+
+@dataclass
+class _Point:
+    """An accepted iterate and what belongs to it."""
+
+    q: np.ndarray
+    J: float
+    g: np.ndarray
+    trajectory: object = None
+    snapshot: object = None
+
+
+class LBFGS:
+    """Bound-constrained L-BFGS on a ReducedFunctional.
+
+    Args:
+        rf: The ReducedFunctional (``forward``, ``derivative``, ``value_and_gradient``,
+            ``bounds``, ``controls``, ``simulation``, ``comm``).
+        options: Algorithm and stopping options.
+        inner_product: ``g -> M^{-1} g`` for an SPD M, the initial inverse Hessian.
+        remesher: Optional remeshing hook (see the module docstring).
+        stop_conditions: Callables ``condition(record, optimizer) -> bool | str`` evaluated
+            after every accepted iterate; a truthy result stops the run with reason
+            "user: <name>" (a returned string is used as the name).
+        output_dir: Directory for ``history.jsonl``, plots and iterate trajectories.
+        checkpoint_dir: Directory for checkpoints (written after every iterate).
+        resume: Continue from the checkpoint in ``checkpoint_dir`` if there is one.
+        progress: Progress bar of the iterations (None: when stderr is a terminal).
+        write_parameters: Record q in the history file.
+        plot_every: Update PNG plots of the objective and gradient norm every k iterations and
+            at the end (0: no plots).
+        iterate_every: Write the trajectory of every k-th iterate (0: never).
+        iterate_format: "bp" (VTX) or "xdmf".
+    """
+
+    def __init__(
+        self,
+        rf,
+        options: LBFGSOptions | None = None,
+        *,
+        inner_product: Callable[[np.ndarray], np.ndarray] | None = None,
+        remesher=None,
+        stop_conditions: Sequence[Callable] = (),
+        output_dir=None,
+        checkpoint_dir=None,
+        resume: bool = True,
+        progress: bool | None = None,
+        write_parameters: bool = False,
+        plot_every: int = 10,
+        iterate_every: int = 0,
+        iterate_format: str = "bp",
+    ):
+        self.rf = rf
+        self.options = options or LBFGSOptions()
+        self.options.validate()
+        self.inner_product = inner_product
+        self.remesher = remesher
+        self.stop_conditions = list(stop_conditions)
+        self.comm: MPI.Comm = rf.comm
+        self.resume = resume
+        self.progress = progress
+        self.output = (
+            OptimizationOutput(
+                output_dir, self.comm, write_parameters, plot_every, iterate_every, iterate_format
+            )
+            if output_dir is not None
+            else None
+        )
+        self.write_parameters = write_parameters
+        self.checkpoint = Checkpoint(checkpoint_dir, self.comm) if checkpoint_dir else None
+        self.memory = LBFGSMemory(
+            self.options.history_size, inner_product, self.options.curvature_tol
+        )
+        self.history: list[IterationRecord] = []
+        self.iteration = 0
+        self.remesh_count = 0
+        self.num_forward = 0
+        self.num_gradient = 0
+        self.num_invalid = 0
+        self.initial_gradient_norm = 0.0
+        self.point: _Point | None = None
+        self.active: np.ndarray | None = None  # variables held at their bounds last iteration
+        self._t_start = 0.0
+
+    # -- evaluation ---------------------------------------------------------------------------
+    def _sync(self, J: float, g: np.ndarray | None = None):
+        """Rank 0's values on all ranks: every rank takes the same decisions."""
+        J = self.comm.bcast(J, root=0)
+        if g is None:
+            return J
+        return J, self.comm.bcast(g, root=0)
+
+    def _set_warm_start(self) -> None:
+        sim = self.rf.simulation
+        traj = self.point.trajectory if self.point is not None else None
+        sim.warm_start = traj if self.options.warm_start else None
+
+    def _trial(self, q: np.ndarray) -> tuple[bool, float, float, str]:
+        """Forward solve at a trial point: (valid, J, seconds, why invalid)."""
+        self._set_warm_start()
+        t0 = time.perf_counter()
+        why = ""
+        try:
+            J = float(self.rf.forward(q))
+        except DiffsolidsError as e:
+            J, why = np.nan, f"{type(e).__name__}: {e}"
+        self.num_forward += 1
+        seconds = time.perf_counter() - t0
+        valid = self.comm.allreduce(bool(np.isfinite(J)), op=MPI.LAND)
+        if not valid and not why:
+            why = "failed on another rank"
+        return valid, (self._sync(J) if valid else np.nan), seconds, why
+
+    def _gradient(self) -> tuple[np.ndarray, float]:
+        t0 = time.perf_counter()
+        try:
+            g = np.asarray(self.rf.derivative(), dtype=float)
+        except DiffsolidsError as e:
+            raise OptimizationError(
+                f"the gradient at iteration {self.iteration} could not be computed: {e}"
+            ) from e
+        self.num_gradient += 1
+        if not np.all(np.isfinite(g)):
+            raise OptimizationError(f"non-finite gradient at iteration {self.iteration}")
+        return self._sync(0.0, g)[1], time.perf_counter() - t0
+
+    def _restore(self) -> None:
+        """Model and controls back to the accepted point after an invalid trial."""
+        p = self.point
+        if p.snapshot is not None and hasattr(self.rf, "restore"):
+            self.rf.restore(p.snapshot)
+        else:
+            self.rf.controls.assign(p.q)
+
+    def _terms(self) -> dict[str, float]:
+        values = getattr(self.rf, "term_values", None)
+        return dict(values()) if values is not None else {}
+
+    def _snapshot(self):
+        snap = getattr(self.rf, "snapshot", None)
+        return snap() if snap is not None else None
+
+    def _bounds(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        lo, hi = (np.asarray(b, dtype=float) for b in self.rf.bounds())
+        check_bounds(q, lo, hi, self.rf.controls)
+        return lo, hi
+
+    # -- start and resume ------------------------------------------------------------------------
+    def _start(self, q0) -> None:
+        rf = self.rf
+        q = np.array(rf.initial_parameters() if q0 is None else q0, dtype=float)
+        if q.shape != (rf.size,):
+            raise OptimizationError(f"q0 has shape {q.shape}, the controls expect ({rf.size},)")
+        if not np.all(np.isfinite(q)):
+            raise OptimizationError("the initial parameters are not finite")
+        self._bounds(q)
+        self._set_warm_start()
+        t0 = time.perf_counter()
+        try:
+            J = float(rf.forward(q))
+        except DiffsolidsError as e:
+            raise OptimizationError(
+                f"the objective cannot be evaluated at the initial point: {e}"
+            ) from e
+        self.num_forward += 1
+        t_forward = time.perf_counter() - t0
+        if not np.isfinite(J):
+            raise OptimizationError(f"non-finite objective at the initial point (J = {J})")
+        J = self._sync(J)
+        g, t_grad = self._gradient()
+        self.point = _Point(q, J, g, rf.trajectory, self._snapshot())
+        self._warn_inactive_controls(g)
+        lo, hi = self._bounds(q)
+        gnorm = float(np.linalg.norm(projected_gradient(q, g, lo, hi)))
+        self.initial_gradient_norm = gnorm
+        rec = self._record(0.0, 0.0, 0, 0, t_forward, t_grad)
+        self._accepted(rec)
+
+    def _warn_inactive_controls(self, g: np.ndarray) -> None:
+        controls = self.rf.controls
+        for c, a, b in zip(
+            controls.controls, controls.offsets[:-1], controls.offsets[1:], strict=True
+        ):
+            if b > a and not np.any(g[a:b]):
+                message = (
+                    f"control {c.name} has no effect on the objective: its gradient is zero at "
+                    "the initial point"
+                )
+                logger.warning(message)
+                warnings.warn(message, OptimizationWarning, stacklevel=3)
+
+    def _layout(self) -> np.ndarray:
+        """Fingerprint of this rank's dof layout (cells in input order and dof count)."""
+        mesh = self.rf.model.domain.mesh
+        V = self.rf.model.V
+        n = (V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts) * V.dofmap.index_map_bs
+        return np.concatenate([[n], mesh.topology.original_cell_index]).astype(np.int64)
+
+    def _resume(self) -> None:
+        ckpt = self.checkpoint
+        meta, arrays = ckpt.load_state()
+        count = int(meta["remesh_count"])
+        if count > 0:
+            load = getattr(self.remesher, "load_checkpoint", None)
+            if load is None:
+                raise OptimizationError(
+                    f"the checkpoint in {ckpt.directory} follows {count} remeshes; resuming needs "
+                    "a remesher with load_checkpoint(directory, rf)"
+                )
+            self.rf = load(ckpt.mesh_directory(count), self.rf)
+            self._rebuild_inner_product()
+        rf = self.rf
+        q = np.asarray(arrays["q"], dtype=float)
+        if q.shape != (rf.size,):
+            raise OptimizationError(
+                f"the checkpoint in {ckpt.directory} has {q.size} parameters, the controls "
+                f"expect {rf.size}: a different problem (use a new checkpoint directory)"
+            )
+        rf.controls.assign(q)
+        trajectory, problem = ckpt.load_trajectory(meta, self._layout())
+        self.point = _Point(q, float(meta["objective"]), np.asarray(arrays["g"]), trajectory)
+        if problem is not None and self.options.warm_start:
+            message = f"checkpoint: no warm start after resuming ({problem})"
+            logger.warning(message)
+            warnings.warn(message, OptimizationWarning, stacklevel=3)
+        self.memory.load({k: arrays[k] for k in ("s", "y", "gamma")})
+        self.active = np.asarray(arrays["active"], dtype=bool) if arrays["active"].size else None
+        self.iteration = int(meta["iteration"])
+        self.remesh_count = count
+        self.initial_gradient_norm = float(meta["initial_gradient_norm"])
+        self.history = [IterationRecord.from_dict(d) for d in meta["history"]]
+        if self.output is not None:
+            self.output.start(self.history)
+        logger.info("opt resuming from the checkpoint of iteration %d", self.iteration)
+
+    def _save_checkpoint(self) -> None:
+        if self.checkpoint is None:
+            return
+        p = self.point
+        meta = {
+            "iteration": self.iteration,
+            "remesh_count": self.remesh_count,
+            "objective": p.J,
+            "initial_gradient_norm": self.initial_gradient_norm,
+            "history": [vars(r) for r in self.history],
+        }
+        active = np.zeros(0, dtype=bool) if self.active is None else self.active
+        arrays = {"q": p.q, "g": p.g, "active": active, **self.memory.state()}
+        self.checkpoint.save(meta, arrays, p.trajectory, self._layout())
+
+    def _rebuild_inner_product(self) -> None:
+        rebuild = getattr(self.inner_product, "rebuild", None)
+        if rebuild is not None:
+            self.inner_product = rebuild(self.rf)
+            self.memory.inner_product = self.inner_product
+
+    # -- iterations ------------------------------------------------------------------------------
+    def _record(
+        self, step_norm, step_length, trials, invalid, t_forward, t_grad
+    ) -> IterationRecord:
+        p = self.point
+        lo, hi = self._bounds(p.q)
+        return IterationRecord(
+            iteration=self.iteration,
+            objective=p.J,
+            terms=self._terms(),
+            gradient_norm=float(np.linalg.norm(projected_gradient(p.q, p.g, lo, hi))),
+            step_norm=float(step_norm),
+            step_length=float(step_length),
+            trials=trials,
+            invalid_trials=invalid,
+            forward_seconds=t_forward,
+            gradient_seconds=t_grad,
+            seconds=time.perf_counter() - self._t_start,
+            q=p.q.tolist() if self.write_parameters else None,
+        )
+
+    def _accepted(self, rec: IterationRecord) -> None:
+        """Remesh if asked, then log, write output and checkpoint an accepted iterate."""
+        if self.iteration > 0 and self.remesher is not None:
+            self._maybe_remesh(rec)
+        self.history.append(rec)
+        log_iteration(rec)
+        if self.output is not None:
+            self.output.record(rec, self.history)
+            if self.output.wants_iterate(self.iteration) and self.point.trajectory is not None:
+                self.output.write_iterate(self.iteration, self.rf.model, self.point.trajectory)
+        self._save_checkpoint()
+
+    def _maybe_remesh(self, rec: IterationRecord) -> None:
+        p = self.point
+        wanted = bool(self.comm.bcast(bool(self.remesher.needs_remesh(self.rf, p.q)), root=0))
+        if not wanted:
+            return
+        J_before = p.J
+        new_rf, q = self.remesher.remesh(self.rf, p.q)
+        self.rf = new_rf
+        self._rebuild_inner_product()
+        self.memory.reset()
+        self.active = None
+        q = np.array(q, dtype=float)
+        self.point = None
+        self._set_warm_start()
+        t0 = time.perf_counter()
+        try:
+            J = float(new_rf.forward(q))
+        except DiffsolidsError as e:
+            raise OptimizationError(f"the forward solve fails on the remeshed scene: {e}") from e
+        self.num_forward += 1
+        if not np.isfinite(J):
+            raise OptimizationError(f"non-finite objective after remeshing (J = {J})")
+        rec.forward_seconds += time.perf_counter() - t0
+        J = self._sync(J)
+        g, t_grad = self._gradient()
+        self.point = _Point(q, J, g, new_rf.trajectory, self._snapshot())
+        self.remesh_count += 1
+        lo, hi = self._bounds(q)
+        rec.objective, rec.objective_before_remesh, rec.remeshed = J, J_before, True
+        rec.terms = self._terms()
+        rec.gradient_norm = float(np.linalg.norm(projected_gradient(q, g, lo, hi)))
+        rec.gradient_seconds += t_grad
+        rec.q = q.tolist() if self.write_parameters else None
+        if self.checkpoint is not None:
+            save = getattr(self.remesher, "save_checkpoint", None)
+            if save is None:
+                logger.warning(
+                    "opt: the remesher has no save_checkpoint; checkpoints after this "
+                    "remesh cannot be resumed"
+                )
+            else:
+                save(self.checkpoint.mesh_directory(self.remesh_count), new_rf)
+
+    def _direction(self, g, free) -> np.ndarray:
+        d = -self.memory.apply(g, free)
+        if not float(g @ d) < 0 and len(self.memory):
+            logger.info("opt: L-BFGS direction is not a descent direction; memory reset")
+            self.memory.reset(keep_scaling=True)
+            d = -self.memory.apply(g, free)
+        return d
+
+    def _line_search(self, d: np.ndarray, lo, hi):
+        """Backtracking along the projected path; returns (q, J, t, trials, invalid, seconds)."""
+        opts = self.options
+        p = self.point
+        if self.memory.scaled:
+            t = 1.0
+        elif opts.initial_step is not None:
+            t = opts.initial_step / float(np.max(np.abs(d)))
+        else:
+            t = 1.0 / float(np.linalg.norm(d))
+        t = min(t, step_limit(d, block_limits(opts.max_change, self.rf.controls)))
+        trials = invalid = 0
+        seconds = 0.0
+        for _ in range(opts.max_trials):
+            q = project(p.q + t * d, lo, hi)
+            s = q - p.q
+            if not np.any(s):
+                break
+            trials += 1
+            valid, value, dt, why = self._trial(q)
+            seconds += dt
+            bound = p.J + opts.armijo * min(float(p.g @ s), 0.0)  # Armijo on the projected path
+            if valid and value <= bound:
+                return q, value, t, trials, invalid, seconds
+            if valid:
+                logger.debug(
+                    "opt: trial t=%.3g rejected (J=%.10e above the Armijo bound)", t, value
+                )
+            else:
+                invalid += 1
+                self.num_invalid += 1
+                logger.info("opt: invalid trial t=%.3g (%s); step halved", t, why)
+                self._restore()
+            t *= opts.backtracking
+        self._restore()
+        return None, np.nan, t, trials, invalid, seconds
+
+    def _stop_reason(self, rec: IterationRecord, previous: IterationRecord | None) -> str | None:
+        opts = self.options
+        for cond in self.stop_conditions:
+            verdict = self.comm.bcast(cond(rec, self), root=0)
+            if verdict:
+                name = verdict if isinstance(verdict, str) else getattr(cond, "__name__", "stop")
+                return f"user: {name}"
+        gn = rec.gradient_norm
+        if gn <= opts.gradient_atol or gn == 0.0:
+            return "gradient_atol"
+        if gn <= opts.gradient_rtol * self.initial_gradient_norm:
+            return "gradient_rtol"
+        if previous is not None and not rec.remeshed:
+            if rec.step_norm <= opts.step_tol:
+                return "step"
+            decrease = previous.objective - rec.objective
+            scale = max(abs(previous.objective), abs(rec.objective))
+            if decrease <= max(opts.objective_atol, opts.objective_rtol * scale):
+                return "objective"
+        if self.iteration >= opts.max_iterations:
+            return "max_iterations"
+        return None
+
+    def _step(self) -> str | None:
+        """One L-BFGS iteration; returns a stop reason or None."""
+        p = self.point
+        lo, hi = self._bounds(p.q)
+        active = active_set(p.q, p.g, lo, hi)
+        if self.active is not None and not np.array_equal(active, self.active):
+            # pairs whose steps moved now-fixed variables misstate the reduced curvature
+            logger.debug("opt: active set changed (%d at bounds); memory reset", active.sum())
+            self.memory.reset(keep_scaling=True)
+        self.active = active
+        free = ~active
+        d = self._direction(p.g, free)
+        if not float(p.g @ d) < 0:
+            return "gradient_atol"
+        q, J, t, trials, invalid, seconds = self._line_search(d, lo, hi)
+        if q is None and self.memory.scaled:
+            logger.info("opt: line search failed; retrying along -M^-1 g with a reset memory")
+            self.memory.reset()
+            d = self._direction(p.g, free)
+            q, J, t, more, more_invalid, more_seconds = self._line_search(d, lo, hi)
+            trials, invalid, seconds = trials + more, invalid + more_invalid, seconds + more_seconds
+        if q is None:
+            return "line_search"
+        g, t_grad = self._gradient()
+        self.memory.update(q - p.q, g - p.g)
+        self.point = _Point(q, J, g, self.rf.trajectory, self._snapshot())
+        self.iteration += 1
+        step_norm = float(np.linalg.norm(q - p.q))
+        rec = self._record(step_norm, t, trials, invalid, seconds, t_grad)
+        self._accepted(rec)
+        return None
+
+    # -- driver ----------------------------------------------------------------------------------
+    def run(self, q0=None) -> OptimizationResult:
+        """Minimise from ``q0`` (default: the controls' current parameters), or resume.
+
+        Raises:
+            OptimizationError: Bounds excluding the initial point, an initial point where the
+                objective cannot be evaluated, a non-finite objective or gradient at an accepted
+                point, an incompatible checkpoint.
+        """
+        self._t_start = time.perf_counter()
+        resumed_from = None
+        if self.checkpoint is not None and self.resume and self.checkpoint.exists():
+            self._resume()
+            resumed_from = self.iteration
+        else:
+            if self.output is not None:
+                self.output.start([])
+            self._start(q0)
+        opts = self.options
+        with progress_bar(opts.max_iterations, self.comm, self.progress, "optimisation") as bar:
+            bar.update(self.iteration)
+            previous = self.history[-2] if len(self.history) > 1 else None
+            reason = self._stop_reason(self.history[-1], previous)
+            while reason is None:
+                reason = self._step()
+                bar.update(1)
+                if reason is None:
+                    reason = self._stop_reason(self.history[-1], self.history[-2])
+        p = self.point
+        if p.snapshot is not None and hasattr(self.rf, "restore"):
+            self.rf.restore(p.snapshot)
+        else:
+            self.rf.controls.assign(p.q)
+        if (
+            self.output is not None
+            and self.output.iterate_every > 0
+            and not self.output.wants_iterate(self.iteration)
+            and p.trajectory is not None
+        ):
+            self.output.write_iterate(self.iteration, self.rf.model, p.trajectory)
+        if self.output is not None:
+            self.output.finish(self.history)
+        self.rf.simulation.warm_start = None
+        message = _MESSAGES.get(reason.split(":")[0], reason)
+        logger.info("opt stopped after %d iterations: %s", self.iteration, message)
+        if reason == "line_search":
+            warnings.warn(f"optimisation stopped: {message}", OptimizationWarning, stacklevel=2)
+        return OptimizationResult(
+            q=p.q.copy(),
+            objective=p.J,
+            gradient=p.g.copy(),
+            iterations=self.iteration,
+            reason=reason,
+            message=message,
+            history=list(self.history),
+            num_forward=self.num_forward,
+            num_gradient=self.num_gradient,
+            num_invalid_trials=self.num_invalid,
+            functional=self.rf,
+            resumed_from=resumed_from,
+        )
+
+
+_MESSAGES = {
+    "gradient_atol": "projected gradient norm below the absolute tolerance",
+    "gradient_rtol": "projected gradient norm reduced below the relative tolerance",
+    "step": "step below the step tolerance",
+    "objective": "objective reduction below its tolerance",
+    "max_iterations": "iteration limit reached",
+    "line_search": "the line search found no valid step with sufficient decrease",
+    "user": "a user stopping condition was met",
+}
+
+
+def minimize(rf, q0=None, options: LBFGSOptions | None = None, **kwargs) -> OptimizationResult:
+    """Minimise a ReducedFunctional with :class:`LBFGS` (keyword arguments as there).
+
+    Example:
+        ``result = minimize(rf, options=LBFGSOptions(gradient_rtol=1e-8), output_dir="out")``.
+    """
+    return LBFGS(rf, options, **kwargs).run(q0)

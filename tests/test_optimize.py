@@ -1,0 +1,402 @@
+"""L-BFGS optimiser: convergence, bounds, validity of iterates, failures, hooks, output."""
+
+import itertools
+import json
+import logging
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+from optimize_script import E_TRUE, bar_problem, dynamic_problem, shape_problem
+
+from diffsolids.errors import NewtonConvergenceError
+from diffsolids.mesh import signed_cell_volumes
+from diffsolids.optimize import (
+    LBFGS,
+    LBFGSMemory,
+    LBFGSOptions,
+    OptimizationError,
+    OptimizationWarning,
+    minimize,
+)
+from diffsolids.optimize.bounds import projected_gradient
+
+
+@pytest.fixture(scope="module")
+def bar1():
+    return bar_problem(MPI.COMM_WORLD, bodies=1)
+
+
+@pytest.fixture(scope="module")
+def bar2():
+    return bar_problem(MPI.COMM_WORLD, bodies=2)
+
+
+# -- L-BFGS memory ------------------------------------------------------------------------------
+def test_memory_satisfies_secant_equations_and_recovers_quadratic_inverse():
+    rng = np.random.default_rng(1)
+    n = 5
+    A = rng.standard_normal((n, n))
+    H_true = A @ A.T + n * np.eye(n)  # SPD Hessian of a quadratic
+    # H-conjugate steps (those of exact line searches): s_k = L^-T Q e_k with H = L L^T
+    L = np.linalg.cholesky(H_true)
+    Q = np.linalg.qr(rng.standard_normal((n, n)))[0]
+    steps = np.linalg.solve(L.T, Q).T
+    mem = LBFGSMemory(n)
+    for s in steps:
+        assert mem.update(s, H_true @ s)
+    g = rng.standard_normal(n)
+    # n conjugate pairs of a quadratic: BFGS reproduces the inverse Hessian exactly
+    assert np.allclose(mem.apply(g), np.linalg.solve(H_true, g), rtol=1e-8)
+    # secant equation of the newest pair holds for any memory size
+    small = LBFGSMemory(2)
+    for _ in range(4):
+        s = rng.standard_normal(n)
+        small.update(s, H_true @ s)
+    assert np.allclose(small.apply(small.y[-1]), small.s[-1], rtol=1e-10)
+    # negative curvature is skipped; the masked direction stays on the free set
+    assert not small.update(np.ones(n), -np.ones(n))
+    free = np.array([True, False, True, True, False])
+    d = small.apply(g, free)
+    assert np.all(d[~free] == 0) and float(g[free] @ d[free]) > 0
+
+
+def test_memory_with_inner_product_uses_it_as_initial_inverse():
+    M = np.array([[4.0, 1.0], [1.0, 2.0]])
+    mem = LBFGSMemory(3, inner_product=lambda g: np.linalg.solve(M, g))
+    g = np.array([1.0, -2.0])
+    assert np.allclose(mem.apply(g), np.linalg.solve(M, g))
+    # gamma scaling: H0 = gamma M^-1 with gamma = s.y / (y.M^-1 y) after one pair
+    s, y = np.array([1.0, 0.5]), np.array([2.0, 0.3])
+    mem.update(s, y)
+    Hy = mem.apply(y)
+    assert np.allclose(Hy, s)  # secant equation
+
+
+# -- convergence on a problem with a known optimum ------------------------------------------------
+def test_recovers_youngs_modulus_in_few_iterations(bar1):
+    rf, _ = bar1
+    q0 = rf.initial_parameters()
+    result = minimize(rf, q0, LBFGSOptions(gradient_rtol=1e-8))
+    E = np.exp(result.q)
+    assert result.converged, result
+    assert abs(E[0] - E_TRUE[0]) <= 1e-6 * E_TRUE[0], E
+    assert result.iterations <= 10  # 8 here: a factor 2 off, unit first step in log E
+    J = [r.objective for r in result.history]
+    assert all(b < a for a, b in itertools.pairwise(J))  # monotone decrease
+    assert J[-1] <= 1e-12 * J[0]
+    # the model holds the optimum after the run
+    assert np.allclose(rf.controls.value(), result.q)
+    rf.controls.assign(q0)
+
+
+def _with_bounds(rf, lower, upper):
+    from diffsolids.controls import ParameterControl
+    from diffsolids.reduced_functional import ReducedFunctional
+
+    control = ParameterControl(rf.model, "E", "bodies", log=True, lower=lower, upper=upper)
+    return ReducedFunctional(rf.simulation, rf.objective, control)
+
+
+def test_bounds_and_max_change_are_respected_at_every_iterate(bar2):
+    # the truth of body 1 (log 2000) lies beyond the upper bound log 1500
+    upper = np.array([np.log(1500.0), np.log(5000.0)])
+    lower = np.log([200.0, 200.0])
+    rf = _with_bounds(bar2[0], lower, upper)
+    q0 = rf.initial_parameters()
+    result = minimize(
+        rf,
+        q0,
+        LBFGSOptions(gradient_rtol=1e-9, max_change=0.25, max_iterations=60),
+        write_parameters=True,
+    )
+    qs = np.array([r.q for r in result.history])
+    assert np.all(qs >= lower) and np.all(qs <= upper)
+    assert np.all(np.abs(np.diff(qs, axis=0)).max(axis=1) <= 0.25 * (1 + 1e-12))
+    assert result.converged, result
+    assert result.q[0] == upper[0]  # active bound, exactly on it
+    g = result.gradient
+    assert g[0] < 0  # the objective still wants a larger E_1: the bound is active
+    pg = projected_gradient(result.q, g, lower, upper)
+    assert np.linalg.norm(pg) <= 1e-9 * result.history[0].gradient_norm
+    # the free parameter is optimal for E_1 at its bound: J does not decrease along E_2
+    J = result.objective
+    for h in (1e-3, -1e-3):
+        assert rf(result.q + np.array([0.0, h])) >= J
+    rf.controls.assign(q0)
+
+
+def test_initial_step_and_inner_product_shape_the_first_step(bar2):
+    rf, _ = bar2
+    q0 = rf.initial_parameters()
+    M = np.array([[1.0, 0.0], [0.0, 25.0]])
+    calls = []
+
+    def riesz(g):
+        calls.append(1)
+        return np.linalg.solve(M, g)
+
+    g0 = rf.gradient(q0)
+    result = minimize(
+        rf,
+        q0,
+        LBFGSOptions(initial_step=0.1, max_iterations=1),
+        inner_product=riesz,
+        write_parameters=True,
+    )
+    step = np.array(result.history[1].q) - q0
+    d = -np.linalg.solve(M, g0)
+    assert calls
+    assert np.allclose(step / np.abs(step).max(), d / np.abs(d).max(), rtol=1e-10)
+    assert np.isclose(np.abs(step).max(), 0.1, rtol=1e-12)  # max-norm of the first step
+    # with the inner product the run still converges
+    full = minimize(rf, q0, LBFGSOptions(gradient_rtol=1e-8), inner_product=riesz)
+    assert full.converged
+    assert np.allclose(np.exp(full.q), E_TRUE, rtol=1e-6)
+    rf.controls.assign(q0)
+
+
+# -- validity of iterates -------------------------------------------------------------------------
+def test_no_inverted_iterate_is_ever_accepted():
+    rf, control = shape_problem(MPI.COMM_WORLD)
+    model = rf.model
+    mesh = model.domain.mesh
+    signs = model.reference_signs
+    checked = []
+
+    def mesh_is_valid(rec, opt):
+        vol = signed_cell_volumes(mesh) * signs
+        checked.append(MPI.COMM_WORLD.allreduce(float(vol.min()), op=MPI.MIN))
+        assert np.allclose(control.value(), opt.point.q)  # the mesh shows the accepted q
+        return False
+
+    result = minimize(rf, options=LBFGSOptions(max_iterations=6), stop_conditions=[mesh_is_valid])
+    assert result.num_invalid_trials > 0  # long steps were tried and refused
+    assert sum(r.invalid_trials for r in result.history) == result.num_invalid_trials
+    assert len(checked) == len(result.history)
+    assert min(checked) > 0
+    J = [r.objective for r in result.history]
+    assert all(b < a for a, b in itertools.pairwise(J))
+
+
+def _failing_run(rf, predicate):
+    """Make the simulation raise NewtonConvergenceError when predicate(E) holds."""
+    sim = rf.simulation
+    run = sim.run
+    E = rf.model.coefficients["E"]
+
+    def guarded():
+        if predicate(float(E.x.array.max())):
+            raise NewtonConvergenceError(1, 50, 1.0, 1e-9, "DIVERGED_MAX_IT (test)")
+        return run()
+
+    sim.run = guarded
+    return run
+
+
+def test_failed_forward_solves_are_invalid_trials(bar1):
+    rf, _ = bar1
+    q0 = rf.initial_parameters()
+    run = _failing_run(rf, lambda E: E > 2200.0)
+    try:
+        result = minimize(
+            rf, q0, LBFGSOptions(initial_step=3.0, gradient_rtol=1e-8), write_parameters=True
+        )
+    finally:
+        rf.simulation.run = run
+    assert result.history[1].invalid_trials >= 2  # e^3 and e^1.5 times 1000 exceed 2200
+    assert all(np.exp(r.q[0]) <= 2200.0 for r in result.history)
+    assert result.converged
+    assert abs(np.exp(result.q[0]) - E_TRUE[0]) <= 1e-6 * E_TRUE[0]
+    rf.controls.assign(q0)
+
+
+def test_model_is_restored_when_no_valid_step_exists(bar1):
+    rf, _ = bar1
+    q0 = rf.initial_parameters()
+    E0 = float(np.exp(q0[0]))
+    run = _failing_run(rf, lambda E: not np.isclose(E, E0, rtol=1e-14))
+    try:
+        with pytest.warns(OptimizationWarning, match="line search"):
+            result = minimize(rf, q0, LBFGSOptions(max_trials=4))
+    finally:
+        rf.simulation.run = run
+    assert result.reason == "line_search"
+    assert result.iterations == 0
+    assert result.num_invalid_trials == 4  # no memory to reset at the first iteration
+    assert np.array_equal(result.q, q0)
+    assert np.allclose(rf.model.coefficients["E"].x.array, E0, rtol=1e-14)
+    assert np.array_equal(rf.controls.value(), q0)
+
+
+# -- stopping -----------------------------------------------------------------------------------
+def test_stopping_criteria_and_reasons(bar2):
+    rf, _ = bar2
+    q0 = rf.initial_parameters()
+    r = minimize(rf, q0, LBFGSOptions(max_iterations=3, gradient_rtol=0))
+    assert (r.reason, r.iterations, r.converged) == ("max_iterations", 3, False)
+    r = minimize(rf, q0, LBFGSOptions(gradient_atol=1e-3, gradient_rtol=0))
+    assert r.reason == "gradient_atol" and r.history[-1].gradient_norm <= 1e-3
+    assert r.history[-2].gradient_norm > 1e-3
+    r = minimize(rf, q0, LBFGSOptions(step_tol=0.05, gradient_rtol=0))
+    assert r.reason == "step" and r.history[-1].step_norm <= 0.05
+    assert all(h.step_norm > 0.05 for h in r.history[1:-1])
+    r = minimize(rf, q0, LBFGSOptions(objective_rtol=0.1, gradient_rtol=0))
+    J = [h.objective for h in r.history]
+    assert r.reason == "objective" and J[-2] - J[-1] <= 0.1 * J[-2]
+    assert all(a - b > 0.1 * a for a, b in itertools.pairwise(J[:-1]))
+
+    def below(rec, opt):
+        return "small J" if rec.objective < 1e-4 else False
+
+    r = minimize(rf, q0, LBFGSOptions(gradient_rtol=0), stop_conditions=[below])
+    assert r.reason == "user: small J" and r.converged
+    assert r.history[-1].objective < 1e-4 <= r.history[-2].objective
+    rf.controls.assign(q0)
+
+
+# -- errors -------------------------------------------------------------------------------------
+def test_clear_errors(bar1):
+    rf, _ = bar1
+    q0 = rf.initial_parameters()
+    control = rf.controls.controls[0]
+    control._lower = np.log(1500.0)
+    try:
+        with pytest.raises(OptimizationError, match="exclude the initial point"):
+            minimize(rf, q0)
+    finally:
+        control._lower = -np.inf
+    with pytest.raises(OptimizationError, match="armijo"):
+        LBFGSOptions(armijo=1.5).validate()
+    with pytest.raises(OptimizationError, match="max_change"):
+        minimize(rf, q0, LBFGSOptions(max_change=[0.1, 0.2]))
+    rf.controls.assign(q0)
+
+
+def test_non_finite_objective_and_gradient_are_reported():
+    from diffsolids.controls import ParameterControl
+    from diffsolids.reduced_functional import ReducedFunctional
+
+    rf0, _ = bar_problem(MPI.COMM_WORLD, bodies=1)
+    sim, model = rf0.simulation, rf0.model
+    misfit = rf0.objective
+    control = ParameterControl(model, "E", "uniform", log=True)
+    nan_objective = misfit.apply(lambda x: np.log(x - 1.0), lambda x: 1.0 / (x - 1.0), "log")
+    with pytest.raises(OptimizationError, match="initial point"):
+        minimize(ReducedFunctional(sim, nan_objective, control))
+    inf_gradient = misfit.apply(lambda x: x, lambda x: np.inf, "flat")
+    with pytest.raises(OptimizationError, match="gradient"):
+        minimize(ReducedFunctional(sim, inf_gradient, control))
+    # a control that does not act on a static, unloaded-by-gravity problem: density
+    density = ParameterControl(model, "density", "uniform")
+    rf = ReducedFunctional(sim, misfit, [control, density])
+    with pytest.warns(OptimizationWarning, match="density.*no effect"):
+        result = minimize(rf, options=LBFGSOptions(max_iterations=1))
+    assert np.all(result.gradient[1:] == 0)
+
+
+# -- output -------------------------------------------------------------------------------------
+def test_history_plots_log_and_iterates(tmp_path, caplog):
+    rf, _ = bar_problem(MPI.COMM_WORLD, bodies=2, regularised=True)
+    q0 = rf.initial_parameters()
+    with caplog.at_level(logging.INFO, logger="diffsolids"):
+        result = minimize(
+            rf,
+            q0,
+            LBFGSOptions(max_iterations=4, gradient_rtol=0),
+            output_dir=tmp_path,
+            write_parameters=True,
+            plot_every=10,
+            iterate_every=3,
+        )
+    lines = [json.loads(s) for s in (tmp_path / "history.jsonl").read_text().splitlines()]
+    assert [d["iteration"] for d in lines] == list(range(5))
+    for d, rec in zip(lines, result.history, strict=True):
+        assert d["objective"] == rec.objective
+        assert set(d["terms"]) == {"misfit", "0.0001*u2"}
+        assert np.isclose(sum(d["terms"].values()), d["objective"], rtol=1e-13)
+        assert len(d["q"]) == 2 and d["gradient_norm"] >= 0
+        assert d["forward_seconds"] >= 0 and d["gradient_seconds"] >= 0
+    for name in ("objective.png", "gradient_norm.png"):
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert sorted(p.name for p in (tmp_path / "iterates").iterdir() if "cells" not in p.name) == [
+        "iterate_0000.bp",
+        "iterate_0003.bp",
+        "iterate_0004.bp",
+    ]
+    opt_lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("opt ")]
+    assert sum("misfit=" in m and "0.0001*u2=" in m and "|g|=" in m for m in opt_lines) == 5
+
+
+def test_xdmf_iterates(tmp_path):
+    rf, _ = bar_problem(MPI.COMM_WORLD, bodies=1)
+    minimize(
+        rf,
+        options=LBFGSOptions(max_iterations=1),
+        output_dir=tmp_path,
+        plot_every=0,
+        iterate_every=1,
+        iterate_format="xdmf",
+    )
+    assert (tmp_path / "iterates" / "iterate_0001.xdmf").is_file()
+    assert not (tmp_path / "objective.png").exists()
+
+
+# -- warm start ---------------------------------------------------------------------------------
+def test_warm_start_changes_only_the_newton_guess():
+    rf, _ = dynamic_problem(MPI.COMM_WORLD)
+    sim = rf.simulation
+    q0 = rf.initial_parameters()
+    q1 = q0 + np.array([0.02, -0.01])
+    rf.forward(q0)
+    warm = rf.trajectory
+    J_cold = rf.forward(q1)
+    cold = rf.trajectory
+    sim.warm_start = warm
+    try:
+        J_warm = rf.forward(q1)
+    finally:
+        sim.warm_start = None
+    hot = rf.trajectory
+    assert hot.newton_iterations() < cold.newton_iterations()
+    assert abs(J_warm - J_cold) <= 1e-8 * abs(J_cold)
+    scale = max(np.abs(u).max() for u in cold.u)
+    assert max(np.abs(a - b).max() for a, b in zip(hot.u, cold.u, strict=True)) <= 1e-8 * scale
+
+
+# -- remeshing hook -----------------------------------------------------------------------------
+class _RefiningRemesher:
+    """Rebuilds the bar on a finer mesh once, after iteration 2."""
+
+    def __init__(self):
+        self.calls = []
+        self.done = False
+
+    def needs_remesh(self, rf, q):
+        self.calls.append(np.array(q))
+        return len(self.calls) == 2
+
+    def remesh(self, rf, q):
+        new_rf, _ = bar_problem(MPI.COMM_WORLD, bodies=2, n=(16, 4))
+        self.done = True
+        return new_rf, np.array(q)
+
+
+def test_remesh_hook_resets_memory_and_continues():
+    rf, _ = bar_problem(MPI.COMM_WORLD, bodies=2)
+    remesher = _RefiningRemesher()
+    opt = LBFGS(rf, LBFGSOptions(gradient_rtol=1e-8, max_iterations=40), remesher=remesher)
+    result = opt.run()
+    assert remesher.done
+    assert len(remesher.calls) == result.iterations  # asked after every accepted iterate
+    assert [r.remeshed for r in result.history].count(True) == 1
+    rec = result.history[2]
+    assert rec.remeshed and rec.objective_before_remesh != rec.objective
+    assert result.functional is not rf
+    assert result.functional.model.domain.mesh.topology.index_map(2).size_global == 128
+    # memory reset: the step after the remesh has unit length, possibly halved
+    assert np.log2(result.history[3].step_norm) == pytest.approx(
+        round(np.log2(result.history[3].step_norm)), abs=1e-9
+    )
+    assert result.converged
+    assert np.allclose(np.exp(result.q), E_TRUE, rtol=1e-6)
