@@ -104,9 +104,13 @@ class Domain:
     def bounding_box(self) -> tuple[np.ndarray, np.ndarray]:
         """Global (min, max) corners of the rest configuration."""
         x = self.mesh.geometry.x[:, : self.dim]
-        lo = x.min(axis=0) if len(x) else np.full(self.dim, np.inf)
-        hi = x.max(axis=0) if len(x) else np.full(self.dim, -np.inf)
-        return self.comm.allreduce(lo, op=MPI.MIN), self.comm.allreduce(hi, op=MPI.MAX)
+        lo = np.array(x.min(axis=0) if len(x) else np.full(self.dim, np.inf), dtype=np.float64)
+        hi = np.array(x.max(axis=0) if len(x) else np.full(self.dim, -np.inf), dtype=np.float64)
+        # buffer (elementwise) reductions: the pickle-based allreduce applies min() to whole
+        # arrays and raises on one rank while the other waits
+        self.comm.Allreduce(MPI.IN_PLACE, lo, op=MPI.MIN)
+        self.comm.Allreduce(MPI.IN_PLACE, hi, op=MPI.MAX)
+        return lo, hi
 
     def characteristic_length(self) -> float:
         """Diagonal of the bounding box."""
