@@ -232,21 +232,27 @@ class ContactTerm:
         self._forward_step = i if forward else None
 
     def _update_static(self) -> None:
-        bc = self.model.dirichlet_dofs()
-        key = (len(bc), hash(bc.tobytes()))
-        if key == self._free_key:
-            return
-        fixed = self.surface.dof_mask(bc)
-        self._free = ~fixed
-        self._free_key = key
-        self.surface.set_static(fixed.reshape(-1, self.dim).all(axis=1))
-        self._token += 1
+        if self._free_mask(self.model.dirichlet_dofs(), static=True):
+            self._token += 1
 
-    def _free_mask(self, bc_dofs) -> np.ndarray:
-        key = (len(bc_dofs), hash(np.asarray(bc_dofs).tobytes()))
-        if key != self._free_key:
-            self._free = ~self.surface.dof_mask(np.asarray(bc_dofs))
+    def _free_mask(self, bc_dofs, static: bool = False) -> np.ndarray | bool:
+        """Free collision dofs for these (local) Dirichlet dofs; collective.
+
+        With ``static``, also mark fully prescribed vertices as static obstacles and return
+        whether anything changed.
+        """
+        bc = np.asarray(bc_dofs)
+        key = (len(bc), hash(bc.tobytes()))
+        changed = self.comm.allreduce(key != self._free_key, op=MPI.LOR)
+        if changed:
+            self._free = ~self.surface.dof_mask(bc)
             self._free_key = key
+        if static:
+            if changed or self.surface._static is None:
+                fixed = ~self._free.reshape(-1, self.dim)
+                self.surface.set_static(fixed.all(axis=1))
+                return True
+            return False
         return self._free
 
     def _build(self, x: np.ndarray, shape_derivatives: bool = False) -> ipctk.NormalCollisions:
