@@ -108,7 +108,6 @@ class Simulation:
     ):
         self.model = model
         self.integrator = integrator
-        self.solver = NewtonSolver(model, integrator.dynamic, solver_options)
         V = model.V
         self.u0 = _initial_array(V, u0, "initial displacement u0")
         self.v0 = _initial_array(V, v0, "initial velocity v0")
@@ -128,6 +127,8 @@ class Simulation:
                 f"{len(self.startup)} prescribed start-up states leave no step of "
                 f"{integrator.num_steps} to solve"
             )
+        # after the input checks: bad input fails before any form is compiled
+        self.solver = NewtonSolver(model, integrator.dynamic, solver_options)
         self.output = output
         self.progress = progress
         self.callback = callback
