@@ -280,3 +280,29 @@ def test_newton_failure_names_step_iterations_and_residual(square):
     # the same problem solves with the default options
     traj = ds.Simulation(model, ds.Static(num_steps=3, dt=1.0), progress=False).run()
     assert all(r.iterations > 1 for r in traj.records)
+
+
+class _NoStep:
+    """A step bound (like the inversion guard or contact CCD) that admits no step at all."""
+
+    def max_step(self, x, dx) -> float:
+        return 0.0
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="NewtonSolver.solve accepts the zero step a step bound forces (SNES "
+    "CONVERGED_SNORM_RELATIVE) although the residual is far above the tolerance",
+)
+def test_blocked_newton_step_is_not_success(square):
+    model = ds.Model(square, ds.LinearElastic(E=10.0, nu=0.3))
+    model.add_dirichlet("left", 0.0)
+    model.add_traction("right", [1.0, 0.0])
+    solver = ds.NewtonSolver(model, dynamic=False)
+    solver.step_bounds.append(_NoStep())
+    # a non-zero admissible start (from u = 0 PETSc reports DIVERGED_LINE_SEARCH instead)
+    model.fields.u.interpolate(lambda x: np.stack([0.1 * x[0] * x[1], np.zeros_like(x[0])]))
+    with pytest.raises(ds.NewtonConvergenceError, match="step 1"):
+        result = solver.solve(1)
+        # what it returns instead: "converged" at the initial residual
+        assert result.residual <= solver.options.rtol * result.characteristic_force, result
