@@ -15,7 +15,9 @@ All ranks hold the whole collision surface (gathered once per evaluation), run i
 add only the rows they own.
 """
 
+import contextlib
 import logging
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -25,6 +27,7 @@ import scipy.sparse as sp
 from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
+from scipy.spatial import cKDTree
 
 from diffsolids.contact.shape import barrier_shape_derivative
 from diffsolids.contact.surface import CollisionSurface, block_pattern
@@ -36,6 +39,8 @@ logger = logging.getLogger("diffsolids")
 
 # the CCD checks the step extended by this factor, so that a free full step reports > 1
 _CCD_REACH = 2.0
+# the matrix pattern of a step covers the pairs within this many dhat at u^{i-1} (plus motion)
+_PATTERN_REACH = 2.0
 
 
 @dataclass
@@ -152,6 +157,7 @@ class ContactTerm:
         self._mu = np.zeros(len(self.friction_pairs))
         self._set_friction(friction)
         self.records: list[ContactRecord] = []
+        self.timings: dict[str, list] = {}
         self.force_function = fem.Function(model.V, name="contact_force")
         self._token = 0
         self._eval: _Evaluation | None = None
@@ -159,6 +165,7 @@ class ContactTerm:
         self._free_key = None
         self._free = np.ones(self.surface.num_vertices * self.dim, dtype=bool)
         self._forward_step: int | None = None
+        self._segment = None
         self._tangential = None
 
     # -- parameters ---------------------------------------------------------------------------
@@ -225,6 +232,7 @@ class ContactTerm:
         self._eval = None
         self._tangential = None
         self._lagged = None
+        self._segment = None
         forward = len(traj.u) == i
         if forward and (self._forward_step is None or i != self._forward_step + 1):
             self.records = []
@@ -262,6 +270,27 @@ class ContactTerm:
         C.build(self.surface.mesh, np.asfortranarray(x), self.dhat, 0.0, self.broad_phase)
         return C
 
+    def _build_on_segment(self, U: np.ndarray, x: np.ndarray) -> ipctk.NormalCollisions:
+        """Collision set at x, reusing the CCD candidates when x lies on the last checked step.
+
+        The line search only visits points x0 + t dx, t in [0, 1], of the segment the CCD swept
+        (to 2 dx) with boxes inflated by dhat: its candidates contain every pair within dhat
+        there, so only the narrow phase runs.
+        """
+        seg = self._segment
+        if seg is not None:
+            U0, dU, candidates, token = seg
+            if token == self._token:
+                diff = U - U0
+                t = float(np.vdot(diff, dU) / np.vdot(dU, dU))
+                tol = 1e-10 * (np.abs(U0).max() + np.abs(dU).max())
+                if -1e-12 <= t <= _CCD_REACH and np.abs(diff - t * dU).max() <= tol:
+                    C = ipctk.NormalCollisions()
+                    C.use_area_weighting = self.area_weighting
+                    C.build(candidates, self.surface.mesh, np.asfortranarray(x), self.dhat, 0.0)
+                    return C
+        return self._build(x)
+
     def _lagged_state(self, shape_derivatives: bool = False):
         """(positions, collisions) at x^{i-1}; with weight gradients when asked."""
         key = "lagged_shape" if shape_derivatives else "lagged"
@@ -296,7 +325,8 @@ class ContactTerm:
         if not np.any(self._mu > 0):
             return None
         if self._tangential is None:
-            self._tangential = self._tangential_collisions(self._mu_table(self._mu))
+            with self._timed("lagged_friction"):
+                self._tangential = self._tangential_collisions(self._mu_table(self._mu))
             self._token += 1
         return self._tangential
 
@@ -304,21 +334,47 @@ class ContactTerm:
         return U / self._step["beta_dt"] + self._step["v_offset"]
 
     # -- evaluation cache --------------------------------------------------------------------
+    @contextlib.contextmanager
+    def _timed(self, name: str):
+        t0, c0 = time.perf_counter(), time.process_time()
+        try:
+            yield
+        finally:
+            entry = self.timings.setdefault(name, [0.0, 0, 0.0])
+            entry[0] += time.perf_counter() - t0
+            entry[1] += 1
+            entry[2] += time.process_time() - c0
+
+    def timing_summary(self) -> dict[str, dict[str, float]]:
+        """Wall seconds, calls, mean wall ms and process CPU seconds per contact operation."""
+        return {
+            k: {"seconds": t, "calls": n, "mean_ms": 1e3 * t / max(n, 1), "cpu_seconds": c}
+            for k, (t, n, c) in self.timings.items()
+        }
+
     def _evaluate(self, u) -> _Evaluation:
         values = u.x.array if isinstance(u, fem.Function) else u
-        U = self.surface.gather(values)
+        with self._timed("gather"):
+            U = self.surface.gather(values)
         T = self._friction()
         ev = self._eval
         if ev is not None and ev.token == self._token and np.array_equal(ev.U, U):
             return ev
         x = self.surface.rest_positions + U
-        ev = _Evaluation(U, x, self._build(x), self._token)
+        with self._timed("build"):
+            C = self._build_on_segment(U, x)
+        ev = _Evaluation(U, x, C, self._token)
         ev.extras["friction"] = T
         self._eval = ev
         return ev
 
     def _energy(self, ev: _Evaluation) -> float:
         if ev.energy is None:
+            self._energy_now(ev)
+        return ev.energy
+
+    def _energy_now(self, ev: _Evaluation) -> None:
+        with self._timed("energy"):
             mesh = self.surface.mesh
             e = self.barrier(ev.collisions, mesh, np.asfortranarray(ev.x))
             T = ev.extras["friction"]
@@ -326,10 +382,14 @@ class ContactTerm:
                 V = np.asfortranarray(self._velocity(ev.U))
                 e += self._step["beta_dt"] * self.friction_potential(T, mesh, V)
             ev.energy = float(self.comm.bcast(e, root=0))
-        return ev.energy
 
     def _gradient(self, ev: _Evaluation) -> np.ndarray:
         if ev.gradient is None:
+            self._gradient_now(ev)
+        return ev.gradient
+
+    def _gradient_now(self, ev: _Evaluation) -> None:
+        with self._timed("gradient"):
             g = self.barrier.gradient(ev.collisions, self.surface.mesh, np.asfortranarray(ev.x))
             ev.extras["barrier_gradient"] = g
             T = ev.extras["friction"]
@@ -337,21 +397,24 @@ class ContactTerm:
                 V = np.asfortranarray(self._velocity(ev.U))
                 g = g + self.friction_potential.gradient(T, self.surface.mesh, V)
             ev.gradient = g
-        return ev.gradient
 
     def _hessian(self, ev: _Evaluation, project: bool = False) -> sp.csc_matrix:
         method = ipctk.PSDProjectionMethod.CLAMP if project else ipctk.PSDProjectionMethod.NONE
         attr = "projected" if project else "hessian"
         if getattr(ev, attr) is None:
-            mesh = self.surface.mesh
-            H = self.barrier.hessian(ev.collisions, mesh, np.asfortranarray(ev.x), method)
-            T = ev.extras["friction"]
-            if T is not None:
-                V = np.asfortranarray(self._velocity(ev.U))
-                Hf = self.friction_potential.hessian(T, mesh, V, method)
-                H = H + Hf / self._step["beta_dt"]
-            setattr(ev, attr, sp.csc_matrix(H))
+            with self._timed("hessian_projected" if project else "hessian"):
+                self._hessian_now(ev, attr, method)
         return getattr(ev, attr)
+
+    def _hessian_now(self, ev: _Evaluation, attr: str, method) -> None:
+        mesh = self.surface.mesh
+        H = self.barrier.hessian(ev.collisions, mesh, np.asfortranarray(ev.x), method)
+        T = ev.extras["friction"]
+        if T is not None:
+            V = np.asfortranarray(self._velocity(ev.U))
+            Hf = self.friction_potential.hessian(T, mesh, V, method)
+            H = H + Hf / self._step["beta_dt"]
+        setattr(ev, attr, sp.csc_matrix(H))
 
     def _blocks(self, ev: _Evaluation) -> np.ndarray:
         """Vertex-block pattern of the Newton matrix at ev (exact Hessian + friction stencils)."""
@@ -366,8 +429,44 @@ class ContactTerm:
                         T, self.surface.mesh, zero
                     )
                 parts.append(self._step["friction_pattern"])
-            ev.blocks = block_pattern(*parts, dim=self.dim, num_vertices=self.surface.num_vertices)
+            ev.blocks = np.union1d(
+                block_pattern(*parts, dim=self.dim, num_vertices=self.surface.num_vertices),
+                self._reach_pattern(),
+            )
         return ev.blocks
+
+    def _reach_pattern(self) -> np.ndarray:
+        """Vertex blocks of pairs within reach at u^{i-1}: a superset for the whole step.
+
+        Any pair of primitives within ``reach`` has all its vertex pairs within ``reach + h``
+        (h the longest surface edge), so those vertex pairs cover every contact stencil of the
+        step as long as no vertex moves more than about twice as far as in the previous step;
+        a new contact then rarely needs a larger matrix (a rebuild and a new symbolic
+        factorisation). Pairs of the same body that are that close at rest are left out (they
+        are neighbours on the surface, not contacts), as are static-static pairs.
+        """
+        step = self._step
+        if "reach" not in step:
+            with self._timed("reach_pattern"):
+                surf = self.surface
+                hist = step["history"]
+                motion = 0.0
+                if len(hist) > 1:
+                    motion = float(np.linalg.norm(hist[0] - hist[1], axis=1).max(initial=0.0))
+                x = surf.rest_positions + step["lagged"]
+                h = float(np.linalg.norm(np.diff(x[surf.edges], axis=1), axis=-1).max())
+                reach = _PATTERN_REACH * self.dhat + 2.0 * motion + h
+                a, b = cKDTree(x).query_pairs(reach, output_type="ndarray").T
+                X = surf.rest_positions
+                keep = (surf.body[a] != surf.body[b]) | (
+                    np.linalg.norm(X[a] - X[b], axis=1) > reach
+                )
+                if surf._static is not None:
+                    keep &= ~(surf._static[a] & surf._static[b])
+                a, b = a[keep].astype(np.int64), b[keep].astype(np.int64)
+                nv = surf.num_vertices
+                step["reach"] = np.unique(np.concatenate([a * nv + b, b * nv + a]))
+        return step["reach"]
 
     # -- numeric-term interface (forward) -----------------------------------------------------
     def energy(self, u: fem.Function) -> float:
@@ -392,10 +491,10 @@ class ContactTerm:
         """
         ev = self._evaluate(u)
         free = self._free_mask(bc_dofs)
-        if project:
-            self.surface.add_matrix(A, self._hessian(ev, True), free, keep=self._blocks(ev))
-        else:
-            self.surface.add_matrix(A, self._hessian(ev), free)
+        H = self._hessian(ev, project)
+        keep = self._blocks(ev) if project else None
+        with self._timed("insert"):
+            self.surface.add_matrix(A, H, free, keep=keep)
 
     def add_adjoint_jacobian(self, u: fem.Function, A: PETSc.Mat, bc_dofs: np.ndarray) -> None:
         """Add the exact (unprojected) Hessian of the contact potential w.r.t. u^i."""
@@ -416,7 +515,9 @@ class ContactTerm:
     def matrix_pattern(self, u: fem.Function, bc_dofs: np.ndarray):
         """Global (rows, cols) of the entries :meth:`add_jacobian` may add at ``u`` (owned rows)."""
         ev = self._evaluate(u)
-        return self.surface.matrix_entries(self._blocks(ev), self._free_mask(bc_dofs))
+        blocks = self._blocks(ev)
+        with self._timed("pattern"):
+            return self.surface.matrix_entries(blocks, self._free_mask(bc_dofs))
 
     def max_step(self, x: PETSc.Vec, dx: PETSc.Vec) -> float:
         """Largest a such that the surface moves collision-free along x + s dx, s in [0, a).
@@ -427,16 +528,15 @@ class ContactTerm:
         dU = self.surface.gather(dx.array_r)
         if not np.any(dU):
             return np.inf
-        x0 = self.surface.rest_positions + U0
-        x1 = x0 + _CCD_REACH * dU
-        toi = ipctk.compute_collision_free_stepsize(
-            self.surface.mesh,
-            np.asfortranarray(x0),
-            np.asfortranarray(x1),
-            0.0,
-            self.broad_phase,
-            self.ccd,
-        )
+        x0 = np.asfortranarray(self.surface.rest_positions + U0)
+        x1 = np.asfortranarray(x0 + _CCD_REACH * dU)
+        with self._timed("ccd"):
+            candidates = ipctk.Candidates()
+            candidates.build(self.surface.mesh, x0, x1, self.dhat, self.broad_phase)
+            toi = candidates.compute_collision_free_stepsize(
+                self.surface.mesh, x0, x1, 0.0, self.ccd
+            )
+        self._segment = (U0, dU, candidates, self._token)
         return self.comm.allreduce(float(toi) * _CCD_REACH, op=MPI.MIN)
 
     # -- configuration checks ----------------------------------------------------------------

@@ -1,0 +1,152 @@
+"""Contact benchmark: cost of the IPC contact term per Newton iteration.
+
+A free box (friction 0.3) falls flat onto a larger box clamped at its bottom: flat-on-flat 3D
+contact between two free bodies, P1, BDF2. Reported per Newton iteration: collision-set build,
+barrier/friction energy, gradient and Hessian, matrix insertion, pattern check, CCD step bound
+(AdditiveCCD, LBVH broad phase), and the total Newton iteration time for comparison; the cost of a
+sparsity-pattern change (matrix rebuild with the union pattern, and MUMPS symbolic+numeric versus
+numeric-only factorisation); and both narrow phases on the same flat-on-flat Newton step.
+
+Run ``python tests/benchmarks/bench_contact.py [--cells N]`` (also under ``mpiexec -n 2``).
+The last line printed is a JSON object with the numbers.
+"""
+
+import argparse
+import json
+import os
+import sys
+import time
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+
+def _parse(argv):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--cells", type=int, default=12, help="cells per side of the upper box")
+    p.add_argument("--steps", type=int, default=8, help="BDF2 steps")
+    p.add_argument("--dt", type=float, default=0.004, help="time step")
+    return p.parse_args(argv)
+
+
+def main(argv=None) -> dict:
+    """Run the benchmark and return the numbers."""
+    args = _parse(argv)
+    import ipctk
+    import numpy as np
+    from mpi4py import MPI
+    from petsc4py import PETSc
+
+    import diffsolids as ds
+    from diffsolids.contact import ContactTerm
+    from diffsolids.contact.scenes import combine_meshes, simplex_box
+    from diffsolids.solvers.sparsity import matrix_with_pattern
+
+    comm = MPI.COMM_WORLD
+    n = args.cells
+    dhat = 1e-3
+    lower = simplex_box([[0, 0, 0], [1, 1, 0.25]], [2 * n, 2 * n, max(2, n // 4)])
+    upper = simplex_box(
+        [[0.25, 0.25, 0.25 + 0.5 * dhat], [0.75, 0.75, 0.5 + 0.5 * dhat]], [n, n, max(2, n // 2)]
+    )
+    dom = combine_meshes(comm, [lower, upper])
+    model = ds.Model(dom, ds.NeoHookean(E=1e6, nu=0.3, density=1000.0))
+    model.add_gravity(9.81)
+    model.add_dirichlet(lambda x: x[2] < 1e-9, 0.0)
+    contact = ContactTerm(model, dhat=dhat, stiffness=1e12, friction=0.3, eps_v=1e-3)
+    model.add_numeric_term(contact)
+    X = model.V.tabulate_dof_coordinates()
+    v0 = np.zeros((len(X), 3))
+    v0[X[:, 2] > 0.25 + 1e-9, 2] = -0.5
+    integ = ds.BDF(2, args.dt, args.steps)
+    sim = ds.Simulation(model, integ, ds.SolverOptions(rtol=1e-8), v0=v0.ravel())
+    solver = sim.solver
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    traj = sim.run()
+    total, total_cpu = time.perf_counter() - t0, time.process_time() - c0
+    its = max(traj.newton_iterations(), 1)
+    timings = contact.timing_summary()
+    per_iteration = {k: 1e3 * v["seconds"] / its for k, v in timings.items()}
+    per_iteration_cpu = {k: 1e3 * v["cpu_seconds"] / its for k, v in timings.items()}
+
+    # FE Jacobian assembly at the final state, for scale
+    t0 = time.perf_counter()
+    solver.assemble_jacobian(solver.A)
+    fe_jacobian_ms = 1e3 * (time.perf_counter() - t0)
+
+    # a pattern change: rebuild with the union pattern; symbolic+numeric vs numeric-only LU
+    A = solver.A
+    indptr, cols, _ = A.getValuesCSR()
+    rstart, rend = A.getOwnershipRange()
+    N = A.getSize()[1]
+    rows = np.repeat(np.arange(rstart, rend, dtype=np.int64), np.diff(indptr))
+    keys = rows * N + cols.astype(np.int64)
+    t0 = time.perf_counter()
+    B = matrix_with_pattern(A, keys)
+    rebuild_ms = 1e3 * (time.perf_counter() - t0)
+    A.copy(B, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+
+    def factor_ms(M, ksp=None):
+        ksp = ksp or PETSc.KSP().create(comm)
+        ksp.setOperators(M)
+        ksp.setType("preonly")
+        ksp.getPC().setType("lu")
+        ksp.getPC().setFactorSolverType("mumps")
+        t = time.perf_counter()
+        ksp.setUp()
+        return 1e3 * (time.perf_counter() - t), ksp
+
+    symbolic_ms, ksp = factor_ms(B)
+    B.scale(1.0 + 1e-12)  # same pattern, new values
+    numeric_ms, _ = factor_ms(B, ksp)
+
+    # narrow phases on one flat-on-flat Newton step of the final state
+    surf = contact.surface
+    x0 = surf.rest_positions + surf.gather(traj.u[-1])
+    x1 = x0.copy()
+    x1[:, 2] -= np.where(surf.body == 2, 2 * dhat, 0.0)
+    ccd = {}
+    for name, narrow in (
+        ("additive", ipctk.AdditiveCCD()),
+        ("tight_inclusion_1e-6_1000", ipctk.TightInclusionCCD(1e-6, 1000)),
+    ):
+        t = time.perf_counter()
+        toi = ipctk.compute_collision_free_stepsize(
+            surf.mesh, np.asfortranarray(x0), np.asfortranarray(x1), 0.0, ipctk.LBVH(), narrow
+        )
+        ccd[name] = {"ms": 1e3 * (time.perf_counter() - t), "toi": toi}
+
+    result = {
+        "benchmark": "contact",
+        "ranks": comm.size,
+        "dofs": model.V.dofmap.index_map.size_global * 3,
+        "surface_vertices": surf.num_vertices,
+        "active_pairs_last": contact.records[-1].num_collisions,
+        "steps": args.steps,
+        "newton_iterations": its,
+        "seconds_total": total,
+        "ms_per_newton_iteration": 1e3 * total / its,
+        "cpu_ms_per_newton_iteration": 1e3 * total_cpu / its,
+        "contact_ms_per_newton_iteration": per_iteration,
+        "contact_cpu_ms_per_newton_iteration": per_iteration_cpu,
+        "contact_ms_per_call": {k: v["mean_ms"] for k, v in timings.items()},
+        "fe_jacobian_assembly_ms": fe_jacobian_ms,
+        "pattern_rebuilds": solver.patterns.rebuilds,
+        "pattern_check_ms_per_newton_iteration": 1e3 * solver.patterns.seconds / its,
+        "pattern_rebuild_seconds_total": solver.patterns.rebuild_seconds,
+        "matrix_rebuild_ms": rebuild_ms,
+        "lu_symbolic_plus_numeric_ms": symbolic_ms,
+        "lu_numeric_only_ms": numeric_ms,
+        "projected_newton_steps": solver.projected_steps,
+        "ccd_flat_on_flat": ccd,
+        "min_distance_over_dhat_last": contact.records[-1].min_distance / dhat,
+    }
+    if comm.rank == 0:
+        print(json.dumps(result))
+    return result
+
+
+if __name__ == "__main__":
+    import diffsolids  # noqa: F401  (loads the MPI of the PyPI DOLFINx wheel first)
+
+    main(sys.argv[1:])
