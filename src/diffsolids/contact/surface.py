@@ -220,6 +220,11 @@ class CollisionSurface:
             self.set_static(static)
         return True
 
+    @property
+    def static(self) -> np.ndarray | None:
+        """Boolean mask of static (fully prescribed) vertices, None before :meth:`set_static`."""
+        return self._static
+
     def set_static(self, static: np.ndarray) -> None:
         """Exclude pairs of primitives whose vertices are all static (fully prescribed)."""
         self._static = np.asarray(static, dtype=bool)

@@ -17,6 +17,7 @@ add only the rows they own.
 
 import contextlib
 import logging
+import os
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -128,8 +129,6 @@ class ContactTerm:
         self.area_weighting = bool(area_weighting)
         self.min_gap = float(min_gap)
         if num_threads is None and self.comm.size > 1:
-            import os
-
             num_threads = max(1, (os.cpu_count() or 1) // self.comm.size)
         if num_threads is not None:
             ipctk.set_num_threads(int(num_threads))
@@ -256,7 +255,7 @@ class ContactTerm:
             self._free = ~self.surface.dof_mask(bc)
             self._free_key = key
         if static:
-            if changed or self.surface._static is None:
+            if changed or self.surface.static is None:
                 fixed = ~self._free.reshape(-1, self.dim)
                 self.surface.set_static(fixed.all(axis=1))
                 return True
@@ -461,8 +460,8 @@ class ContactTerm:
                 keep = (surf.body[a] != surf.body[b]) | (
                     np.linalg.norm(X[a] - X[b], axis=1) > reach
                 )
-                if surf._static is not None:
-                    keep &= ~(surf._static[a] & surf._static[b])
+                if surf.static is not None:
+                    keep &= ~(surf.static[a] & surf.static[b])
                 a, b = a[keep].astype(np.int64), b[keep].astype(np.int64)
                 nv = surf.num_vertices
                 step["reach"] = np.unique(np.concatenate([a * nv + b, b * nv + a]))
@@ -553,7 +552,7 @@ class ContactTerm:
         """Per pair of bodies: (a, b, sub collision mesh, its positions)."""
         surf = self.surface
         prims = surf.edges if self.dim == 2 else surf.faces
-        static = surf._static if surf._static is not None else np.zeros(surf.num_vertices, bool)
+        static = surf.static if surf.static is not None else np.zeros(surf.num_vertices, bool)
         for a, b in self.friction_pairs:
             sel = np.isin(surf.primitive_body, (a, b))
             verts = np.unique(prims[sel])
