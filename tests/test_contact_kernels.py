@@ -228,3 +228,29 @@ def test_shape_derivative_needs_the_mollifier_correction():
         shape._ee_correction = original
     rel = np.linalg.norm(with_fix - without) / np.linalg.norm(with_fix)
     assert rel > 1e-3
+
+
+def test_projected_newton_matrix_is_psd_and_exact_is_not():
+    """The Newton fallback adds the PSD-projected contact Hessian on the exact one's pattern."""
+    model, contact, _, u, _ = _scene(3, 1, 1, comm=MPI.COMM_SELF)
+    V = model.V
+    like = fem_petsc.create_matrix(
+        fem.form(ufl.inner(ufl.TrialFunction(V), ufl.TestFunction(V)) * ufl.dx)
+    )
+    bc = model.dirichlet_dofs()
+    rows, cols = contact.matrix_pattern(u, bc)
+    N = like.getSize()[1]
+    keys = np.unique(np.asarray(rows, np.int64) * N + cols)
+    free = np.setdiff1d(np.arange(N), bc)
+    eigenvalues = {}
+    for project in (False, True):
+        A = matrix_with_pattern(like, keys)  # inserting outside the pattern would raise
+        A.zeroEntries()
+        contact.add_jacobian(u, A, bc, project=project)
+        A.assemble()
+        dense = A.convert("dense").getDenseArray()[np.ix_(free, free)]
+        assert np.allclose(dense, dense.T, atol=1e-9 * np.abs(dense).max())
+        eigenvalues[project] = np.linalg.eigvalsh(dense)
+    scale = np.abs(eigenvalues[False]).max()
+    assert eigenvalues[False].min() < -1e-6 * scale
+    assert eigenvalues[True].min() >= -1e-10 * scale
