@@ -162,27 +162,31 @@ class Simulation:
         return v / c.beta_dt
 
     def _initial_guess(self, i: int, traj: Trajectory) -> None:
+        """Warm start, extrapolated (BDF) or previous state with the step's Dirichlet values.
+
+        A guess that inverts elements falls back to the next candidate; if applying the new
+        Dirichlet values to the previous state still inverts, the increment is lifted into the
+        interior.
+        """
         u = self.model.fields.u
         prev = traj.u[i - 1]
+        guess = prev + self.integrator.dt * traj.v[i - 1] if self.integrator.dynamic else prev
+        candidates = [guess, prev]
         warm = self.warm_start
         if warm is not None and i < len(warm.u) and warm.u[i].shape == prev.shape:
-            u.x.array[:] = warm.u[i]
-            for d in self.model.dirichlet:
-                for bc in d.bcs:
-                    bc.set(u.x.array)
+            candidates.insert(0, warm.u[i])
+        for candidate in candidates:
+            u.x.array[:] = candidate
+            self._apply_dirichlet(u)
             if not self.solver.step_bounds or not self._guess_inverts(u.x.array):
                 return
-        guess = prev + self.integrator.dt * traj.v[i - 1] if self.integrator.dynamic else prev
-        u.x.array[:] = guess
+        u.x.array[:] = prev
+        self.solver.lift_dirichlet(i)
+
+    def _apply_dirichlet(self, u: fem.Function) -> None:
         for d in self.model.dirichlet:
             for bc in d.bcs:
                 bc.set(u.x.array)
-        # keep the extrapolated guess only if it inverts nothing
-        if self.solver.step_bounds and self.integrator.dynamic and self._guess_inverts(u.x.array):
-            u.x.array[:] = prev
-            for d in self.model.dirichlet:
-                for bc in d.bcs:
-                    bc.set(u.x.array)
 
     def _guess_inverts(self, arr: np.ndarray) -> bool:
         """Whether the guess inverts elements, or the path to it from u^{i-1} is not admissible.
@@ -212,6 +216,9 @@ class Simulation:
         from diffsolids.io.progress import progress_bar
 
         integ = self.integrator
+        self.solver.reset()
+        if self.solver.factor_store is not None:
+            self.solver.factor_store.clear()
         traj = Trajectory(times=[0.0], u=[self.u0.copy()], v=[self.v0.copy()])
         writer = self._open_writer()
         if writer:

@@ -20,7 +20,7 @@ from diffsolids.solvers.forms import compile_form
 from diffsolids.solvers.inversion import InversionGuard
 from diffsolids.solvers.sparsity import GrowingPattern
 
-__all__ = ["NewtonResult", "NewtonSolver", "SolverOptions"]
+__all__ = ["FactorStore", "NewtonResult", "NewtonSolver", "SolverOptions"]
 
 _DEFAULT_PETSC = {
     "snes_type": "newtonls",
@@ -54,6 +54,51 @@ class SolverOptions:
     step_safety: float = 0.9
 
 
+class FactorStore:
+    """Keeps the last Newton factorisation of steps for the adjoint (within a memory budget).
+
+    After a converged step the SNES's KSP (its PC holding the LU factors of the Jacobian at the
+    last Newton iterate) is set to reuse its factors and stored; SNES continues with a fresh KSP
+    of the same type. The adjoint then preconditions the exact Jacobian of step i with the
+    factors of step i: a Krylov solve of one or two iterations.
+
+    Args:
+        budget_mb: Memory for stored factors (per rank, estimated from MUMPS' report).
+    """
+
+    def __init__(self, budget_mb: float = 2000.0):
+        self.budget_mb = budget_mb
+        self.factors: dict[int, PETSc.KSP] = {}
+        self.used_mb = 0.0
+
+    def clear(self) -> None:
+        """Free all stored factorisations."""
+        for ksp in self.factors.values():
+            ksp.destroy()
+        self.factors.clear()
+        self.used_mb = 0.0
+
+    def keep(self, step: int, snes: PETSc.SNES) -> None:
+        """Store the current KSP of ``snes`` for ``step`` if it fits; give SNES a new KSP."""
+        old = snes.getKSP()
+        pc = old.getPC()
+        if pc.getType() != "lu" or pc.getFactorSolverType() != "mumps":
+            return
+        size_mb = float(pc.getFactorMatrix().getMumpsInfog(22))  # MB used by the factorisation
+        size_mb = old.comm.tompi4py().allreduce(size_mb, op=MPI.MAX)
+        if self.used_mb + size_mb > self.budget_mb:
+            return
+        pc.setReusePreconditioner(True)
+        self.factors[step] = old
+        self.used_mb += size_mb
+        new = PETSc.KSP().create(old.comm)
+        new.setOptionsPrefix(old.getOptionsPrefix())
+        new.setType(old.getType())
+        new.getPC().setType("lu")
+        new.getPC().setFactorSolverType("mumps")
+        snes.setKSP(new)
+
+
 @dataclass
 class NewtonResult:
     """Outcome of one converged step."""
@@ -83,6 +128,7 @@ class NewtonSolver:
         potential = model.potential(dynamic)
         residual = ufl.derivative(potential, f.u, ufl.TestFunction(V))
         jacobian = ufl.derivative(residual, f.u, ufl.TrialFunction(V))
+        self.residual_ufl = residual
         self.energy_form = compile_form(potential)
         self.residual_form = compile_form(residual)
         self.jacobian_form = compile_form(jacobian)
@@ -106,7 +152,10 @@ class NewtonSolver:
         self.projected_steps = 0
         self._restarted_after = 0
         self.reference_force = 0.0
+        self._energy_cache: tuple[PETSc.Vec, float] | None = None
+        self.factor_store: FactorStore | None = None
         self._jacobian_key = None
+        self._length_scale = 1e-8 * model.domain.characteristic_length()
         self._make_snes()
 
     # -- PETSc setup ---------------------------------------------------------------------
@@ -125,7 +174,8 @@ class NewtonSolver:
         snes.setObjective(self._objective)
         snes.setLineSearchPreCheck(self._precheck)
         snes.setConvergenceTest(self._converged)
-        snes.setTolerances(max_it=self.options.max_iterations)
+        # stol = 0: a step shortened to nothing by a step bound must not count as convergence
+        snes.setTolerances(stol=0.0, max_it=self.options.max_iterations)
         snes.setFromOptions()
         for k, v in previous.items():  # leave the global options database as we found it
             if v is None:
@@ -154,12 +204,26 @@ class NewtonSolver:
         fem_petsc.set_bc(b, self.model.bcs, self.u.x.petsc_vec, -1.0)
         dolfinx.la.petsc._ghost_update(b, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
 
-    def assemble_jacobian(self, A: PETSc.Mat) -> None:
-        """Jacobian at the current ``u`` with identity Dirichlet rows and columns."""
+    def create_matrix(self) -> PETSc.Mat:
+        """A new matrix with the sparsity of the step Jacobian."""
+        return fem_petsc.create_matrix(self.jacobian_form)
+
+    def assemble_jacobian(self, A: PETSc.Mat, exact: bool = False) -> None:
+        """Jacobian at the current ``u`` with identity Dirichlet rows and columns.
+
+        Args:
+            A: Matrix to assemble into.
+            exact: Numeric terms add their exact Hessians (adjoint) rather than the Newton
+                matrix they prefer (e.g. a PSD-projected contact Hessian).
+        """
         A.zeroEntries()
         fem_petsc.assemble_matrix(A, self.jacobian_form, self.model.bcs, diag=1.0)
+        bc_dofs = self.model.dirichlet_dofs()
         for term in self.numeric_terms:
-            term.add_jacobian(self.u, A, self.model.dirichlet_dofs())
+            if exact:
+                term.add_adjoint_jacobian(self.u, A, bc_dofs)
+            else:
+                term.add_jacobian(self.u, A, bc_dofs)
         A.assemble()
 
     def residual_norm(self) -> float:
@@ -183,9 +247,25 @@ class NewtonSolver:
         f = self.model.fields
         return (float(f.beta_dt.value), float(f.dt.value))
 
-    def _objective(self, snes, x) -> float:
+    def _energy_at(self, x: PETSc.Vec) -> float:
+        """Assign ``x`` to ``u`` and return the potential there.
+
+        The line search's trial point becomes the next iterate, whose potential SNES asks for
+        again; it is remembered (one assembly less per iteration and per step).
+        """
         self._assign(x)
+        cached = self._energy_cache
+        if cached is not None and cached[0].equal(x):
+            return cached[1]
         e = self.energy()
+        if cached is None:
+            cached = (x.duplicate(), e)
+        x.copy(cached[0])
+        self._energy_cache = (cached[0], e)
+        return e
+
+    def _objective(self, snes, x) -> float:
+        e = self._energy_at(x)
         ls = self._line_search
         if not np.isfinite(e):
             return np.finfo(float).max / 1e10
@@ -201,6 +281,13 @@ class NewtonSolver:
         return e
 
     def _precheck(self, x, y, *args) -> None:
+        scale = max(x.norm(PETSc.NormType.INFINITY), self._length_scale)
+        if y.norm(PETSc.NormType.INFINITY) <= 1e-13 * scale:
+            # The Newton increment is at machine precision: nothing left to gain. A zero step
+            # ends the line search; solve() accepts the iterate as converged to round-off.
+            self._roundoff_converged = True
+            y.set(0.0)
+            return
         F = self.snes.getFunction()[0]
         slope = y.dot(F)  # the trial point is x - lambda y: descent needs y . F > 0
         if not slope > 0 and self._projectable():
@@ -279,6 +366,50 @@ class NewtonSolver:
             self._jacobian_key = None
 
     # -- public ------------------------------------------------------------------------------
+    def lift_dirichlet(self, step: int) -> None:
+        """Move ``u`` (not yet at the step's Dirichlet values) by one linearised step onto them.
+
+        Solves K(u) du = -G(u) with du = g - u on Dirichlet dofs (lifting of the prescribed
+        increment), so the interior follows the boundary instead of inverting next to it.
+
+        Raises:
+            NewtonConvergenceError: Even the linearised step inverts elements.
+        """
+        x, y, b = self.x, self._work.duplicate(), self.b
+        self.u.x.scatter_forward()
+        x.array_w[:] = self.u.x.petsc_vec.array_r
+        with b.localForm() as loc:
+            loc.set(0.0)
+        fem_petsc.assemble_vector(b, self.residual_form)
+        fem_petsc.apply_lifting(b, [self.jacobian_form], [self.model.bcs], x0=[x], alpha=-1.0)
+        dolfinx.la.petsc._ghost_update(b, PETSc.InsertMode.ADD, PETSc.ScatterMode.REVERSE)
+        for term in self.numeric_terms:
+            term.add_residual(self.u, b)
+        fem_petsc.set_bc(b, self.model.bcs, x, -1.0)
+        self.assemble_jacobian(self.A)
+        self._jacobian_key = None
+        ksp = self.snes.getKSP()
+        ksp.setOperators(self.A)
+        ksp.solve(b, y)
+        y.scale(-1.0)
+        bound = min((g.max_step(x, y) for g in self.step_bounds), default=np.inf)
+        if bound <= 1.0:
+            raise NewtonConvergenceError(
+                step,
+                0,
+                float("nan"),
+                float("nan"),
+                "the Dirichlet increment of this step inverts elements even after lifting; "
+                "use smaller (load) steps",
+            )
+        x.axpy(1.0, y)
+        self._assign(x)
+        y.destroy()
+
+    def reset(self) -> None:
+        """Forget cached Jacobians (parameters or the shape may have changed)."""
+        self._jacobian_key = None
+
     def set_reference_force(self) -> float:
         """Use the residual norm at the current ``u`` as the simulation's characteristic force."""
         self.reference_force = self.residual_norm()
@@ -291,6 +422,10 @@ class NewtonSolver:
             NewtonConvergenceError: The solve failed; names the step, iterations and residual.
         """
         self._line_search = None
+        if self._energy_cache is not None:  # loads, history or parameters may have changed
+            self._energy_cache[0].destroy()
+            self._energy_cache = None
+        self._roundoff_converged = False
         self.fallbacks = 0
         self.bounded_steps = 0
         self._magnitude = abs(
@@ -312,11 +447,18 @@ class NewtonSolver:
         reason = self.snes.getConvergedReason()
         its = self._restarted_after + self.snes.getIterationNumber()
         self._assign(self.x)
-        if reason <= 0:
+        tolerance = self.options.rtol * self._f_char
+        # Success means the residual test passed, or the Newton increment reached round-off;
+        # whatever else PETSc may report (e.g. a user snes_stol) is not convergence.
+        converged = self._roundoff_converged or (reason > 0 and self._fnorm <= tolerance)
+        if converged and its > 0 and self.factor_store is not None and not self.quadratic:
+            self.factor_store.keep(step, self.snes)
+        if not converged:
             names = {
                 v: k for k, v in vars(PETSc.SNES.ConvergedReason).items() if isinstance(v, int)
             }
-            raise NewtonConvergenceError(
-                step, its, self._fnorm, self.options.rtol * self._f_char, names.get(reason, reason)
-            )
-        return NewtonResult(its, self._fnorm, self.energy(), self._f_char)
+            why = names.get(reason, reason)
+            if reason > 0:
+                why = f"{why} with the residual above tolerance (a step bound blocked progress?)"
+            raise NewtonConvergenceError(step, its, self._fnorm, tolerance, why)
+        return NewtonResult(its, self._fnorm, self._energy_at(self.x), self._f_char)
