@@ -37,6 +37,8 @@ class JacobianAction:
         self.bc_owned = dofs[dofs < self.owned]
         self.bc_all = dofs
         n, N = self.owned, V.dofmap.index_map.size_global * bs
+        # Krylov vectors have no ghosts: assemble into a ghosted vector, copy the owned part
+        self._ghosted = fem_petsc.create_vector(V)
         self.mat = PETSc.Mat().createPython(((n, N), (n, N)), self, comm=V.mesh.comm)
         self.mat.setUp()
 
@@ -46,11 +48,13 @@ class JacobianAction:
         d.x.petsc_vec.array_w[:] = x.array_r
         d.x.scatter_forward()
         d.x.array[self.bc_all] = 0.0
-        with y.localForm() as loc:
+        w = self._ghosted
+        with w.localForm() as loc:
             loc.set(0.0)
-        fem_petsc.assemble_vector(y, self.form)
-        dolfinx.la.petsc._ghost_update(y, PETSc.InsertMode.ADD, PETSc.ScatterMode.REVERSE)
+        fem_petsc.assemble_vector(w, self.form)
+        dolfinx.la.petsc._ghost_update(w, PETSc.InsertMode.ADD, PETSc.ScatterMode.REVERSE)
         u = self.newton.u
         for term in self.newton.numeric_terms:
-            term.add_hessian_action(u, d.x.array, y)
-        y.array_w[self.bc_owned] = x.array_r[self.bc_owned]
+            term.add_hessian_action(u, d.x.array, w)
+        w.array_w[self.bc_owned] = x.array_r[self.bc_owned]
+        y.array_w[:] = w.array_r
