@@ -3,8 +3,8 @@
 For step i the scalar Lagrangian is L_i = lambda . G_i(u^i; u^{i-1}, u_tilde, X, q) + J_i with
 G_i the residual of the step's incremental potential (``ufl.derivative(Pi, u, lambda)``) and
 J_i = sum_l c_l^i J_l the objective integrals weighted by their chain-rule weights c_l^i. Every
-partial derivative the backward sweep needs is ``ufl.derivative`` of it; the shape derivative is
-one coordinate derivative of the whole scalar (paper eqs. 20, 25, 28 come out of UFL).
+partial derivative the backward sweep needs is ``ufl.derivative`` of it; shape derivatives are
+coordinate derivatives of its two parts (paper eqs. 20, 25, 28 come out of UFL).
 """
 
 import ufl
@@ -52,16 +52,25 @@ class AdjointForms:
         self.jacobian_action = (
             compile_form(ufl.derivative(L, f.u, w)) if targets.dirichlet else None
         )
-        lagrangian = L + J if J is not None else L
+        # The residual part (lambda . G_i) and the objective part (J_i) of every partial are
+        # separate forms, assembled and summed: FFCx 0.11 miscompiles kernels that mix a
+        # one-point quadrature rule (the strain quadrature of P1) with other rules when a
+        # non-constant coefficient (e.g. a CG1 material field) appears in both; the residual
+        # and the objective are each free of such mixtures.
         self.coefficients = {}
         for name in sorted(targets.coefficients):
             c = model.coefficients[name]
             dc = ufl.TestFunction(c.function_space)
-            self.coefficients[name] = compile_form(_nonempty(ufl.derivative(lagrangian, c, dc)))
+            self.coefficients[name] = tuple(
+                compile_form(_nonempty(ufl.derivative(part, c, dc)) if part else None)
+                for part in (L, J)
+            )
         self.shape = None
         if targets.shape:
             theta = ufl.TestFunction(model.shape_space)
-            self.shape = compile_form(ufl.derivative(lagrangian, f.X, theta))
+            self.shape = tuple(
+                compile_form(ufl.derivative(part, f.X, theta) if part else None) for part in (L, J)
+            )
 
     def set_weights(self, weights: dict, step: int) -> bool:
         """Load the chain-rule weights c_l^i of step ``step``; True if any is nonzero."""

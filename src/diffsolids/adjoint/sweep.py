@@ -106,7 +106,7 @@ class BackwardSweep:
                     vbar[i - j][: self.owned] -= a * c.beta_dt * g
             self._add(ubar[i - 1], forms.history_prev)
             self._numeric_history(ubar, i)
-            self._parameters(sens)
+            self._parameters(sens, active)
             if self.targets.dirichlet:
                 ubar[i][: self.owned] += self._assemble(forms.jacobian_action)
                 sens.dirichlet[i] = ubar[i]
@@ -153,13 +153,20 @@ class BackwardSweep:
             for j, g in term.adjoint_history(self.model.fields.u, lam).items():
                 ubar[i - j][: self.owned] += g[: self.owned]
 
-    def _parameters(self, sens: Sensitivities) -> None:
-        """Coefficient and shape partials of L_i + J_i (also used at step 0 with lambda = 0)."""
-        for name, form in self.forms.coefficients.items():
-            if form is not None:
-                sens.coefficients[name] += self._assemble(form)
+    def _partials(self, sens: Sensitivities, part: int) -> None:
+        """Coefficient and shape partials of lambda . G_i (part 0) or of J_i (part 1)."""
+        for name, forms in self.forms.coefficients.items():
+            if forms[part] is not None:
+                sens.coefficients[name] += self._assemble(forms[part])
+        if self.forms.shape is not None and self.forms.shape[part] is not None:
+            sens.shape += self._assemble(self.forms.shape[part])
+
+    def _parameters(self, sens: Sensitivities, active: bool) -> None:
+        """Coefficient and shape partials of L_i + J_i (J_i only when its weights are nonzero)."""
+        self._partials(sens, 0)
+        if active:
+            self._partials(sens, 1)
         if self.forms.shape is not None:
-            sens.shape += self._assemble(self.forms.shape)
             lam = self.forms.lam.x.array
             for term in self.model.numeric_terms:
                 if np.any(lam):
@@ -179,11 +186,7 @@ class BackwardSweep:
         if forms.set_weights(leaf_weights, 0):
             self._add(ubar[0], forms.objective_u)
             self._add(vbar[0], forms.objective_v)
-            for name, form in forms.coefficients.items():
-                if form is not None:
-                    sens.coefficients[name] += self._assemble(form)
-            if forms.shape is not None:
-                sens.shape += self._assemble(forms.shape)
+            self._partials(sens, 1)
         sens.u0, sens.v0 = ubar[0], vbar[0]
         if self.targets.dirichlet:
             sens.dirichlet[0] = ubar[0]
