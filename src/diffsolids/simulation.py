@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from dolfinx import fem
 
-from diffsolids.errors import NewtonConvergenceError, ParameterError
+from diffsolids.errors import InvertedElementError, NewtonConvergenceError, ParameterError
 from diffsolids.integrators import Integrator, StepCoefficients
 from diffsolids.solvers import NewtonSolver, SolverOptions
 
@@ -129,6 +129,9 @@ class Simulation:
             )
         # after the input checks: bad input fails before any form is compiled
         self.solver = NewtonSolver(model, integrator.dynamic, solver_options)
+        model.fields.u.x.array[:] = self.u0
+        if self.solver.inverted():
+            raise InvertedElementError("the initial displacement u0 inverts elements (det F <= 0)")
         self.output = output
         self.progress = progress
         self.callback = callback

@@ -140,10 +140,12 @@ class NewtonSolver:
         self.x = fem_petsc.create_vector(V)
         self._work = fem_petsc.create_vector(V)
         self.step_bounds: list = []
-        if self.options.prevent_inversion:
-            # steps bounded at or beyond 1 / step_safety are taken in full: no need to know more
+        finite_strain = any(getattr(t, "law", "linear") != "linear" for t in model.terms)
+        if self.options.prevent_inversion and finite_strain:
+            # Only finite-strain energies see det F (small-strain elasticity has no inversion).
+            # Steps bounded at or beyond 1 / step_safety are taken in full: no need to know more.
             guard = InversionGuard(
-                V, f.dx.metadata()["quadrature_degree"], limit=1.0 / self.options.step_safety
+                V, f.dx_strain.metadata()["quadrature_degree"], limit=1.0 / self.options.step_safety
             )
             self.step_bounds.append(guard)
         # numeric terms with a step bound (contact: collision-free CCD fraction)
@@ -406,6 +408,16 @@ class NewtonSolver:
         self._assign(x)
         y.destroy()
 
+    def inverted(self) -> bool:
+        """Whether the current ``u`` inverts elements (det F <= 0 at a quadrature point)."""
+        guards = [b for b in self.step_bounds if isinstance(b, InversionGuard)]
+        if not guards:
+            return False
+        self.u.x.scatter_forward()
+        self.x.array_w[:] = self.u.x.petsc_vec.array_r
+        self._work.set(0.0)
+        return guards[0].max_step(self.x, self._work) <= 0.0
+
     def reset(self) -> None:
         """Forget cached Jacobians (parameters or the shape may have changed)."""
         self._jacobian_key = None
@@ -422,6 +434,7 @@ class NewtonSolver:
             NewtonConvergenceError: The solve failed; names the step, iterations and residual.
         """
         self._line_search = None
+        self._fnorm = self._f_char = float("nan")  # PETSc may stop before the first test
         if self._energy_cache is not None:  # loads, history or parameters may have changed
             self._energy_cache[0].destroy()
             self._energy_cache = None
