@@ -67,9 +67,12 @@ class InversionGuard:
         if np.any(det <= 0):
             local = 0.0
         elif len(det):
-            M = adj @ vals[:, 1] / det[:, None, None]  # F0^{-1} D
-            norm = np.sqrt(np.einsum("pij,pij->p", M, M))
-            relevant = norm > 1.0 / self.limit
+            D = vals[:, 1]
+            # |F0^{-1} D|_F <= |adj F0|_F |D|_F / det F0 sorts out most points before the product
+            frob = lambda A: np.sqrt(np.einsum("pij,pij->p", A, A))  # noqa: E731
+            maybe = np.flatnonzero(frob(adj) * frob(D) > det / self.limit)
+            M = adj[maybe] @ D[maybe] / det[maybe, None, None]  # F0^{-1} D
+            relevant = frob(M) > 1.0 / self.limit
             if relevant.any():
                 mu = np.linalg.eigvals(M[relevant])
                 # near-real pairs count as real: conservative where roots nearly coincide
