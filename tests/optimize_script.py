@@ -119,6 +119,39 @@ def shape_problem(comm=MPI.COMM_WORLD, area_target: float = 0.3):
     return ReducedFunctional(sim, objective, control), control
 
 
+def contact_problem(comm=MPI.COMM_WORLD, gap: float = 0.1):
+    """A block at rest above a thick slab (BDF1, IPC contact), its rest height the control.
+
+    The objective, the block's final height, falls as the block is lowered towards the slab
+    (the barrier pushes back only within dhat), so long steps move it into the slab: trial
+    shapes that intersect or touch the slab are refused by the contact term with an
+    IntersectionError. Returns (rf, contact term).
+    """
+    import scipy.sparse as sp
+
+    from diffsolids.contact import ContactTerm
+    from diffsolids.contact.scenes import combine_meshes, simplex_box
+
+    slab = simplex_box([[0.0, -0.7], [1.0, 0.3]], [4, 4])
+    block = simplex_box([[0.3137, 0.3 + gap], [0.7137, 0.6 + gap]], [2, 2])
+    dom = combine_meshes(comm, [slab, block])
+    model = ds.Model(dom, ds.NeoHookean(E=1e4, nu=0.3, density=10.0), degree=1)
+    model.add_dirichlet(lambda x: np.isclose(x[1], -0.7), 0.0)
+    contact = ContactTerm(model, dhat=0.02, stiffness=1e3)
+    model.add_numeric_term(contact)
+    sim = ds.Simulation(model, ds.BDF(1, 0.05, 4), ds.SolverOptions(rtol=1e-10), progress=False)
+    mesh = dom.mesh
+    upper = mesh.geometry.input_global_indices[mesh.geometry.x[:, 1] > 0.3 + 1e-9]
+    upper = np.unique(np.concatenate(comm.allgather(upper)))
+    n = mesh.geometry.index_map().size_global
+    P = sp.csr_matrix(
+        (np.ones(len(upper)), (2 * upper + 1, np.zeros(len(upper)))), shape=(2 * n, 1)
+    )
+    height = Integral(lambda f: (f.X[1] + f.u[1]) * f.dx(2), "height")
+    rf = ReducedFunctional(sim, final_value(height), ShapeControl(model, linear_map=P))
+    return rf, contact
+
+
 def main(argv=None) -> int:
     """Run the dynamic problem with checkpoints (resuming if the directory has one)."""
     from diffsolids.optimize import LBFGSOptions, minimize
@@ -139,6 +172,7 @@ def main(argv=None) -> int:
         plot_every=0,
     )
     print(result, flush=True)
+    print(f"resumed_from={result.resumed_from}", flush=True)
     return 0
 
 

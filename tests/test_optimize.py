@@ -7,7 +7,7 @@ import logging
 import numpy as np
 import pytest
 from mpi4py import MPI
-from optimize_script import E_TRUE, bar_problem, dynamic_problem, shape_problem
+from optimize_script import E_TRUE, bar_problem, contact_problem, dynamic_problem, shape_problem
 
 from diffsolids.errors import NewtonConvergenceError
 from diffsolids.mesh import signed_cell_volumes
@@ -179,6 +179,32 @@ def test_no_inverted_iterate_is_ever_accepted():
     assert all(b < a for a, b in itertools.pairwise(J))
 
 
+def test_no_intersecting_iterate_is_ever_accepted(caplog):
+    rf, contact = contact_problem(MPI.COMM_WORLD)
+    rest = np.zeros_like(contact.surface.rest_positions)
+    distances = []
+
+    def rest_shape_is_free(rec, opt):
+        # raises IntersectionError for an intersecting or touching rest configuration
+        distances.append(contact.check_configuration(rest))
+        return False
+
+    with caplog.at_level(logging.INFO, logger="diffsolids"):
+        result = minimize(
+            rf,
+            options=LBFGSOptions(max_iterations=6, initial_step=0.25, max_change=0.25),
+            stop_conditions=[rest_shape_is_free],
+        )
+    refused = [r.getMessage() for r in caplog.records if "invalid trial" in r.getMessage()]
+    assert result.num_invalid_trials == len(refused) > 0
+    assert any("IntersectionError" in m for m in refused)
+    assert len(distances) == len(result.history) and min(distances) > 0
+    J = [r.objective for r in result.history]
+    assert all(b < a for a, b in itertools.pairwise(J))
+    # the block came down into the barrier zone (within dhat = 0.02 of the slab)
+    assert distances[-1] < 0.02 < distances[0]
+
+
 def _failing_run(rf, predicate):
     """Make the simulation raise NewtonConvergenceError when predicate(E) holds."""
     sim = rf.simulation
@@ -282,10 +308,10 @@ def test_non_finite_objective_and_gradient_are_reported():
     misfit = rf0.objective
     control = ParameterControl(model, "E", "uniform", log=True)
     nan_objective = misfit.apply(lambda x: np.log(x - 1.0), lambda x: 1.0 / (x - 1.0), "log")
-    with pytest.raises(OptimizationError, match="initial point"):
+    with pytest.raises(OptimizationError, match="initial point"), np.errstate(invalid="ignore"):
         minimize(ReducedFunctional(sim, nan_objective, control))
     inf_gradient = misfit.apply(lambda x: x, lambda x: np.inf, "flat")
-    with pytest.raises(OptimizationError, match="gradient"):
+    with pytest.raises(OptimizationError, match="gradient"), np.errstate(invalid="ignore"):
         minimize(ReducedFunctional(sim, inf_gradient, control))
     # a control that does not act on a static, unloaded-by-gravity problem: density
     density = ParameterControl(model, "density", "uniform")
@@ -374,12 +400,72 @@ class _RefiningRemesher:
 
     def needs_remesh(self, rf, q):
         self.calls.append(np.array(q))
-        return len(self.calls) == 2
+        coarse = rf.model.domain.mesh.topology.index_map(2).size_global < 128
+        return coarse and len(self.calls) >= 2  # decided by the mesh, as a real remesher
 
     def remesh(self, rf, q):
         new_rf, _ = bar_problem(MPI.COMM_WORLD, bodies=2, n=(16, 4))
         self.done = True
         return new_rf, np.array(q)
+
+
+class _CheckpointingRemesher(_RefiningRemesher):
+    """The refining remesher with the optional checkpoint hooks."""
+
+    def save_checkpoint(self, directory, rf):
+        if MPI.COMM_WORLD.rank == 0:
+            (directory / "mesh.json").write_text(json.dumps({"n": [16, 4]}))
+
+    def load_checkpoint(self, directory, rf):
+        n = json.loads((directory / "mesh.json").read_text())["n"]
+        return bar_problem(MPI.COMM_WORLD, bodies=2, n=n)[0]
+
+
+def test_resume_after_remesh_uses_the_remesher_hooks(tmp_path, caplog):
+    options = {"gradient_rtol": 0.0}
+    rf, _ = bar_problem(MPI.COMM_WORLD, bodies=2)
+    first = LBFGS(
+        rf,
+        LBFGSOptions(max_iterations=4, **options),
+        remesher=_CheckpointingRemesher(),
+        checkpoint_dir=tmp_path,
+        write_parameters=True,
+    ).run()
+    assert first.history[2].remeshed
+    rf, _ = bar_problem(MPI.COMM_WORLD, bodies=2)
+    resumed = LBFGS(
+        rf,
+        LBFGSOptions(max_iterations=7, **options),
+        remesher=_CheckpointingRemesher(),
+        checkpoint_dir=tmp_path,
+        write_parameters=True,
+    ).run()
+    assert resumed.resumed_from == 4
+    assert resumed.functional.model.domain.mesh.topology.index_map(2).size_global == 128
+    rf, _ = bar_problem(MPI.COMM_WORLD, bodies=2)
+    reference = LBFGS(
+        rf,
+        LBFGSOptions(max_iterations=7, **options),
+        remesher=_CheckpointingRemesher(),
+        write_parameters=True,
+    ).run()
+    Ja = np.array([r.objective for r in resumed.history])
+    Jb = np.array([r.objective for r in reference.history])
+    assert np.all(np.abs(Ja - Jb) <= 1e-10 * np.abs(Jb))
+    # a remesher without the hooks: the checkpoint cannot be resumed, and that is said
+    other = tmp_path / "plain"
+    rf, _ = bar_problem(MPI.COMM_WORLD, bodies=2)
+    with caplog.at_level(logging.WARNING, logger="diffsolids"):
+        LBFGS(
+            rf,
+            LBFGSOptions(max_iterations=3, **options),
+            remesher=_RefiningRemesher(),
+            checkpoint_dir=other,
+        ).run()
+    assert any("save_checkpoint" in r.getMessage() for r in caplog.records)
+    rf, _ = bar_problem(MPI.COMM_WORLD, bodies=2)
+    with pytest.raises(OptimizationError, match="load_checkpoint"):
+        LBFGS(rf, remesher=_RefiningRemesher(), checkpoint_dir=other).run()
 
 
 def test_remesh_hook_resets_memory_and_continues():

@@ -18,8 +18,9 @@ class LBFGSMemory:
     Args:
         size: Number of pairs kept.
         inner_product: ``g -> M^{-1} g`` for an SPD operator M (default identity).
-        curvature_tol: Pairs with ``s.y <= curvature_tol |s| |y|`` are skipped, keeping the
-            approximation positive definite without a Wolfe curvature condition.
+        curvature_tol: Pairs with ``s.y <= curvature_tol max(|s| |y|, |g.s|)`` are skipped,
+            keeping the approximation positive definite (and its scale meaningful) without a
+            Wolfe curvature condition.
     """
 
     def __init__(
@@ -55,12 +56,21 @@ class LBFGSMemory:
         if not keep_scaling:
             self.gamma = None
 
-    def update(self, s: np.ndarray, y: np.ndarray) -> bool:
-        """Add a pair if it has positive curvature; returns whether it was added."""
+    def update(self, s: np.ndarray, y: np.ndarray, decrease: float = 0.0) -> bool:
+        """Add a pair if it has positive curvature; returns whether it was added.
+
+        Args:
+            s: Step q_{k+1} - q_k.
+            y: Gradient change g_{k+1} - g_k.
+            decrease: ``|g_k . s|``, the first-order change along the step; a curvature
+                ``s.y`` below ``curvature_tol`` times it is round-off (e.g. of a linear
+                objective) and is skipped, as in L-BFGS-B.
+        """
         if self.size == 0:
             return False
         sy = float(s @ y)
-        if not sy > self.curvature_tol * np.linalg.norm(s) * np.linalg.norm(y):
+        threshold = max(np.linalg.norm(s) * np.linalg.norm(y), abs(decrease))
+        if not sy > self.curvature_tol * threshold:
             return False
         self.s.append(np.array(s, dtype=float))
         self.y.append(np.array(y, dtype=float))

@@ -524,7 +524,7 @@ class LBFGS:
         if q is None:
             return "line_search"
         g, t_grad = self._gradient()
-        self.memory.update(q - p.q, g - p.g)
+        self.memory.update(q - p.q, g - p.g, abs(float(p.g @ (q - p.q))))
         self.point = _Point(q, J, g, self.rf.trajectory, self._snapshot())
         self.iteration += 1
         step_norm = float(np.linalg.norm(q - p.q))

@@ -43,7 +43,7 @@ class LBFGSOptions:
             limit) or a mapping from control name (or index) to a limit.
         warm_start: Start every forward solve from the trajectory of the last accepted iterate.
         curvature_tol: A pair (s, y) enters the L-BFGS memory only if
-            ``s.y > curvature_tol * |s| |y|``.
+            ``s.y > curvature_tol * max(|s| |y|, |g.s|)``.
     """
 
     history_size: int = 6
