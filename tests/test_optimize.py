@@ -296,6 +296,8 @@ def test_clear_errors(bar1):
         LBFGSOptions(armijo=1.5).validate()
     with pytest.raises(OptimizationError, match="max_change"):
         minimize(rf, q0, LBFGSOptions(max_change=[0.1, 0.2]))
+    with pytest.raises(OptimizationError, match="iterate_format"):
+        minimize(rf, q0, output_dir="unused", iterate_format="vtk")
     rf.controls.assign(q0)
 
 

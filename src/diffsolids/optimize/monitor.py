@@ -10,6 +10,7 @@ import numpy as np
 from mpi4py import MPI
 
 from diffsolids.optimize.checkpoint import atomic_write_bytes
+from diffsolids.optimize.options import OptimizationError
 
 __all__ = ["IterationRecord", "OptimizationOutput", "log_iteration", "plot_history"]
 
@@ -149,7 +150,11 @@ class OptimizationOutput:
         iterate_format: str = "bp",
     ):
         if iterate_format not in ("bp", "xdmf"):
-            raise ValueError(f"iterate_format must be 'bp' or 'xdmf', not {iterate_format!r}")
+            raise OptimizationError(
+                f"iterate_format must be 'bp' or 'xdmf', not {iterate_format!r}"
+            )
+        if plot_every < 0 or iterate_every < 0:
+            raise OptimizationError("plot_every and iterate_every must be >= 0 (0: never)")
         self.directory = Path(directory)
         self.comm = comm
         self.write_parameters = write_parameters

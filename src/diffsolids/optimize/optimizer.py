@@ -542,6 +542,7 @@ class LBFGS:
                 point, an incompatible checkpoint.
         """
         self._t_start = time.perf_counter()
+        block_limits(self.options.max_change, self.rf.controls)  # malformed limits fail early
         resumed_from = None
         if self.checkpoint is not None and self.resume and self.checkpoint.exists():
             self._resume()
