@@ -22,7 +22,7 @@ import json
 import logging
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -401,17 +401,25 @@ def _gmsh():
     return gmsh
 
 
-def _max_edge_length(arrays: MeshArrays) -> float:
+def _mean_edge_length(arrays: MeshArrays) -> float:
     c = arrays.cells
     pts = arrays.points
     n = c.shape[1]
     lengths = [
         np.linalg.norm(pts[c[:, i]] - pts[c[:, j]], axis=1) for i in range(n) for j in range(i)
     ]
-    return float(np.max(lengths))
+    return float(np.mean(lengths))
 
 
-def _remesh_arrays(arrays: MeshArrays, mesh_size: float | None, optimize: bool) -> MeshArrays:
+# gmsh defaults of the remesher: quality optimisation; in 3D the HXT Delaunay mesher (fewer
+# slivers than the default Delaunay on kept boundary triangulations; measured min scaled
+# Jacobian 0.16 against 0.03 on a 16^3 box)
+_GMSH_DEFAULTS = {2: {"Mesh.Optimize": 1}, 3: {"Mesh.Optimize": 1, "Mesh.Algorithm3D": 10}}
+
+
+def _remesh_arrays(
+    arrays: MeshArrays, mesh_size: float | None, gmsh_options: Mapping[str, float] | None
+) -> MeshArrays:
     """Regenerate the interior of every body of a canonical mesh, keeping its boundaries."""
     pts = arrays.points
     dim = pts.shape[1]
@@ -447,9 +455,10 @@ def _remesh_arrays(arrays: MeshArrays, mesh_size: float | None, optimize: bool) 
                     entity = gmsh.model.geo.addVolume(loops)
                 entities.append((entity, body))
         gmsh.model.geo.synchronize()
-        size = _max_edge_length(arrays) if mesh_size is None else float(mesh_size)
+        size = _mean_edge_length(arrays) if mesh_size is None else float(mesh_size)
         gmsh.option.setNumber("Mesh.MeshSizeMax", size)
-        gmsh.option.setNumber("Mesh.Optimize", int(optimize))
+        for name, value in {**_GMSH_DEFAULTS[dim], **(gmsh_options or {})}.items():
+            gmsh.option.setNumber(name, float(value))
         gmsh.option.setNumber("Mesh.Renumber", 0)  # boundary node tags = old index + 1
         gmsh.model.mesh.generate(dim)
         node_tags, coords, _ = gmsh.model.mesh.getNodes()
@@ -519,16 +528,17 @@ def remesh_domain(
     domain: Domain,
     coordinates: np.ndarray | None = None,
     mesh_size: float | None = None,
-    optimize: bool = True,
+    gmsh_options: Mapping[str, float] | None = None,
 ) -> Domain:
     """A new mesh of the same bodies with the same boundary vertices, facets and tags.
 
     Args:
         domain: The Domain to remesh.
         coordinates: Optional local vertex coordinates replacing the mesh geometry.
-        mesh_size: Maximum element size of the interior (default: the current longest edge);
-            sizes grow from the boundary edge lengths inwards.
-        optimize: Let gmsh optimise the element quality.
+        mesh_size: Maximum element size of the interior (default: the current mean edge
+            length); sizes grow from the boundary edge lengths inwards.
+        gmsh_options: gmsh options overriding the defaults ({"Mesh.Optimize": 1} and, in 3D,
+            {"Mesh.Algorithm3D": 10}, the HXT mesher), e.g. {"Mesh.OptimizeNetgen": 1}.
 
     Returns:
         A Domain on the same communicator (gmsh runs on rank 0).
@@ -538,7 +548,7 @@ def remesh_domain(
     new, error = None, None
     if comm.rank == 0:
         try:
-            new = _remesh_arrays(arrays, mesh_size, optimize)
+            new = _remesh_arrays(arrays, mesh_size, gmsh_options)
         except Exception as exc:  # re-raised on every rank below
             error = f"{type(exc).__name__}: {exc}"
     error = comm.bcast(error, root=0)
@@ -581,10 +591,11 @@ class Remesher:
         threshold: Remesh when the minimum scaled Jacobian of the rest mesh at q drops below
             this (paper: 1e-3). If a remesh cannot lift the quality above it (the boundary
             itself is that poor), the next remesh waits until the quality halves again.
-        mesh_size: Maximum element size of new meshes (default: the longest edge before).
+        mesh_size: Maximum element size of new meshes (default: the mean edge length before).
         transfer_fields: Names of further model coefficients to interpolate to the new mesh
             (controlled fields are always transferred).
         max_remeshes: Upper bound on the number of remeshes (None: unbounded).
+        gmsh_options: gmsh options of the mesher (see :func:`remesh_domain`).
 
     Attributes:
         history: One RemeshRecord per remesh.
@@ -602,6 +613,7 @@ class Remesher:
         mesh_size: float | None = None,
         transfer_fields: Sequence[str] = (),
         max_remeshes: int | None = None,
+        gmsh_options: Mapping[str, float] | None = None,
     ):
         if not callable(build):
             raise TypeError("Remesher needs a factory build(domain) -> ReducedFunctional")
@@ -612,6 +624,7 @@ class Remesher:
         self.mesh_size = mesh_size
         self.transfer_fields = tuple(transfer_fields)
         self.max_remeshes = max_remeshes
+        self.gmsh_options = dict(gmsh_options or {})
         self.history: list[RemeshRecord] = []
         self._trigger = self.threshold
         self._restored = 0
@@ -653,7 +666,7 @@ class Remesher:
         before = self.quality(rf, q)
         rf.controls.assign(q)  # geometry and fields of the current iterate
         old_domain = rf.model.domain
-        domain = remesh_domain(old_domain, mesh_size=self.mesh_size)
+        domain = remesh_domain(old_domain, mesh_size=self.mesh_size, gmsh_options=self.gmsh_options)
         new_rf = self.build(domain)
         if new_rf.model.domain is not domain:
             raise MeshError("the remesh factory must build the problem on the domain it is given")
