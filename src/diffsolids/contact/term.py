@@ -166,6 +166,7 @@ class ContactTerm:
         self._forward_step: int | None = None
         self._segment = None
         self._tangential = None
+        self._pattern_memo = None
 
     # -- parameters ---------------------------------------------------------------------------
     def _set_friction(self, friction) -> None:
@@ -515,8 +516,15 @@ class ContactTerm:
         """Global (rows, cols) of the entries :meth:`add_jacobian` may add at ``u`` (owned rows)."""
         ev = self._evaluate(u)
         blocks = self._blocks(ev)
+        free = self._free_mask(bc_dofs)
+        memo = self._pattern_memo
+        # the same arrays while the pattern is unchanged: the solver then skips its checks
+        if memo is not None and memo[1] == self._free_key and np.array_equal(memo[0], blocks):
+            return memo[2]
         with self._timed("pattern"):
-            return self.surface.matrix_entries(blocks, self._free_mask(bc_dofs))
+            entries = self.surface.matrix_entries(blocks, free)
+        self._pattern_memo = (blocks, self._free_key, entries)
+        return entries
 
     def max_step(self, x: PETSc.Vec, dx: PETSc.Vec) -> float:
         """Largest a such that the surface moves collision-free along x + s dx, s in [0, a).

@@ -68,6 +68,10 @@ class GrowingPattern:
         self.seconds = 0.0
         self.rebuild_seconds = 0.0
         self._term_seconds = 0.0
+        # per term: the (rows, cols) arrays it returned last and their keys; terms return the
+        # same array objects while their pattern is unchanged, which skips all the work
+        self._last: dict[int, tuple] = {}
+        self._verified: tuple | None = None
 
     @property
     def active(self) -> bool:
@@ -87,17 +91,31 @@ class GrowingPattern:
                 self._fe_keys = self._keys[handle]
         return self._keys[handle]
 
-    def _needed(self) -> np.ndarray:
+    def _term_keys(self) -> tuple[list[np.ndarray], bool]:
+        """Sorted keys each term needs at u, and whether all are the ones returned last time."""
         s = self.solver
         bc = s.model.dirichlet_dofs()
         N = s.A.getSize()[1]
-        keys = [np.zeros(0, dtype=np.int64)]
+        keys, same = [], True
         for term in self.terms:
             t0 = time.perf_counter()
             rows, cols = term.matrix_pattern(s.u, bc)
             self._term_seconds += time.perf_counter() - t0
-            keys.append(np.asarray(rows, dtype=np.int64) * N + np.asarray(cols, dtype=np.int64))
-        return np.unique(np.concatenate(keys))
+            last = self._last.get(id(term))
+            if last is not None and last[0] is rows and last[1] is cols:
+                keys.append(last[2])
+                continue
+            same = False
+            k = np.unique(np.asarray(rows, dtype=np.int64) * N + np.asarray(cols, dtype=np.int64))
+            self._last[id(term)] = (rows, cols, k)
+            keys.append(k)
+        return keys, same
+
+    def _needed(self) -> np.ndarray:
+        keys, _ = self._term_keys()
+        if len(keys) == 1:
+            return keys[0]
+        return np.unique(np.concatenate([np.zeros(0, dtype=np.int64), *keys]))
 
     def missing(self, A: PETSc.Mat) -> bool:
         """Whether A lacks entries the terms need at the solver's current u (collective)."""
@@ -105,11 +123,18 @@ class GrowingPattern:
             return False
         t0, inner = time.perf_counter(), self._term_seconds
         present = self._present(A)
-        needed = self._needed()
-        pos = np.minimum(np.searchsorted(present, needed), max(len(present) - 1, 0))
-        lacking = bool(len(needed)) and not np.all(present[pos] == needed)
+        keys, same = self._term_keys()
+        if same and self._verified == (A.handle, len(present)):
+            lacking = False  # the same entries were found in this very matrix before
+        else:
+            lacking = False
+            for needed in keys:
+                pos = np.minimum(np.searchsorted(present, needed), max(len(present) - 1, 0))
+                lacking |= bool(len(needed)) and not np.all(present[pos] == needed)
         self.seconds += time.perf_counter() - t0 - (self._term_seconds - inner)
-        return A.getComm().tompi4py().allreduce(lacking, op=MPI.LOR)
+        lacking = A.getComm().tompi4py().allreduce(lacking, op=MPI.LOR)
+        self._verified = None if lacking else (A.handle, len(present))
+        return lacking
 
     def ensure(self, A: PETSc.Mat) -> PETSc.Mat:
         """A itself if it holds all needed entries, else a new matrix with the union pattern.
