@@ -15,6 +15,7 @@ longer run, or under MPI: ``mpiexec -n 2 python demos/beam_swing.py``.
 """
 
 import argparse
+import json
 import logging
 import os
 import sys
@@ -30,17 +31,25 @@ import diffsolids as ds
 from diffsolids.io import TrajectoryWriter, configure_logging
 from diffsolids.mesh import from_geo
 
-GEO = Path(__file__).resolve().parents[1] / "meshes" / "beam.geo"
+ROOT = Path(__file__).resolve().parents[1]
+GEO = ROOT / "meshes" / "beam.geo"
 LENGTH, WIDTH, HEIGHT = 1.0, 0.1, 0.1
 
-# (mesh size, degree, dt, steps) of the default and the --full run
-SMALL = {"h": 0.05, "degree": 2, "dt": 0.01, "steps": 120}
-FULL = {"h": 0.02, "degree": 2, "dt": 0.005, "steps": 600}
+# mesh size, degree, dt and steps of the --tiny (smoke test), default and --full runs
+SIZES = {
+    "tiny": {"h": 0.1, "degree": 1, "dt": 0.025, "steps": 36},
+    "default": {"h": 0.05, "degree": 2, "dt": 0.01, "steps": 120},
+    "full": {"h": 0.02, "degree": 2, "dt": 0.005, "steps": 600},
+}
+# --check: the tip must fall at least this far and swing back up by at least this much [m]
+MIN_DROP = 0.3
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--full", action="store_true", help="finer mesh and a longer run")
+    size = p.add_mutually_exclusive_group()
+    size.add_argument("--tiny", action="store_true", help="smoke-test size (P1, coarse, 36 steps)")
+    size.add_argument("--full", action="store_true", help="finer mesh and a longer run")
     p.add_argument("--h", type=float, help="mesh size (default 0.05, --full 0.02)")
     p.add_argument("--degree", type=int, help="Lagrange degree of u (default 2)")
     p.add_argument("--order", type=int, default=2, help="BDF order (default 2)")
@@ -50,12 +59,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--nu", type=float, default=0.3, help="Poisson's ratio")
     p.add_argument("--density", type=float, default=1000.0, help="density [kg/m^3]")
     p.add_argument("--xdmf", action="store_true", help="write XDMF instead of VTX")
-    p.add_argument("--out", type=Path, default=Path("output/beam_swing"), help="output folder")
+    p.add_argument("--out", type=Path, default=ROOT / "output" / "beam_swing", help="output folder")
     p.add_argument("--no-plot", action="store_true", help="skip the PNG")
     p.add_argument("--verbose", action="store_true", help="log every step")
+    p.add_argument("--check", action="store_true", help="exit 1 unless the beam swung down and up")
     args = p.parse_args(argv)
-    defaults = FULL if args.full else SMALL
-    for key, value in defaults.items():
+    args.size = "tiny" if args.tiny else ("full" if args.full else "default")
+    for key, value in SIZES[args.size].items():
         if getattr(args, key) is None:
             setattr(args, key, value)
     return args
@@ -131,7 +141,7 @@ def main(argv=None) -> dict:
     low = int(np.argmin(tip[:, 2]))
     rebound = low + int(np.argmax(tip[low:, 2]))
 
-    files = [out / f"beam_swing{suffix}", out / "tip_trajectory.csv"]
+    files = [out / f"beam_swing{suffix}", out / "tip_trajectory.csv", out / "result.json"]
     if args.xdmf:
         files.append(out / "beam_swing.h5")
     else:
@@ -151,7 +161,14 @@ def main(argv=None) -> dict:
         files.append(out / "tip_trajectory.png")
     comm.barrier()
 
+    swung = bool(
+        tip[low, 2] <= -MIN_DROP
+        and 0 < low < len(tip) - 1
+        and tip[rebound, 2] - tip[low, 2] >= MIN_DROP
+    )
     summary = {
+        "demo": "beam_swing",
+        "size": args.size,
         "dofs": dofs,
         "ranks": comm.size,
         "degree": args.degree,
@@ -164,11 +181,11 @@ def main(argv=None) -> dict:
         "tip_rebound_z": float(tip[rebound, 2]),
         "t_rebound": float(times[rebound]),
         "seconds": seconds,
+        "swung_down_and_up": swung,
         "files": [str(f) for f in files],
-        "times": times,
-        "tip": tip,
     }
     if comm.rank == 0:
+        (out / "result.json").write_text(json.dumps(summary, indent=2))
         print(
             f"beam_swing: {dofs} dofs (P{args.degree}, {comm.size} rank(s)), "
             f"BDF{args.order} {integrator.num_steps} x {args.dt:g} s, "
@@ -177,8 +194,11 @@ def main(argv=None) -> dict:
             f"t = {times[rebound]:.2f} s; {seconds:.1f} s; output in {out}/",
             flush=True,
         )
-    return summary
+    return summary | {"times": times, "tip": tip}
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    argv = sys.argv[1:]
+    result = main(argv)
+    if "--check" in argv and not result["swung_down_and_up"]:
+        sys.exit(f"beam_swing: the tip did not fall {MIN_DROP} m and swing back up")

@@ -1,6 +1,7 @@
 """Smoke test of the flagship demo (demos/beam_swing.py) and of its gmsh geometry."""
 
 import importlib.util
+import json
 from pathlib import Path
 
 import dolfinx
@@ -11,7 +12,7 @@ from mpi4py import MPI
 from diffsolids.mesh import from_geo
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = ["--degree", "1", "--h", "0.1", "--steps", "36", "--dt", "0.025"]
+TINY = ["--tiny"]
 
 
 def _demo():
@@ -62,3 +63,5 @@ def test_beam_swings_down_and_up(tmp_path, fmt):
     assert tip_z[low:].max() > tip_z[low] + 0.3  # ... and swings back up
     assert np.all(np.diff(tip_z[: low + 1]) < 0)  # monotone fall from rest
     assert summary["newton_its"] >= summary["steps"]
+    assert summary["swung_down_and_up"]
+    assert json.loads((tmp_path / "result.json").read_text())["newton_its"] == summary["newton_its"]
