@@ -1,12 +1,14 @@
 """Remeshing during shape optimisation (paper sec. 5, Algorithm 1, and sec. 10.1).
 
 When the minimum scaled Jacobian of the rest mesh at the current shape drops below a threshold
-(1e-3 in the paper) the interior is regenerated with gmsh while the boundary stays exactly as it
-is: every boundary vertex and boundary facet (and every interface between bodies) is kept, so
-boundary-based objectives and facet tags carry over. 2D: the boundary loops of each body become
-closed gmsh discrete curves bounding plane surfaces (holes included); 3D: the boundary shells
-become discrete surfaces bounding volumes (cavities included), meshed with tetrahedra. gmsh
-runs on rank 0; the new mesh is distributed over the communicator of the old one.
+(1e-3 in the paper) the interior is regenerated with gmsh while the boundary stays as it is:
+every boundary vertex (its coordinates rounded to 2^-32 of the bounding box, so serial and
+parallel runs mesh the same input) and boundary facet (and every interface between bodies) is
+kept, so boundary-based objectives and facet tags carry over. 2D: the boundary loops of each
+body become closed gmsh discrete curves bounding plane surfaces (holes included); 3D: the
+boundary shells become discrete surfaces bounding volumes (cavities included), meshed with
+tetrahedra. gmsh runs on rank 0; the new mesh is distributed over the communicator of the old
+one.
 
 The Model, Simulation, objective and controls live on one mesh, so a remesh rebuilds them with
 a user factory ``build(domain) -> ReducedFunctional`` (see :class:`Remesher`). Controlled fields
@@ -23,7 +25,7 @@ import logging
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import basix.ufl
@@ -417,10 +419,23 @@ def _mean_edge_length(arrays: MeshArrays) -> float:
 _GMSH_DEFAULTS = {2: {"Mesh.Optimize": 1}, 3: {"Mesh.Optimize": 1, "Mesh.Algorithm3D": 10}}
 
 
+def _snapped(points: np.ndarray) -> np.ndarray:
+    """Coordinates rounded to 2^-32 of the bounding box (a power of two: exact grid values).
+
+    Serial and parallel runs give rest shapes that differ by round-off (parallel solves), and
+    gmsh is sensitive to that; on the grid both feed gmsh the same boundary, so both produce
+    the same mesh (unless a coordinate lies within round-off of a grid midpoint).
+    """
+    extent = float(np.ptp(points, axis=0).max()) if len(points) else 1.0
+    quantum = 2.0 ** (np.ceil(np.log2(max(extent, 1e-300))) - 32)
+    return np.round(points / quantum) * quantum
+
+
 def _remesh_arrays(
     arrays: MeshArrays, mesh_size: float | None, gmsh_options: Mapping[str, float] | None
 ) -> MeshArrays:
     """Regenerate the interior of every body of a canonical mesh, keeping its boundaries."""
+    arrays = replace(arrays, points=_snapped(arrays.points))
     pts = arrays.points
     dim = pts.shape[1]
     boundaries = _region_boundaries(arrays)
@@ -769,7 +784,8 @@ def _interpolate(src: fem.Function, dst: fem.Function) -> None:
     cells = np.arange(imap.size_local + imap.num_ghosts, dtype=np.int32)
     x = mesh.geometry.x
     extent = np.ptp(x, axis=0) if len(x) else np.zeros(3)
-    padding = 1e-10 * mesh.comm.allreduce(float(np.linalg.norm(extent)), op=MPI.MAX)
+    # new boundary vertices may lie up to 2^-32 of the extent outside (snapped coordinates)
+    padding = 1e-8 * mesh.comm.allreduce(float(np.linalg.norm(extent)), op=MPI.MAX)
     data = fem.create_interpolation_data(V, src.function_space, cells, padding)
     dst.interpolate_nonmatching(src, cells, data)
     dst.x.scatter_forward()
