@@ -388,6 +388,8 @@ class NewtonSolver:
         for term in self.numeric_terms:
             term.add_residual(self.u, b)
         fem_petsc.set_bc(b, self.model.bcs, x, -1.0)
+        if self.patterns.active:  # contact entries at u may be missing from the matrix
+            self._use_matrix(self.patterns.ensure(self.A))
         self.assemble_jacobian(self.A)
         self._jacobian_key = None
         ksp = self.snes.getKSP()
@@ -401,8 +403,8 @@ class NewtonSolver:
                 0,
                 float("nan"),
                 float("nan"),
-                "the Dirichlet increment of this step inverts elements even after lifting; "
-                "use smaller (load) steps",
+                "the Dirichlet increment of this step inverts elements (or, with contact, "
+                "collides) even after lifting; use smaller (load) steps",
             )
         x.axpy(1.0, y)
         self._assign(x)
