@@ -586,10 +586,15 @@ class ContactTerm:
     def check_configuration(self, U: np.ndarray, step: int = 0) -> float:
         """Refuse intersecting or touching configurations; returns the minimum distance.
 
+        Collective. Re-reads the rest positions from the mesh first; ``U`` is the (num_vertices,
+        dim) displacement of the collision vertices.
+
         Raises:
             IntersectionError: Naming the bodies that intersect or are closer than
                 ``min_gap * dhat``.
         """
+        if self.surface.update_rest_positions():  # the shape may have changed since
+            self._token += 1
         x = self.surface.rest_positions + U
         mesh = self.surface.mesh
         if ipctk.has_intersections(mesh, np.asfortranarray(x), self.broad_phase):
