@@ -20,6 +20,15 @@ from diffsolids.forms.elasticity import (
 from diffsolids.forms.inertia import inertia_energy
 from diffsolids.forms.kinematics import deformation_gradient, green_strain, small_strain
 from diffsolids.forms.loads import body_force_potential, traction_potential
+from diffsolids.forms.objectives import (
+    deformed_position,
+    graph_misfit,
+    penalty,
+    stress_norm,
+    stress_norm_power,
+    stress_penalty,
+    weighted_squared_distance,
+)
 
 __all__ = [
     "STRAIN_ENERGIES",
@@ -27,16 +36,23 @@ __all__ = [
     "cauchy_stress",
     "damping_potential",
     "deformation_gradient",
+    "deformed_position",
     "first_piola_kirchhoff",
+    "graph_misfit",
     "green_strain",
     "green_strain_rate",
     "inertia_energy",
     "lame_parameters",
     "linear_energy",
     "neo_hookean_energy",
+    "penalty",
     "small_strain",
     "st_venant_kirchhoff_energy",
     "strain_energy",
+    "stress_norm",
+    "stress_norm_power",
+    "stress_penalty",
     "traction_potential",
     "von_mises",
+    "weighted_squared_distance",
 ]

@@ -11,15 +11,40 @@ from diffsolids.objectives.functional import (
     step_weights,
     time_integral,
 )
+from diffsolids.objectives.library import (
+    StepValues,
+    boundary_graph_fit,
+    center_of_mass,
+    center_of_mass_trajectory,
+    height_objective,
+    stress_bound_penalty,
+    stress_lp_norm,
+    target_displacement,
+    target_positions,
+    volume_penalty,
+)
+from diffsolids.objectives.regularisers import BoundarySmoothing, MaterialSmoothing
 
 __all__ = [
+    "BoundarySmoothing",
     "Integral",
+    "MaterialSmoothing",
     "Objective",
     "ObjectiveError",
     "Regulariser",
     "Series",
+    "StepValues",
     "TimeGrid",
+    "boundary_graph_fit",
+    "center_of_mass",
+    "center_of_mass_trajectory",
     "final_value",
+    "height_objective",
     "step_weights",
+    "stress_bound_penalty",
+    "stress_lp_norm",
+    "target_displacement",
+    "target_positions",
     "time_integral",
+    "volume_penalty",
 ]
