@@ -17,6 +17,7 @@ __all__ = [
     "lame_parameters",
     "linear_energy",
     "neo_hookean_energy",
+    "plane_strain_normal_stress",
     "st_venant_kirchhoff_energy",
     "strain_energy",
     "von_mises",
@@ -93,8 +94,29 @@ def cauchy_stress(name: str, u, lmbda, mu):
     return P * F.T / ufl.det(F)
 
 
-def von_mises(sigma):
-    """Von Mises equivalent stress of a 2x2 (plane) or 3x3 Cauchy stress."""
-    d = sigma.ufl_shape[0]
-    s = sigma - ufl.tr(sigma) / d * ufl.Identity(d)  # (in-plane) deviator
-    return ufl.sqrt(1.5 * ufl.inner(s, s))
+def plane_strain_normal_stress(name: str, u, lmbda, mu):
+    """Out-of-plane Cauchy stress sigma_zz of a plane-strain (F_zz = 1) state.
+
+    linear: lambda tr(eps); St. Venant-Kirchhoff: lambda tr(E) / J; Neo-Hookean:
+    lambda ln(J) / J (P_zz = mu (F_zz - 1 / F_zz) + lambda ln(J) / F_zz with F_zz = 1).
+    """
+    if name == "linear":
+        return lmbda * ufl.tr(small_strain(u))
+    F = deformation_gradient(u)
+    J = ufl.det(F)
+    if name == "st_venant_kirchhoff":
+        return lmbda * ufl.tr(green_strain(F)) / J
+    return lmbda * ufl.ln(J) / J
+
+
+def von_mises(sigma, sigma_zz=0.0):
+    """Von Mises equivalent stress sqrt(3/2 s:s), s the deviator of the 3x3 Cauchy stress.
+
+    A 2x2 (plane) ``sigma`` is completed by the out-of-plane normal stress ``sigma_zz``: 0 for
+    plane stress, :func:`plane_strain_normal_stress` for plane strain.
+    """
+    if sigma.ufl_shape[0] == 3:
+        s = ufl.dev(sigma)
+        return ufl.sqrt(1.5 * ufl.inner(s, s))
+    trace = ufl.tr(sigma) + sigma_zz
+    return ufl.sqrt(1.5 * (ufl.inner(sigma, sigma) + sigma_zz**2 - trace**2 / 3))

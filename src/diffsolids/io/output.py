@@ -7,6 +7,8 @@ import numpy as np
 from dolfinx import fem, io
 
 from diffsolids import forms
+from diffsolids.errors import ParameterError
+from diffsolids.forms.elasticity import plane_strain_normal_stress
 from diffsolids.model.terms import ElasticEnergy
 
 __all__ = ["TrajectoryWriter", "von_mises_field"]
@@ -27,7 +29,10 @@ class _VonMises:
             if isinstance(term, ElasticEnergy):
                 lmbda, mu = model.lame()
                 sigma = forms.cauchy_stress(term.law, u, lmbda, mu)
-                expr = fem.Expression(forms.von_mises(sigma), points)
+                sigma_zz = 0.0
+                if model.dim == 2 and not model.plane_stress:
+                    sigma_zz = plane_strain_normal_stress(term.law, u, lmbda, mu)
+                expr = fem.Expression(forms.von_mises(sigma, sigma_zz), points)
                 if term.bodies is None:
                     cells = None
                 else:
@@ -50,60 +55,130 @@ def von_mises_field(model, u_array: np.ndarray) -> fem.Function:
     return _VonMises(model, u).update()
 
 
+def _element_key(f: fem.Function) -> tuple:
+    """(family, degree, discontinuous) of a function's (scalar) element."""
+    e = f.function_space.ufl_element().basix_element
+    return (e.family, e.degree, e.discontinuous)
+
+
+def _key_label(key: tuple) -> str:
+    _, degree, discontinuous = key
+    return f"{'dg' if discontinuous else 'p'}{degree}"
+
+
 class TrajectoryWriter:
     """Writes u, v and von Mises stress per step to VTX (``.bp``) or XDMF (``.xdmf``).
+
+    VTX keeps the displacement's own element (P1, P2, P3): ``<name>.bp`` holds displacement and
+    velocity, ``<name>_cells.bp`` the cellwise (DG0) von Mises stress. XDMF (``<name>.xdmf`` with
+    ``<name>.h5``) stores everything on the mesh vertices: P2/P3 fields are interpolated into P1.
 
     Args:
         model: The model whose fields are written.
         path: Output path; the suffix selects the format.
-        extra: Further functions to write (VTX: same element as u or DG0; XDMF: P1/DG0).
+        extra: Further functions written with their current values at every step. VTX: Lagrange
+            or DG of any degree (extra files ``<name>_<p2|dg1|...>.bp`` for elements other than
+            the displacement's and DG0); XDMF: interpolated into P1 unless P1 or DG0.
+
+    Raises:
+        ParameterError: A suffix other than .bp/.xdmf, an extra function on another mesh, of a
+            non-Lagrange family (VTX), or with a name already used.
     """
 
     def __init__(self, model, path: str | os.PathLike, extra: list[fem.Function] | None = None):
         self.path = Path(path)
+        if self.path.suffix not in (".bp", ".xdmf"):
+            raise ParameterError(f"output path {path} must end in .bp (VTX) or .xdmf (XDMF)")
         mesh = model.domain.mesh
         comm = mesh.comm
+        self.extra = list(extra or [])
+        names = ["displacement", "velocity", "von_mises", *(f.name for f in self.extra)]
+        duplicates = sorted({n for n in names if names.count(n) > 1})
+        if duplicates:
+            raise ParameterError(f"output functions need distinct names; repeated: {duplicates}")
+        for f in self.extra:
+            if f.function_space.mesh is not mesh:
+                raise ParameterError(f"extra output function {f.name!r} is on another mesh")
         if comm.rank == 0:
             self.path.parent.mkdir(parents=True, exist_ok=True)
         comm.barrier()
         self.u = fem.Function(model.V, name="displacement")
         self.v = fem.Function(model.V, name="velocity")
         self.stress = _VonMises(model, self.u)
-        self.extra = list(extra or [])
+        self._closed = False
         if self.path.suffix == ".bp":
-            self._xdmf = None
-            self._vtx = io.VTXWriter(comm, self.path, [self.u, self.v])
-            self._vtx_cell = io.VTXWriter(
-                comm, self.path.with_name(self.path.stem + "_cells.bp"), [self.stress.field]
-            )
-        elif self.path.suffix == ".xdmf":
-            self._vtx = None
-            self._xdmf = io.XDMFFile(comm, self.path, "w")
-            self._xdmf.write_mesh(mesh)
-            P1 = fem.functionspace(mesh, ("Lagrange", 1, (mesh.geometry.dim,)))
-            self._u1 = fem.Function(P1, name="displacement")
-            self._v1 = fem.Function(P1, name="velocity")
+            self._open_vtx(comm)
         else:
-            raise ValueError(f"output path {path} must end in .bp (VTX) or .xdmf")
+            self._open_xdmf(mesh)
+
+    def _open_vtx(self, comm) -> None:
+        lagrange = _element_key(self.u)[0]
+        groups: dict[tuple, list[fem.Function]] = {
+            _element_key(self.u): [self.u, self.v],
+            _element_key(self.stress.field): [self.stress.field],
+        }
+        for f in self.extra:
+            key = _element_key(f)
+            if key[0] != lagrange:
+                raise ParameterError(
+                    f"VTX output needs Lagrange/DG functions; {f.name!r} has family {key[0]}"
+                )
+            groups.setdefault(key, []).append(f)
+        self._xdmf = None
+        self._vtx = []
+        for key, functions in groups.items():
+            if functions[0] is self.u:
+                path = self.path
+            elif functions[0] is self.stress.field:
+                path = self.path.with_name(self.path.stem + "_cells.bp")
+            else:
+                path = self.path.with_name(f"{self.path.stem}_{_key_label(key)}.bp")
+            self._vtx.append(io.VTXWriter(comm, path, functions))
+
+    def _open_xdmf(self, mesh) -> None:
+        self._vtx = []
+        self._xdmf = io.XDMFFile(mesh.comm, self.path, "w")
+        self._xdmf.write_mesh(mesh)
+        vertex_keys = {_element_key(self.stress.field)}  # DG0
+        self._xdmf_pairs = []  # (source, function written: source itself or its P1 copy)
+        for f in (self.u, self.v, self.stress.field, *self.extra):
+            key = _element_key(f)
+            if key in vertex_keys or (key[1] == 1 and not key[2]):
+                self._xdmf_pairs.append((f, f))
+                continue
+            shape = f.function_space.value_shape
+            P1 = fem.functionspace(mesh, ("Lagrange", 1, shape) if shape else ("Lagrange", 1))
+            self._xdmf_pairs.append((f, fem.Function(P1, name=f.name)))
 
     def write(self, t: float, u: np.ndarray, v: np.ndarray) -> None:
-        """Write the state at time ``t``."""
+        """Write the state at time ``t`` (``u``, ``v``: local arrays including ghosts)."""
+        if self._closed:
+            raise ParameterError(f"{self.path} is closed")
         self.u.x.array[:] = u
         self.v.x.array[:] = v
+        self.u.x.scatter_forward()
+        self.v.x.scatter_forward()
         self.stress.update()
-        if self._vtx is not None:
-            self._vtx.write(t)
-            self._vtx_cell.write(t)
-            return
-        self._u1.interpolate(self.u)
-        self._v1.interpolate(self.v)
-        for f in (self._u1, self._v1, self.stress.field, *self.extra):
-            self._xdmf.write_function(f, t)
+        for writer in self._vtx:
+            writer.write(t)
+        if self._xdmf is not None:
+            for source, target in self._xdmf_pairs:
+                if target is not source:
+                    target.interpolate(source)
+                self._xdmf.write_function(target, t)
 
     def close(self) -> None:
-        """Flush and close the files."""
-        if self._vtx is not None:
-            self._vtx.close()
-            self._vtx_cell.close()
-        else:
+        """Flush and close the files (a second call does nothing)."""
+        if self._closed:
+            return
+        self._closed = True
+        for writer in self._vtx:
+            writer.close()
+        if self._xdmf is not None:
             self._xdmf.close()
+
+    def __enter__(self) -> "TrajectoryWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
