@@ -114,10 +114,9 @@ def plot(path: Path, times: np.ndarray, tip: np.ndarray, title: str) -> None:
     plt.close(fig)
 
 
-def main(argv=None) -> dict:
-    """Run the demo; returns the summary (also printed as one line on rank 0)."""
+def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> dict:
+    """Run the demo on ``comm``; returns the summary (also printed as one line on rank 0)."""
     args = parse_args(argv)
-    comm = MPI.COMM_WORLD
     configure_logging(logging.INFO if args.verbose else logging.WARNING, comm)
     t0 = time.perf_counter()
 
