@@ -103,16 +103,14 @@ class AdjointLinearSolver:
             self._precond = (self._stored[step].getPC(), -1)
         frozen = -1 if self._precond is None else self._precond[1]
         work = 1 if frozen == 0 else 0
-        A = self._mats[work]
-        if self.action is None:
-            self.newton.assemble_jacobian(A, exact=True)
+        A = self._assembled(work) if self.action is None else None
         its = None
         if self._precond is not None:
             operator = A if self.action is None else self.action.mat
             its = self._krylov(operator, self._precond[0], b, x)
         if its is None or its > self.options.refactor_above:
-            if self.action is not None:
-                self.newton.assemble_jacobian(A, exact=True)
+            if A is None:
+                A = self._assembled(work)
             ksp = self._factorise(A)
             if work in self._factor_ksps:
                 self._factor_ksps[work].destroy()
@@ -123,6 +121,13 @@ class AdjointLinearSolver:
                 self.stats["direct_solves"] += 1
                 its = 0
         return its
+
+    def _assembled(self, work: int) -> PETSc.Mat:
+        """Exact Jacobian in work matrix ``work`` (its pattern grown for contact if needed)."""
+        A = self.newton.ensure_matrix_pattern(self._mats[work])
+        self._mats[work] = A
+        self.newton.assemble_jacobian(A, exact=True)
+        return A
 
     def _solve_quadratic(self, b: PETSc.Vec, x: PETSc.Vec) -> int:
         """Constant Jacobian (per beta dt): direct solves with one factorisation each."""

@@ -1,6 +1,7 @@
 """Controls: the optimisation parameters and the chain rule back from the adjoint."""
 
 from diffsolids.controls.base import Control, ControlError, ControlSet
+from diffsolids.controls.contact import FrictionControl
 from diffsolids.controls.dirichlet import DirichletControl
 from diffsolids.controls.initial import InitialCondition, RigidVelocity
 from diffsolids.controls.ordering import CanonicalLayout
@@ -13,6 +14,7 @@ __all__ = [
     "ControlError",
     "ControlSet",
     "DirichletControl",
+    "FrictionControl",
     "InitialCondition",
     "ParameterControl",
     "RigidVelocity",
