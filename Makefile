@@ -27,6 +27,9 @@ setup: $(STAMP)
 demo: $(STAMP)
 	$(PY) demos/beam_swing.py
 
+demos: $(STAMP)
+	$(PY) demos/run_all.py
+
 lint: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/ruff check .
