@@ -190,7 +190,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> dict:
             f"BDF{args.order} {integrator.num_steps} x {args.dt:g} s, "
             f"{summary['newton_its']} Newton its; tip fell to z = {tip[low, 2]:+.3f} m at "
             f"t = {times[low]:.2f} s, swung back to {tip[rebound, 2]:+.3f} m at "
-            f"t = {times[rebound]:.2f} s; {seconds:.1f} s; output in {out}/",
+            f"t = {times[rebound]:.2f} s; {seconds:.1f} s; output in {os.path.relpath(out)}/",
             flush=True,
         )
     return summary | {"times": times, "tip": tip}
