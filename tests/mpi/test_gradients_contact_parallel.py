@@ -1,0 +1,62 @@
+"""Run under ``mpiexec -n 2``: gradients through contact and friction on 2 ranks equal serial ones.
+
+The scenes of test_gradients_contact.py are built on COMM_WORLD and on COMM_SELF in the same
+process; values and gradients (parameters in canonical order) must agree.
+"""
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+from test_gradients_contact import incline_scene, static_scene
+
+from diffsolids.controls import FrictionControl, InitialCondition, ParameterControl, ShapeControl
+from diffsolids.reduced_functional import ReducedFunctional
+
+RTOL = 1e-8
+
+
+def _incline(comm):
+    model, contact, sim, objective = incline_scene(1, 2, comm=comm)
+    controls = [
+        ShapeControl(model, "all"),
+        ParameterControl(model, "E", "field", log=True),
+        FrictionControl(contact),
+        ParameterControl(model, "damping_psi", "bodies"),
+        InitialCondition(sim, "velocity"),
+    ]
+    return ReducedFunctional(sim, objective, controls), contact
+
+
+def _static_3d(comm):
+    model, contact, sim, objective = static_scene(3, comm=comm)
+    return ReducedFunctional(sim, objective, ShapeControl(model, "all")), contact
+
+
+def _value_and_gradient(build, comm):
+    rf, contact = build(comm)
+    q = rf.initial_parameters()
+    value, gradient = rf.value_and_gradient(q)
+    counts = [r.num_collisions for r in contact.records]
+    return q, value, gradient, counts
+
+
+@pytest.mark.parametrize("build", [_incline, _static_3d], ids=["incline-friction", "static-3d"])
+def test_contact_gradient_world_equals_self(build):
+    comm = MPI.COMM_WORLD
+    assert comm.size > 1, "run with mpiexec -n 2"
+    q_par, J_par, g_par, counts_par = _value_and_gradient(build, comm)
+    q_ser, J_ser, g_ser, counts_ser = _value_and_gradient(build, MPI.COMM_SELF)
+    assert counts_par == counts_ser and min(counts_ser) > 0
+    assert np.array_equal(q_par, q_ser)  # canonical parameter order
+    assert J_par == pytest.approx(J_ser, rel=RTOL)
+    assert np.abs(g_ser).max() > 0
+    diff = np.abs(g_par - g_ser).max() / np.abs(g_ser).max()
+    print(
+        f"largest relative world-vs-self difference: value {abs(J_par / J_ser - 1):.1e}, "
+        f"gradient {diff:.1e}"
+    )
+    assert diff <= RTOL
+    for value in comm.allgather(J_par):
+        assert value == J_par
+    for gradient in comm.allgather(g_par):
+        assert np.array_equal(gradient, g_par)
