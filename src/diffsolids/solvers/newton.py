@@ -277,9 +277,17 @@ class NewtonSolver:
             ls["f0"] = e
             return e
         if abs(e - ls["f0"]) <= 1e-10 * (self._magnitude + abs(ls["f0"])):
-            # The energy change is below its roundoff: judge the trial point by its residual.
-            better = self.residual_norm() < ls["fnorm"]
-            return ls["f0"] - ls["slope"] if better else ls["f0"] + ls["slope"]
+            # The energy change is below its roundoff: estimate it from the gradients instead,
+            # E(x) - E(x0) ~ (F(x0) + F(x)) . (x - x0) / 2 (exact for quadratic energies).
+            # The residual norm is no substitute: along a PSD-projected (contact) Newton
+            # direction it need not decrease, and stiff barrier pairs then stall Newton.
+            self.assemble_residual(self._work)
+            self._work.axpy(1.0, ls["F0"])
+            step = x.copy()
+            step.axpy(-1.0, ls["x0"])
+            change = 0.5 * self._work.dot(step)
+            step.destroy()
+            return ls["f0"] + change
         return e
 
     def _precheck(self, x, y, *args) -> None:
@@ -316,7 +324,7 @@ class NewtonSolver:
             y.scale(scale)
             slope *= scale
             self.bounded_steps += 1
-        self._line_search = {"f0": None, "slope": abs(slope), "fnorm": self.snes.getFunctionNorm()}
+        self._line_search = {"f0": None, "x0": x.copy(), "F0": F.copy()}
 
     def _converged(self, snes, it, norms):
         fnorm = norms[2]
