@@ -78,6 +78,14 @@ class RealisedDirichlet:
         self._nparams = _num_params(value)
         self.condition.value = value
 
+    def prescribe(self, values: np.ndarray) -> None:
+        """Prescribe the values a local V array holds at the constrained dofs (until ``update``).
+
+        Used for intermediate values within a step (continuation of a large increment).
+        """
+        for (_, gc, cdofs, _), bc in zip(self._parts, self.bcs, strict=True):
+            gc.x.array[cdofs] = values[bc.dof_indices()[0]]
+
     def update(self, t: float) -> None:
         """Set the prescribed values at time ``t``."""
         value = self.condition.value
