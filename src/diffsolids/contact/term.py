@@ -500,6 +500,31 @@ class ContactTerm:
         """Add the exact (unprojected) Hessian of the contact potential w.r.t. u^i."""
         self.add_jacobian(u, A, bc_dofs, project=False)
 
+    def add_dirichlet_lifting(
+        self, u: fem.Function, b: PETSc.Vec, increment: np.ndarray, bc_dofs: np.ndarray
+    ) -> None:
+        """b[owned free rows] += H[free, prescribed] increment (collective).
+
+        The linearised contact response of the free dofs to moving the prescribed ones (e.g. an
+        obstacle driven by Dirichlet values): the lifting term that the matrix of
+        :meth:`add_jacobian`, which drops Dirichlet columns, does not carry.
+
+        Args:
+            u: Current displacement.
+            b: Right-hand side of a lifted linear step (owned entries).
+            increment: Local V array holding the prescribed increment on Dirichlet dofs.
+            bc_dofs: Local indices of Dirichlet dofs.
+        """
+        ev = self._evaluate(u)
+        free = self._free_mask(bc_dofs)
+        d = self.surface.gather(np.asarray(increment)).ravel()
+        d[free] = 0.0
+        if not np.any(d):
+            return
+        g = self._hessian(ev) @ d
+        g[~free] = 0.0
+        self.surface.add_to_owned(b.array_w, g)
+
     def add_hessian_action(self, u: fem.Function, direction: np.ndarray, y: PETSc.Vec) -> None:
         """y[owned rows] += H d with H the exact contact Hessian (matrix-free adjoint; collective).
 

@@ -376,14 +376,13 @@ class NewtonSolver:
             self._jacobian_key = None
 
     # -- public ------------------------------------------------------------------------------
-    def lift_dirichlet(self, step: int) -> None:
-        """Move ``u`` (not yet at the step's Dirichlet values) by one linearised step onto them.
+    def lifted_step(self) -> PETSc.Vec:
+        """The linearised step that moves ``u`` onto the step's Dirichlet values.
 
         Solves K(u) du = -G(u) with du = g - u on Dirichlet dofs (lifting of the prescribed
-        increment), so the interior follows the boundary instead of inverting next to it.
-
-        Raises:
-            NewtonConvergenceError: Even the linearised step inverts elements.
+        increment, including its coupling through numeric terms such as the contact barrier),
+        so the interior follows the boundary instead of inverting or colliding next to it.
+        ``u`` is unchanged and ``x`` holds it; the caller destroys the returned Vec.
         """
         x, y, b = self.x, self._work.duplicate(), self.b
         self.u.x.scatter_forward()
@@ -393,8 +392,14 @@ class NewtonSolver:
         fem_petsc.assemble_vector(b, self.residual_form)
         fem_petsc.apply_lifting(b, [self.jacobian_form], [self.model.bcs], x0=[x], alpha=-1.0)
         dolfinx.la.petsc._ghost_update(b, PETSc.InsertMode.ADD, PETSc.ScatterMode.REVERSE)
+        bc_dofs = self.model.dirichlet_dofs()
+        increment = np.zeros_like(self.u.x.array)
+        for bc in self.model.bcs:
+            bc.set(increment, x0=self.u.x.array)  # g - u on the Dirichlet dofs
         for term in self.numeric_terms:
             term.add_residual(self.u, b)
+            if hasattr(term, "add_dirichlet_lifting"):
+                term.add_dirichlet_lifting(self.u, b, increment, bc_dofs)
         fem_petsc.set_bc(b, self.model.bcs, x, -1.0)
         if self.patterns.active:  # contact entries at u may be missing from the matrix
             self._use_matrix(self.patterns.ensure(self.A))
@@ -404,19 +409,37 @@ class NewtonSolver:
         ksp.setOperators(self.A)
         ksp.solve(b, y)
         y.scale(-1.0)
-        bound = min((g.max_step(x, y) for g in self.step_bounds), default=np.inf)
-        if bound <= 1.0:
-            raise NewtonConvergenceError(
-                step,
-                0,
-                float("nan"),
-                float("nan"),
-                "the Dirichlet increment of this step inverts elements (or, with contact, "
-                "collides) even after lifting; use smaller (load) steps",
-            )
-        x.axpy(1.0, y)
-        self._assign(x)
-        y.destroy()
+        return y
+
+    def step_bound(self, direction: PETSc.Vec) -> float:
+        """Largest admissible fraction of ``direction`` from ``x`` (inf without step bounds)."""
+        return min((g.max_step(self.x, direction) for g in self.step_bounds), default=np.inf)
+
+    def advance(self, direction: PETSc.Vec, fraction: float = 1.0) -> None:
+        """Set ``u`` to ``x + fraction * direction``."""
+        self.x.axpy(fraction, direction)
+        self._assign(self.x)
+
+    def lift_dirichlet(self, step: int) -> None:
+        """Move ``u`` (not yet at the step's Dirichlet values) by the :meth:`lifted_step`.
+
+        Raises:
+            NewtonConvergenceError: The lifted step inverts elements or collides.
+        """
+        y = self.lifted_step()
+        try:
+            if self.step_bound(y) <= 1.0:
+                raise NewtonConvergenceError(
+                    step,
+                    0,
+                    float("nan"),
+                    float("nan"),
+                    "the Dirichlet increment of this step inverts elements (or, with contact, "
+                    "collides) even after lifting; use smaller (load) steps",
+                )
+            self.advance(y)
+        finally:
+            y.destroy()
 
     def inverted(self) -> bool:
         """Whether the current ``u`` inverts elements (det F <= 0 at a quadrature point)."""
