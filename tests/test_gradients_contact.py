@@ -21,6 +21,8 @@ case).
 :func:`test_aligned_start_is_only_continuous` keeps that diagnosis honest.
 """
 
+import itertools
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -134,15 +136,22 @@ class _Monitored:
 
 
 def check_gradient(rf, contact, direction: np.ndarray, taylor_h0: float = 1.0):
-    """FD in ``direction`` and along the gradient, Taylor test; returns the three results."""
+    """FD in ``direction`` and along the gradient, Taylor test; returns the three results.
+
+    The gradient direction is scaled so that no control's block of parameters moves further
+    than in ``direction``.
+    """
     mon = _Monitored(rf, contact)
     q = rf.initial_parameters()
     try:
         g = mon.gradient(q)
         random = finite_difference_check(mon, q, direction, STEPS, gradient=g)
-        along = finite_difference_check(
-            mon, q, g * (np.linalg.norm(direction) / np.linalg.norm(g)), STEPS, gradient=g
+        offsets = rf.controls.offsets
+        scale = min(
+            np.linalg.norm(direction[a:b]) / max(np.linalg.norm(g[a:b]), 1e-300)
+            for a, b in itertools.pairwise(offsets)
         )
+        along = finite_difference_check(mon, q, scale * g, STEPS, gradient=g)
         taylor = taylor_test(mon, q, direction, h0=taylor_h0, num=4)
     finally:
         rf.controls.assign(q)

@@ -92,6 +92,9 @@ class Simulation:
             u^i is tried first as the initial Newton guess of step i (same dof layout; skipped
             where it does not fit or is not admissible). Only the guess changes: the converged
             states agree with a cold start to the Newton tolerance.
+        max_substeps: Intermediate solves allowed per step to reach Dirichlet values that
+            cannot be applied in one admissible move (see ``_dirichlet_continuation``).
+        substeps: Intermediate solves of the last run, by step (steps that needed any).
     """
 
     def __init__(
@@ -137,6 +140,8 @@ class Simulation:
         self.callback = callback
         self.trajectory: Trajectory | None = None
         self.warm_start: Trajectory | None = None
+        self.max_substeps = 50
+        self.substeps: dict[int, int] = {}
 
     # -- step set-up shared with the adjoint -----------------------------------------------------
     def load_step(self, i: int, traj: Trajectory) -> StepCoefficients:
@@ -167,9 +172,9 @@ class Simulation:
     def _initial_guess(self, i: int, traj: Trajectory) -> None:
         """Warm start, extrapolated (BDF) or previous state with the step's Dirichlet values.
 
-        A guess that inverts elements falls back to the next candidate; if applying the new
-        Dirichlet values to the previous state still inverts, the increment is lifted into the
-        interior.
+        A guess that inverts elements (or, with contact, collides on the way from u^{i-1}) falls
+        back to the next candidate; if applying the new Dirichlet values to the previous state
+        is still not admissible, they are reached by :meth:`_dirichlet_continuation`.
         """
         u = self.model.fields.u
         prev = traj.u[i - 1]
@@ -184,7 +189,58 @@ class Simulation:
             if not self.solver.step_bounds or not self._guess_inverts(u.x.array):
                 return
         u.x.array[:] = prev
-        self.solver.lift_dirichlet(i)
+        self._dirichlet_continuation(i)
+
+    def _dirichlet_continuation(self, i: int) -> None:
+        """Reach the step's Dirichlet values from u^{i-1} through intermediate equilibria.
+
+        The lifted (linearised) step onto the new values is taken when it is admissible (no
+        inversion, collision-free). Otherwise the prescribed dofs move by ``step_safety`` times
+        the admissible fraction of it, the step's problem is solved with them held there, and
+        the lift is repeated from that equilibrium (e.g. an obstacle driven into contact by
+        Dirichlet values pushes the surface ahead of it). Only the initial guess of the step's
+        own solve changes: the step's solution, and its adjoint, are those of the full values.
+
+        Raises:
+            NewtonConvergenceError: No admissible progress, or more than ``max_substeps``.
+        """
+        solver, model = self.solver, self.model
+        u = model.fields.u
+        t = self.integrator.time(i)
+        store = solver.factor_store
+        for substep in range(self.max_substeps):
+            y = solver.lifted_step()
+            try:
+                bound = solver.step_bound(y)
+                if bound * solver.options.step_safety >= 1.0:  # with a margin, as Newton
+                    solver.advance(y)
+                    self._apply_dirichlet(u)  # exactly the step's values
+                    if substep:
+                        self.substeps[i] = substep
+                        logger.info("step %d: Dirichlet values reached in %d substeps", i, substep)
+                    return
+                fraction = solver.options.step_safety * bound
+                if not fraction > 1e-8:
+                    break
+                solver.advance(y, fraction)
+            finally:
+                y.destroy()
+            for d in model.dirichlet:
+                d.prescribe(u.x.array)  # hold the prescribed dofs where they are now
+            solver.factor_store = None  # keep only the factors of the step's own solve
+            try:
+                solver.solve(i)
+            finally:
+                solver.factor_store = store
+                model.update_time(t)
+        raise NewtonConvergenceError(
+            i,
+            0,
+            float("nan"),
+            float("nan"),
+            f"the Dirichlet increment of this step cannot be reached admissibly (no inversion, "
+            f"no collision) within {self.max_substeps} substeps; use smaller (load) steps",
+        )
 
     def _apply_dirichlet(self, u: fem.Function) -> None:
         for d in self.model.dirichlet:
@@ -220,6 +276,7 @@ class Simulation:
 
         integ = self.integrator
         self.solver.reset()
+        self.substeps = {}
         if self.solver.factor_store is not None:
             self.solver.factor_store.clear()
         traj = Trajectory(times=[0.0], u=[self.u0.copy()], v=[self.v0.copy()])
