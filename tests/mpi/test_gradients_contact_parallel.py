@@ -1,12 +1,14 @@
 """Run under ``mpiexec -n 2``: gradients through contact and friction on 2 ranks equal serial ones.
 
-The scenes of test_gradients_contact.py are built on COMM_WORLD and on COMM_SELF in the same
-process; values and gradients (parameters in canonical order) must agree.
+The scenes of test_gradients_contact.py and test_contact_indenter.py are built on COMM_WORLD and
+on COMM_SELF in the same process; collision counts, continuation substeps, values and gradients
+(parameters in canonical order) must agree.
 """
 
 import numpy as np
 import pytest
 from mpi4py import MPI
+from test_contact_indenter import _indenter_scene
 from test_gradients_contact import incline_scene, static_scene
 
 from diffsolids.controls import FrictionControl, InitialCondition, ParameterControl, ShapeControl
@@ -32,21 +34,34 @@ def _static_3d(comm):
     return ReducedFunctional(sim, objective, ShapeControl(model, "all")), contact
 
 
+def _indenter(comm):
+    """Obstacle driven by Dirichlet values: steps reached by continuation (substeps)."""
+    model, contact, sim, objective = _indenter_scene(True, 0.3, comm=comm)
+    controls = [
+        ParameterControl(model, "E", "bodies", bodies=["block"], log=True),
+        ShapeControl(model, "all"),
+    ]
+    return ReducedFunctional(sim, objective, controls), contact
+
+
 def _value_and_gradient(build, comm):
     rf, contact = build(comm)
     q = rf.initial_parameters()
     value, gradient = rf.value_and_gradient(q)
     counts = [r.num_collisions for r in contact.records]
+    counts.append(dict(rf.simulation.substeps))
     return q, value, gradient, counts
 
 
-@pytest.mark.parametrize("build", [_incline, _static_3d], ids=["incline-friction", "static-3d"])
+@pytest.mark.parametrize(
+    "build", [_incline, _static_3d, _indenter], ids=["incline-friction", "static-3d", "indenter"]
+)
 def test_contact_gradient_world_equals_self(build):
     comm = MPI.COMM_WORLD
     assert comm.size > 1, "run with mpiexec -n 2"
     q_par, J_par, g_par, counts_par = _value_and_gradient(build, comm)
     q_ser, J_ser, g_ser, counts_ser = _value_and_gradient(build, MPI.COMM_SELF)
-    assert counts_par == counts_ser and min(counts_ser) > 0
+    assert counts_par == counts_ser and min(counts_ser[:-1]) > 0
     assert np.array_equal(q_par, q_ser)  # canonical parameter order
     assert J_par == pytest.approx(J_ser, rel=RTOL)
     assert np.abs(g_ser).max() > 0
