@@ -28,13 +28,19 @@ def _keys_of(A: PETSc.Mat) -> np.ndarray:
 
 
 def matrix_with_pattern(like: PETSc.Mat, keys: np.ndarray) -> PETSc.Mat:
-    """A new matrix shaped like ``like`` whose pattern is exactly ``keys`` (sorted row*N+col).
+    """A new matrix shaped like ``like`` whose pattern contains exactly ``keys`` (sorted row*N+col).
 
-    The entries are preallocated and inserted as zeros; inserting outside them is an error.
+    For block (BAIJ) matrices the pattern is the set of blocks holding a key. The entries are
+    preallocated and inserted as zeros; inserting outside them is an error.
     """
     N = like.getSize()[1]
     rstart, rend = like.getOwnershipRange()
     rows, cols = np.divmod(keys, N)
+    bs = like.getBlockSize() if "baij" in like.getType() else 1
+    if bs > 1:  # block CSR over the blocks that hold a key
+        blocks = np.unique((rows // bs) * (N // bs) + cols // bs)
+        rows, cols = np.divmod(blocks, N // bs)
+        rstart, rend = rstart // bs, rend // bs
     indptr = np.searchsorted(rows, np.arange(rstart, rend + 1))
     B = PETSc.Mat().create(like.getComm())
     B.setSizes(like.getSizes())
