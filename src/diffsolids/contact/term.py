@@ -16,6 +16,7 @@ add only the rows they own.
 """
 
 import contextlib
+import functools
 import logging
 import os
 import time
@@ -42,6 +43,20 @@ logger = logging.getLogger("diffsolids")
 _CCD_REACH = 2.0
 # the matrix pattern of a step covers the pairs within this many dhat at u^{i-1} (plus motion)
 _PATTERN_REACH = 2.0
+
+
+def _timed_kernel(name: str):
+    """Record the wall and CPU time of a method under ``name`` in ``self.timings``."""
+
+    def decorate(method):
+        @functools.wraps(method)
+        def timed(self, *args, **kwargs):
+            with self._timed(name):
+                return method(self, *args, **kwargs)
+
+        return timed
+
+    return decorate
 
 
 @dataclass
@@ -705,6 +720,7 @@ class ContactTerm:
             )
         )
 
+    @_timed_kernel("adjoint_history")
     def adjoint_history(self, u, lam) -> dict[int, np.ndarray]:
         """(d g / d u^{i-j})^T lam for j = 1..m_i (owned entries of local V arrays).
 
@@ -731,11 +747,12 @@ class ContactTerm:
             out[j] = self._local(g)
         return out
 
+    @_timed_kernel("adjoint_shape")
     def adjoint_shape(self, u, lam) -> np.ndarray:
         """(d g / d X)^T lam over the dofs of the P1 rest-coordinate space (owned entries).
 
         Includes the barrier shape derivative with area-weight terms and the 3D edge-edge
-        mollifier correction, and the friction REST_POSITIONS Jacobian.
+        mollifier correction, and the friction force's rest-position Jacobian.
         """
         ev = self._evaluate(u)
         lam_c = self._lambda(lam)
@@ -744,9 +761,7 @@ class ContactTerm:
         S = barrier_shape_derivative(C, mesh, np.asfortranarray(ev.x), self.barrier, self.stiffness)
         g = S.T @ lam_c
         if np.any(self._mu > 0):
-            T = self._tangential_collisions(self._mu_table(self._mu), shape_derivatives=True)
-            Jx = self._friction_jacobian(ev, T, ipctk.FrictionPotential.DiffWRT.REST_POSITIONS)
-            g = g - Jx.T @ lam_c
+            g = g - self._friction_rest_adjoint(ev, lam_c)
         Sspace = self.model.shape_space
         smap = self.surface.shape_map(Sspace)
         bs = Sspace.dofmap.index_map_bs
@@ -757,6 +772,36 @@ class ContactTerm:
         out.reshape(-1, bs)[smap.blocks, :d] += gv[smap.cv]
         return out
 
+    def _friction_rest_adjoint(self, ev: _Evaluation, lam_c: np.ndarray) -> np.ndarray:
+        """(dF/dX)^T lam: the friction force's rest-position Jacobian at fixed U^{i-1}, transposed.
+
+        dF/dX = dF/dU^{i-1} + sum_c (F_c / w_c) grad w_c^T (area weights w_c; the force of
+        collision c is proportional to w_c). ipctk's REST_POSITIONS Jacobian adds these outer
+        products to one growing sparse matrix, a cost quadratic in the number of collisions
+        (1 s per step for 2k collisions); applied to lam they are scalars times weight gradients.
+        """
+        T = self._tangential_collisions(self._mu_table(self._mu), shape_derivatives=True)
+        Jl = self._friction_jacobian(ev, T, ipctk.FrictionPotential.DiffWRT.LAGGED_DISPLACEMENTS)
+        out = Jl.T @ lam_c
+        if not self.area_weighting:
+            return out
+        mesh, d = self.surface.mesh, self.dim
+        E, F = mesh.edges, mesh.faces
+        X = self.surface.rest_positions
+        U = self._step["lagged"]
+        V = self._velocity(ev.U)
+        lam = lam_c.reshape(-1, d)
+        potential, barrier = self.friction_potential, self.barrier
+        for group in (T.vv_collisions, T.ev_collisions, T.ee_collisions, T.fv_collisions):
+            for c in group:
+                ids = np.asarray(c.vertex_ids(E, F))
+                ids = ids[ids >= 0]
+                force = potential.force(c, X[ids].ravel(), U[ids].ravel(), V[ids].ravel(), barrier)
+                dw = c.weight_gradient
+                out[dw.indices] += (force @ lam[ids].ravel() / c.weight) * dw.data
+        return out
+
+    @_timed_kernel("adjoint_friction")
     def adjoint_friction(self, u, lam) -> np.ndarray:
         """(d g / d mu_p)^T lam for each pair p of :attr:`friction_pairs` (global, all ranks)."""
         ev = self._evaluate(u)
