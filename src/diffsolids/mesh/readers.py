@@ -67,7 +67,10 @@ def from_geo(
 
 def _mesh_geo_on_root(path, dim, mesh_size, numbers) -> int:
     gmsh = _gmsh()
-    gmsh.clear()
+    # Parser variables and options survive gmsh.clear(): restart gmsh so an earlier mesh's
+    # numbers or mesh size cannot leak into this one.
+    gmsh.finalize()
+    gmsh = _gmsh()
     for name, value in (numbers or {}).items():
         gmsh.parser.setNumber(name, [float(value)])
     # gmsh.open would clear the parser variables just set; merge keeps them (DefineConstant then
