@@ -115,13 +115,13 @@ def plot(path, model, states, result, fit_values, comm) -> None:
     import matplotlib.pyplot as plt
     from matplotlib.collections import PolyCollection
 
+    controls = result.functional.controls
     panels = []
     for label, (q, traj) in states.items():
-        model_controls = result.functional.controls
-        model_controls.assign(q)
+        controls.assign(q)
         E = young_modulus(cell_values(model, "lmbda"), cell_values(model, "mu"))
         panels.append((label, *deformed_triangles(model, traj.u[-1], np.log10(E))))
-    model_controls.assign(result.q)
+    controls.assign(result.q)
     if comm.rank != 0:
         return
     fig = plt.figure(figsize=(11, 6.5))
