@@ -125,6 +125,8 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
         inner_product=ShapeInnerProduct(rf, mass_weight=1.0 / HEIGHT**2),
         stop_conditions=[invariants],
         progress=False,
+        output_dir=args.out,
+        plot_every=0 if args.no_plot else 10,
     )
     error = float(np.linalg.norm(vertex_coordinates(domain) - X_true, axis=1).max())
     files += write_state(model, args.out / f"final{suffix}", rf.trajectory.u[-1])

@@ -140,6 +140,8 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
         remesher=Remesher(problem, threshold=0.1),
         stop_conditions=[invariants],
         progress=False,
+        output_dir=args.out,
+        plot_every=0 if args.no_plot else 10,
     )
     rf = result.functional
     model = rf.model
