@@ -1,0 +1,302 @@
+"""Gradient benchmark: adjoint cost relative to the forward solve, and its accuracy.
+
+A 3D Neo-Hookean beam (box [0, 4] x [0, 0.5]^2, P1, about 30k dofs, the beam of
+bench_forward.py) clamped at x = 0 sags under gravity: one static solve, and 50 BDF2 steps with
+strain-rate damping. The objective is the L_4 norm of stress plus a target displacement of the
+free end (time integrals for the dynamic run). For a DG0 Young's modulus field (log
+parametrised, one parameter per cell) and for the shape (all vertices) we time the forward run
+and the gradient with a warm JIT cache (each form compiled by an untimed first run) and report
+gradient / forward in wall-clock and in CPU time (the latter is robust to other load on the
+machine; everything runs single-threaded). The gradient is then compared with central finite
+differences for a few parameters (those with the largest gradient entries, and a random
+direction), with a tighter Newton tolerance and a sweep of steps (the dynamic check on a
+shorter run, --fd-bdf-steps).
+
+Run ``python tests/benchmarks/bench_gradient.py`` (``--help`` for options; ``--cold`` compiles
+into an empty FFCx cache and reports the set-up time; ``--profile`` prints a cProfile of one
+gradient). Works under ``mpiexec -n 2``. The last line printed is a JSON object.
+"""
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+
+def _parse(argv):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--cells", type=int, nargs=3, default=[80, 10, 10], help="box cells")
+    p.add_argument("--steps", type=int, default=50, help="BDF2 steps")
+    p.add_argument("--dt", type=float, default=0.01, help="time step")
+    p.add_argument("--rtol", type=float, default=1e-9, help="Newton tolerance of the timed runs")
+    p.add_argument("--fd-rtol", type=float, default=1e-12, help="Newton tolerance of FD runs")
+    p.add_argument("--fd-params", type=int, default=1, help="largest-gradient entries checked")
+    p.add_argument(
+        "--fd-sweep",
+        type=int,
+        default=5,
+        help="FD step sizes per direction (10^-3, 10^-4, ... relative to (1 + |q|) / |dq|)",
+    )
+    p.add_argument(
+        "--fd-bdf-steps",
+        type=int,
+        default=10,
+        help="BDF2 steps of the dynamic FD check (0 skips it; the timed run uses --steps)",
+    )
+    p.add_argument(
+        "--fd-dynamic-sweep", type=int, default=3, help="FD step sizes per direction (dynamic)"
+    )
+    p.add_argument("--repeat", type=int, default=2, help="timed repetitions (best is reported)")
+    p.add_argument(
+        "--factor-memory-mb",
+        type=float,
+        default=2000.0,
+        help="memory for the forward factorisations kept for the adjoint (ReducedFunctional)",
+    )
+    p.add_argument(
+        "--only", choices=["static", "dynamic"], default=None, help="run one scenario only"
+    )
+    p.add_argument("--cold", action="store_true", help="compile into an empty FFCx cache first")
+    p.add_argument("--profile", action="store_true", help="cProfile one gradient per case")
+    p.add_argument("--skip-fd", action="store_true", help="timings only")
+    return p.parse_args(argv)
+
+
+ARGS = _parse(sys.argv[1:])
+if ARGS.cold:  # must precede the DOLFINx import: the JIT reads its cache location once
+    os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="diffsolids-bench-cache-")
+
+import diffsolids as ds  # noqa: E402  (first: it loads the MPI library DOLFINx's wheel needs)
+
+# isort: split
+import cProfile  # noqa: E402
+import io  # noqa: E402
+import pstats  # noqa: E402
+
+import numpy as np  # noqa: E402
+from mpi4py import MPI  # noqa: E402
+
+from diffsolids.controls import ParameterControl, ShapeControl  # noqa: E402
+from diffsolids.mesh import create_box  # noqa: E402
+from diffsolids.objectives import (  # noqa: E402
+    final_value,
+    stress_lp_norm,
+    target_displacement,
+    time_integral,
+)
+from diffsolids.reduced_functional import ReducedFunctional  # noqa: E402
+from diffsolids.verification import finite_difference_check  # noqa: E402
+
+COMM = MPI.COMM_WORLD
+
+
+def say(*args) -> None:
+    if COMM.rank == 0:
+        print(*args, flush=True)
+
+
+def build_model(domain, dynamic: bool) -> ds.Model:
+    damping = {"damping_psi": 2e5, "damping_phi": 1e5} if dynamic else {}
+    model = ds.Model(domain, ds.NeoHookean(E=1e8, nu=0.3, density=1000.0, **damping), degree=1)
+    model.add_gravity(9.81)
+    model.add_dirichlet(1, 0.0)
+    return model
+
+
+def build_objective(model, dynamic: bool):
+    # stress of order 1e5..1e6 Pa, tip deflection of order 1e-3 m: both terms of order 1
+    stress = stress_lp_norm(model, 4) * 1e-5
+    tip = target_displacement(model, [0.0, 0.0, -2e-3], facets=2) * 1e6
+    if dynamic:
+        return time_integral(stress, "uniform") + time_integral(tip, "uniform")
+    return final_value(stress) + final_value(tip)
+
+
+def make_simulation(model, dynamic: bool, rtol: float, steps: int | None = None) -> ds.Simulation:
+    integ = ds.BDF(2, ARGS.dt, steps or ARGS.steps) if dynamic else ds.Static()
+    return ds.Simulation(model, integ, ds.SolverOptions(rtol=rtol), progress=False)
+
+
+def make_control(model, kind: str):
+    if kind == "E-field":
+        return ParameterControl(model, "E", "field", log=True)
+    return ShapeControl(model, "all")
+
+
+def _max(value: float) -> float:
+    return COMM.allreduce(value, op=MPI.MAX)
+
+
+def time_case(sim, objective, control) -> dict:
+    """Best-of-repeat forward and gradient wall times of one control (warm cache)."""
+    rf = ReducedFunctional(sim, objective, [control], factor_memory_mb=ARGS.factor_memory_mb)
+    q = rf.initial_parameters()
+    t0 = time.perf_counter()
+    rf.gradient(q)  # compiles the objective and adjoint forms (untimed)
+    setup = _max(time.perf_counter() - t0)
+    best = None
+    for _ in range(ARGS.repeat):
+        COMM.barrier()
+        t0, c0 = time.perf_counter(), time.process_time()
+        rf.forward(q)
+        f, fc = _max(time.perf_counter() - t0), _max(time.process_time() - c0)
+        COMM.barrier()
+        t0, c0 = time.perf_counter(), time.process_time()
+        rf.derivative()
+        g, gc = _max(time.perf_counter() - t0), _max(time.process_time() - c0)
+        if best is None or gc / fc < best[3] / best[1]:
+            stats = {k: v for k, v in rf.adjoint_stats.items() if k != "krylov_per_step"}
+            best = (f, fc, g, gc, stats)
+    forward, forward_cpu, gradient, gradient_cpu, stats = best
+    profile = None
+    if ARGS.profile:
+        pr = cProfile.Profile()
+        pr.enable()
+        rf.derivative()
+        pr.disable()
+        out = io.StringIO()
+        pstats.Stats(pr, stream=out).sort_stats("cumulative").print_stats(25)
+        profile = out.getvalue()
+    newton = rf.trajectory.newton_iterations()
+    store = sim.solver.factor_store
+    if store is not None:
+        stats["stored_factors"] = len(store.factors)
+        stats["stored_mb"] = round(store.used_mb, 1)
+    return {
+        "forward_s": forward,
+        "gradient_s": gradient,
+        "ratio": gradient / forward,
+        "forward_cpu_s": forward_cpu,
+        "gradient_cpu_s": gradient_cpu,
+        "ratio_cpu": gradient_cpu / forward_cpu,
+        "first_gradient_s": setup,
+        "newton_its": newton,
+        "adjoint": stats,
+        "profile": profile,
+        "num_parameters": rf.size,
+    }
+
+
+def fd_case(sim, objective, control, sweep) -> list[dict]:
+    """Central finite differences along unit vectors of the largest gradient entries and a
+    random direction (steps as in finite_difference_check: relative to (1 + |q|) / |dq|)."""
+    rf = ReducedFunctional(sim, objective, [control])
+    q = rf.initial_parameters()
+    g = rf.gradient(q)
+    directions = []
+    for k in np.argsort(-np.abs(g))[: ARGS.fd_params]:
+        d = np.zeros_like(q)
+        d[k] = 1.0
+        directions.append((f"e_{k}", d))
+    rng = np.random.default_rng(0)
+    d = rng.standard_normal(q.size)
+    if isinstance(control, ShapeControl):
+        d *= 1e-3 / np.abs(d).max()  # a vertex motion well inside the cells
+    directions.append(("random", d))
+    results = []
+    for name, d in directions:
+        support = d != 0
+        steps = (1.0 + np.linalg.norm(q[support])) / np.linalg.norm(d) * sweep
+        res = finite_difference_check(rf, q, d, steps=steps, gradient=g)
+        say(f"    FD {name:10s} adjoint {res.adjoint: .8e}  error {res.relative_error:.2e}"
+            f"  (h = {res.best_step:.1e})")  # fmt: skip
+        results.append(
+            {"direction": name, "adjoint": res.adjoint, "relative_error": res.relative_error}
+        )
+    rf.controls.assign(q)
+    return results
+
+
+def main() -> dict:
+    domain = create_box(
+        COMM,
+        [[0, 0, 0], [4, 0.5, 0.5]],
+        ARGS.cells,
+        facets={1: lambda x: np.isclose(x[0], 0), 2: lambda x: np.isclose(x[0], 4)},
+    )
+    dofs = 3 * domain.mesh.geometry.index_map().size_global
+    say(f"bench_gradient: {dofs} dofs, {COMM.size} rank(s), cells {ARGS.cells}")
+    t0 = time.perf_counter()
+    scenarios = {}
+    for name, dynamic in (("static", False), ("dynamic", True)):
+        if ARGS.only not in (None, name):
+            continue
+        model = build_model(domain, dynamic)
+        sim = make_simulation(model, dynamic, ARGS.rtol)
+        scenarios[name] = (model, sim, build_objective(model, dynamic), dynamic)
+    setup = _max(time.perf_counter() - t0)
+    say(f"model set-up incl. Newton forms ({'cold' if ARGS.cold else 'cache as found'}): "
+        f"{setup:.1f} s")  # fmt: skip
+
+    timings, fd_errors = {}, []
+    for name, (model, sim, objective, _) in scenarios.items():
+        for kind in ("E-field", "shape"):
+            r = time_case(sim, objective, make_control(model, kind))
+            timings[f"{name}/{kind}"] = r
+            say(
+                f"{name:7s} {kind:7s} ({r['num_parameters']} parameters): forward "
+                f"{r['forward_s']:7.2f} s (cpu {r['forward_cpu_s']:7.2f} s, {r['newton_its']} "
+                f"Newton its), gradient {r['gradient_s']:6.3f} s (cpu {r['gradient_cpu_s']:6.3f}"
+                f" s), ratio {r['ratio']:.4f} (cpu {r['ratio_cpu']:.4f})  first gradient incl. "
+                f"compile {r['first_gradient_s']:.1f} s  adjoint {r['adjoint']}"
+            )
+            if r["profile"]:
+                say(r["profile"])
+    if not ARGS.skip_fd:
+        for name, (_, _, _, dynamic) in scenarios.items():
+            if dynamic and ARGS.fd_bdf_steps == 0:
+                continue
+            count = ARGS.fd_dynamic_sweep if dynamic else ARGS.fd_sweep
+            sweep = 10.0 ** -np.arange(3.0, 3.0 + count)
+            model = build_model(domain, dynamic)
+            sim = make_simulation(model, dynamic, ARGS.fd_rtol, ARGS.fd_bdf_steps)
+            objective = build_objective(model, dynamic)
+            for kind in ("E-field", "shape"):
+                say(f"{name} {kind}: central differences (Newton rtol {ARGS.fd_rtol:g})")
+                for res in fd_case(sim, objective, make_control(model, kind), sweep):
+                    fd_errors.append({"case": f"{name}/{kind}", **res})
+
+    def worst(prefix, key="ratio"):
+        return max((v[key] for k, v in timings.items() if k.startswith(prefix)), default=None)
+
+    summary = {
+        "benchmark": "gradient",
+        "dofs": dofs,
+        "ranks": COMM.size,
+        "bdf2_steps": ARGS.steps,
+        "ratio_static": worst("static"),
+        "ratio_dynamic": worst("dynamic"),
+        "ratio_static_cpu": worst("static", "ratio_cpu"),
+        "ratio_dynamic_cpu": worst("dynamic", "ratio_cpu"),
+        "factor_memory_mb": ARGS.factor_memory_mb,
+        "load_average": round(os.getloadavg()[0], 2),
+        "fd_rel_err": max((e["relative_error"] for e in fd_errors), default=None),
+        "goals": {"ratio_static": 0.05, "ratio_dynamic": 0.10, "fd_rel_err": 1e-6},
+        "cases": {
+            k: {
+                "forward_s": round(v["forward_s"], 4),
+                "gradient_s": round(v["gradient_s"], 4),
+                "ratio": round(v["ratio"], 4),
+                "forward_cpu_s": round(v["forward_cpu_s"], 4),
+                "gradient_cpu_s": round(v["gradient_cpu_s"], 4),
+                "ratio_cpu": round(v["ratio_cpu"], 4),
+                "num_parameters": v["num_parameters"],
+                "newton_its": v["newton_its"],
+                "adjoint": v["adjoint"],
+            }
+            for k, v in timings.items()
+        },
+        "fd": fd_errors,
+        "cache": "cold" if ARGS.cold else "as found",
+        "setup_s": round(setup, 2),
+    }
+    return summary
+
+
+if __name__ == "__main__":
+    result = main()
+    say(json.dumps(result))
