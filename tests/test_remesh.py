@@ -369,6 +369,23 @@ def test_remesh_refuses_tagged_facets_inside_a_body():
         remesh_domain(bad)
 
 
+@pytest.mark.parametrize("turns", [0.9, 1.15])
+def test_remesh_refuses_a_boundary_that_intersects_itself(turns):
+    """A strip wound into a spiral: past one turn its ends overlap without inverted cells.
+
+    gmsh never returns on such a boundary; the remesher refuses it instead.
+    """
+    domain = create_rectangle(COMM, [[0, 0], [1, 1]], [40, 2])
+    x = domain.mesh.geometry.x
+    theta, r = 2 * np.pi * turns * x[:, 0], 1.0 + 0.3 * x[:, 1]
+    x[:, 0], x[:, 1] = r * np.cos(theta), r * np.sin(theta)
+    if turns < 1:
+        assert remesh_domain(domain).mesh.topology.index_map(2).size_global > 0
+    else:
+        with pytest.raises(MeshError, match="boundary intersects itself"):
+            remesh_domain(domain)
+
+
 def test_remesh_transfers_initial_conditions():
     def build(domain):
         model = ds.Model(domain, ds.LinearElastic(E=100.0, nu=0.3, density=1.0))

@@ -440,6 +440,7 @@ def _remesh_arrays(
     dim = pts.shape[1]
     boundaries = _region_boundaries(arrays)
     _check_tagged_facets(arrays, boundaries)
+    _check_boundary_free(pts, boundaries)
     gmsh = _gmsh()
     gmsh.clear()
     gmsh.model.add("diffsolids-remesh")
@@ -502,6 +503,26 @@ def _remesh_arrays(
     )
     _check_boundary_kept(arrays, boundaries, result, old_to_new)
     return result
+
+
+def _check_boundary_free(points: np.ndarray, boundaries: dict) -> None:
+    """Refuse a boundary that intersects itself (gmsh does not return on such input)."""
+    import ipctk
+
+    facets = np.unique(np.sort(np.concatenate(list(boundaries.values())), axis=1), axis=0)
+    used, local = np.unique(facets, return_inverse=True)
+    local = local.reshape(facets.shape).astype(np.int32)
+    x = np.asfortranarray(points[used], dtype=float)
+    if points.shape[1] == 2:
+        mesh = ipctk.CollisionMesh(x, np.asfortranarray(local), np.zeros((0, 3), np.int32))
+    else:
+        edges = np.asfortranarray(ipctk.edges(local), dtype=np.int32)
+        mesh = ipctk.CollisionMesh(x, edges, np.asfortranarray(local))
+    if ipctk.has_intersections(mesh, x, ipctk.LBVH()):
+        raise MeshError(
+            "cannot remesh: the boundary intersects itself (the shape folds over itself; "
+            "refuse such shapes before remeshing)"
+        )
 
 
 def _check_tagged_facets(arrays: MeshArrays, boundaries: dict) -> None:
