@@ -45,16 +45,18 @@ def suggest_barrier_stiffness(contact, integrator=None, u: fem.Function | None =
     surf = contact.surface
     dim = model.dim
     dx = model.fields.dx
-    volume = comm.allreduce(fem.assemble_scalar(fem.form(1.0 * dx)), op=MPI.SUM)
+    volume = comm.allreduce(fem.assemble_scalar(compile_form(1.0 * dx)), op=MPI.SUM)
     num_nodes = model.V.dofmap.index_map.size_global
     if integrator is not None and integrator.dynamic:
         mass = comm.allreduce(
-            fem.assemble_scalar(fem.form(model.coefficients["density"] * dx)), op=MPI.SUM
+            fem.assemble_scalar(compile_form(model.coefficients["density"] * dx)), op=MPI.SUM
         )
         beta_dt = integrator.coefficients(1).beta_dt
         nodal = mass / num_nodes / beta_dt**2
     else:
-        E = comm.allreduce(fem.assemble_scalar(fem.form(_young_modulus(model) * dx)), op=MPI.SUM)
+        E = comm.allreduce(
+            fem.assemble_scalar(compile_form(_young_modulus(model) * dx)), op=MPI.SUM
+        )
         h = np.mean(np.linalg.norm(np.diff(surf.rest_positions[surf.edges], axis=1), axis=-1))
         nodal = E / volume * h ** (dim - 2)
     u = u if u is not None else fem.Function(model.V)

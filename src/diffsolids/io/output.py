@@ -10,6 +10,7 @@ from diffsolids import forms
 from diffsolids.errors import ParameterError
 from diffsolids.forms.elasticity import plane_strain_normal_stress
 from diffsolids.model.terms import ElasticEnergy
+from diffsolids.solvers.forms import compile_expression
 
 __all__ = ["TrajectoryWriter", "von_mises_field"]
 
@@ -32,7 +33,7 @@ class _VonMises:
                 sigma_zz = 0.0
                 if model.dim == 2 and not model.plane_stress:
                     sigma_zz = plane_strain_normal_stress(term.law, u, lmbda, mu)
-                expr = fem.Expression(forms.von_mises(sigma, sigma_zz), points)
+                expr = compile_expression(forms.von_mises(sigma, sigma_zz), points)
                 if term.bodies is None:
                     cells = None
                 else:

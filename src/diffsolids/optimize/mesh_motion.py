@@ -34,6 +34,7 @@ from diffsolids.controls.base import ControlError
 from diffsolids.controls.ordering import CanonicalLayout
 from diffsolids.controls.shape import ShapeControl, boundary_vertices
 from diffsolids.mesh import Domain, signed_cell_volumes
+from diffsolids.solvers.forms import compile_form
 
 __all__ = ["MeshMotion", "MeshMotionControl", "RieszMap", "ShapeInnerProduct"]
 
@@ -121,7 +122,7 @@ class MeshMotion(spla.LinearOperator):
         self._owned_design_slot = self._design_slot[owned_design]
 
         self.cell_weight = self._cell_weight(stiffening)
-        self._a = fem.form(self._stiffness(self.W, self.cell_weight))
+        self._a = compile_form(self._stiffness(self.W, self.cell_weight))
         self.K = dolfinx.fem.petsc.assemble_matrix(self._a)
         self.K.assemble()
         constrained = np.union1d(self._design_nodes, fixed_nodes).astype(np.int32)
@@ -263,7 +264,7 @@ class RieszMap:
                 raise ControlError("the Riesz map needs mass_weight >= 0 and scale > 0")
             self.mass_weight, self.scale = float(mass_weight), float(scale)
             one = fem.Constant(domain.mesh, PETSc.ScalarType(1.0))
-            self._a = fem.form(motion._stiffness(motion.W, one, self.mass_weight))
+            self._a = compile_form(motion._stiffness(motion.W, one, self.mass_weight))
             bc = fem.dirichletbc(fem.Function(motion.W), motion._fixed_nodes.astype(np.int32))
             self.R = dolfinx.fem.petsc.assemble_matrix(self._a, bcs=[bc])
         finally:

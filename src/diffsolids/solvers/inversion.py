@@ -8,6 +8,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from diffsolids.errors import ParameterError
+from diffsolids.solvers.forms import compile_expression
 
 __all__ = ["InversionGuard"]
 
@@ -42,7 +43,7 @@ class InversionGuard:
         points, _ = basix.make_quadrature(cell, degree)
         eye = ufl.Identity(self.d)
         expr = ufl.as_tensor([eye + ufl.grad(self.x), ufl.grad(self.dx)])
-        self.expr = fem.Expression(expr, points)
+        self.expr = compile_expression(expr, points)
         num_cells = mesh.topology.index_map(mesh.topology.dim).size_local
         self.cells = np.arange(num_cells, dtype=np.int32)
         self.comm = mesh.comm
