@@ -22,6 +22,7 @@ import time
 import dolfinx.la
 import numpy as np
 from dolfinx import fem
+from mpi4py import MPI
 
 from diffsolids.adjoint.forms import AdjointForms
 from diffsolids.adjoint.linear import AdjointLinearSolver, AdjointSolverOptions
@@ -166,10 +167,13 @@ class BackwardSweep:
         self._partials(sens, 0)
         if active:
             self._partials(sens, 1)
-        if self.forms.shape is not None:
+        if self.forms.shape is not None and self.model.numeric_terms:
             lam = self.forms.lam.x.array
-            for term in self.model.numeric_terms:
-                if np.any(lam):
+            # collective decision: the numeric terms' kernels gather the surface on every rank
+            # (a rank whose dofs are all prescribed holds lambda = 0 alone)
+            comm = self.model.domain.comm
+            if comm.allreduce(bool(np.any(lam)), op=MPI.LOR):
+                for term in self.model.numeric_terms:
                     sens.shape += term.adjoint_shape(self.model.fields.u, lam)[: len(sens.shape)]
         lam = self.forms.lam.x.array
         for name in self.targets.contact:
