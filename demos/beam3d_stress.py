@@ -32,9 +32,9 @@ from mpi4py import MPI
 from shape_tools import (
     GuardedMeshMotion,
     Invariants,
-    boundary_triangles_3d,
     max_von_mises,
     plot_shapes_3d,
+    silhouettes_3d,
     volume,
     write_state,
 )
@@ -114,7 +114,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     stress0 = max_von_mises(model0, u0)
     suffix = ".xdmf" if args.xdmf else ".bp"
     files = write_state(model0, args.out / f"initial{suffix}", u0)
-    before = boundary_triangles_3d(model0)
+    before = silhouettes_3d(model0)
 
     invariants = Invariants()
     options = LBFGSOptions(
@@ -132,7 +132,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
         stop_conditions=[invariants],
         progress=False,
         output_dir=args.out,
-        plot_every=0 if args.no_plot else 10,
+        plot_every=0 if args.no_plot else max(iterations, 1),  # at the end only
     )
     rf = result.functional
     model = rf.model
@@ -140,7 +140,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     stress1 = max_von_mises(model, u1)
     V1 = volume(model)
     files += write_state(model, args.out / f"final{suffix}", u1)
-    after = boundary_triangles_3d(model)
+    after = silhouettes_3d(model)
 
     report = report_from("beam3d_stress", args, result, t0)
     reduction = stress0 / stress1

@@ -126,7 +126,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
         stop_conditions=[invariants],
         progress=False,
         output_dir=args.out,
-        plot_every=0 if args.no_plot else 10,
+        plot_every=0 if args.no_plot else max(iterations, 1),  # at the end only
     )
     error = float(np.linalg.norm(vertex_coordinates(domain) - X_true, axis=1).max())
     files += write_state(model, args.out / f"final{suffix}", rf.trajectory.u[-1])

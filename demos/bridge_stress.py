@@ -141,7 +141,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
         stop_conditions=[invariants],
         progress=False,
         output_dir=args.out,
-        plot_every=0 if args.no_plot else 10,
+        plot_every=0 if args.no_plot else max(iterations, 1),  # at the end only
     )
     rf = result.functional
     model = rf.model

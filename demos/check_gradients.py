@@ -200,7 +200,7 @@ def _block_size(q: np.ndarray, name: str, sizes: dict) -> float:
 
 def _row(rf, q, g, dq, name: str, size: int, steps) -> Row:
     fd = finite_difference_check(rf, q, dq, steps, gradient=g)
-    taylor = taylor_test(rf, q, dq, h0=1e-2, num=4)
+    taylor = taylor_test(rf, q, dq, h0=5e-3, num=4)
     return Row(
         name,
         size,

@@ -27,7 +27,6 @@ __all__ = [
     "GuardedMeshMotion",
     "GuardedShapeControl",
     "Invariants",
-    "boundary_triangles_3d",
     "design_vertex_coordinates",
     "facet_polygons_2d",
     "max_von_mises",
@@ -35,6 +34,7 @@ __all__ = [
     "num_inverted",
     "plot_shapes_2d",
     "plot_shapes_3d",
+    "silhouettes_3d",
     "vertex_coordinates",
     "volume",
     "write_state",
@@ -189,16 +189,48 @@ def facet_polygons_2d(model, u: np.ndarray | None = None) -> np.ndarray:
     return np.concatenate(mesh.comm.allgather(x[nodes]))
 
 
-def boundary_triangles_3d(model, u: np.ndarray | None = None) -> np.ndarray:
-    """Boundary triangles (n, 3, 3) of a 3D model at rest or deformed, on every rank."""
+def silhouettes_3d(model, axes=(1, 2)) -> list[np.ndarray]:
+    """Silhouette edges of a 3D model's rest boundary seen along each of the given axes.
+
+    An edge of the boundary belongs to the silhouette seen along axis k when the outward
+    normals of its two boundary triangles point to opposite sides of k (one faces the viewer,
+    the other away). Returns one (n, 2, 3) array of edge end points per axis, on every rank.
+    """
     mesh = model.domain.mesh
     mesh.topology.create_connectivity(2, 3)
     facets = dolfinx.mesh.exterior_facet_indices(mesh.topology)
     nodes = dolfinx.mesh.entities_to_geometry(mesh, 2, facets)
-    x = mesh.geometry.x.copy()
-    if u is not None:
-        x[:, :3] += _nodal_displacement(model, u)
-    return np.concatenate(mesh.comm.allgather(x[nodes]))
+    f2c = mesh.topology.connectivity(2, 3)
+    cells = f2c.array[f2c.offsets[facets]]
+    corner = mesh.geometry.dofmaps[0][cells]
+    x = mesh.geometry.x
+    tri = x[nodes]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    centroid = x[corner].mean(axis=1)  # inside the cell: the normal points away from it
+    normal *= -np.sign(np.sum(normal * (centroid - tri[:, 0]), axis=1))[:, None]
+    ids = mesh.geometry.input_global_indices[nodes]
+    parts = mesh.comm.allgather((ids, tri, normal))
+    ids, tri, normal = (np.concatenate([p[k] for p in parts]) for k in range(3))
+    _, first = np.unique(np.sort(ids, axis=1), axis=0, return_index=True)  # once per facet
+    tri_ids, tri, normal = ids[first], tri[first], normal[first]
+    # edges (sorted global vertex ids) of every triangle with the triangle they belong to
+    edges, owner, ends = [], [], []
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        e = np.sort(tri_ids[:, [i, j]], axis=1)
+        edges.append(e)
+        owner.append(np.arange(len(tri_ids)))
+        ends.append(tri[:, [i, j]])
+    edges, owner, ends = np.concatenate(edges), np.concatenate(owner), np.concatenate(ends)
+    key = np.lexsort(edges.T[::-1])
+    edges, owner, ends = edges[key], owner[key], ends[key]
+    pair = np.flatnonzero(np.all(edges[1:] == edges[:-1], axis=1))
+    out = []
+    unit = normal / np.linalg.norm(normal, axis=1)[:, None]
+    for k in axes:
+        side = np.where(np.abs(unit[:, k]) < 1e-6, 0.0, np.sign(unit[:, k]))
+        flip = side[owner[pair]] != side[owner[pair + 1]]
+        out.append(ends[pair[flip]])
+    return out
 
 
 def _nodal_displacement(model, u: np.ndarray) -> np.ndarray:
@@ -247,7 +279,7 @@ def plot_shapes_2d(
 
 
 def plot_shapes_3d(path: Path, before, after, result, title: str, comm) -> None:
-    """Side (x-z) and top (x-y) views of boundary triangles before and after; J per iteration."""
+    """Side (x-z) and top (x-y) silhouettes before and after (see silhouettes_3d); J history."""
     if comm.rank != 0:
         return
     import matplotlib
@@ -255,25 +287,19 @@ def plot_shapes_3d(path: Path, before, after, result, title: str, comm) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from common import plot_history, save_figure
-    from matplotlib.collections import PolyCollection
+    from matplotlib.collections import LineCollection
 
-    fig, axes = plt.subplots(1, 3, figsize=(15, 3.8), gridspec_kw={"width_ratios": [1.6, 1.6, 1]})
-    for ax, (a, b), name in zip(
-        axes[:2], ((0, 2), (0, 1)), ("side (x-z)", "top (x-y)"), strict=True
-    ):
-        for tris, color, alpha, label in (
-            (before, "0.55", 0.35, "initial"),
-            (after, "C0", 0.35, "optimised"),
-        ):
-            ax.add_collection(
-                PolyCollection(
-                    tris[:, :, [a, b]],
-                    facecolors=color,
-                    edgecolors="none",
-                    alpha=alpha,
-                    label=label,
-                )
-            )
+    fig = plt.figure(figsize=(12, 4.6))
+    grid = fig.add_gridspec(2, 2, width_ratios=[2.4, 1])
+    axes = [fig.add_subplot(grid[0, 0]), fig.add_subplot(grid[1, 0]), fig.add_subplot(grid[:, 1])]
+    views = (((0, 2), "side (x-z)"), ((0, 1), "top (x-y)"))
+    for ax, ((a, b), name), edges0, edges1 in zip(axes[:2], views, before, after, strict=True):
+        ax.add_collection(
+            LineCollection(edges0[:, :, [a, b]], colors="0.6", lw=0.8, label="initial")
+        )
+        ax.add_collection(
+            LineCollection(edges1[:, :, [a, b]], colors="C0", lw=1.3, label="optimised")
+        )
         ax.autoscale()
         ax.set_aspect("equal")
         ax.set_title(name, fontsize="medium")
