@@ -35,7 +35,7 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 
 test-serial: $(STAMP)
-	$(PY) -m pytest -n $(NPROC) --dist loadfile tests
+	$(PY) -m pytest -n $(NPROC) --dist loadfile --max-worker-restart 0 tests
 
 test-mpi: $(STAMP)
 	$(VENV)/bin/mpiexec -n 2 $(PY) -m pytest -p no:cacheprovider tests/mpi

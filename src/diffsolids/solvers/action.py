@@ -11,6 +11,7 @@ import ufl
 from dolfinx import fem
 from petsc4py import PETSc
 
+from diffsolids.solvers.callbacks import WeakContext
 from diffsolids.solvers.forms import compile_form
 
 __all__ = ["JacobianAction"]
@@ -39,7 +40,8 @@ class JacobianAction:
         n, N = self.owned, V.dofmap.index_map.size_global * bs
         # Krylov vectors have no ghosts: assemble into a ghosted vector, copy the owned part
         self._ghosted = fem_petsc.create_vector(V)
-        self.mat = PETSc.Mat().createPython(((n, N), (n, N)), self, comm=V.mesh.comm)
+        context = WeakContext(self)  # the matrix must not keep this object alive
+        self.mat = PETSc.Mat().createPython(((n, N), (n, N)), context, comm=V.mesh.comm)
         self.mat.setUp()
 
     def mult(self, mat, x: PETSc.Vec, y: PETSc.Vec) -> None:

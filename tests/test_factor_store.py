@@ -1,0 +1,119 @@
+"""The forward factorisations kept for the adjoint: capped count, evenly thinned, exact gradients.
+
+Every MUMPS instance holds MPI communicators; MPICH has 2048 per process and MUMPS corrupts memory
+when they run out (after about 400 live instances: a 400-step trajectory whose every step kept
+its factors crashed). The store keeps at most ``max_factors`` per store and ``max_live`` per
+process; the adjoint stays exact with the factors of other steps as preconditioners.
+"""
+
+import gc
+import weakref
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+import diffsolids as ds
+from diffsolids.controls import ParameterControl
+from diffsolids.mesh import create_rectangle
+from diffsolids.objectives import target_displacement, time_integral
+from diffsolids.reduced_functional import ReducedFunctional
+from diffsolids.solvers.newton import FactorStore
+from diffsolids.verification import finite_difference_check
+
+FD_TOLERANCE = 1e-6
+
+
+def _reduced_functional(steps: int, nx: int = 4) -> ReducedFunctional:
+    """Neo-Hookean strip clamped on the left, swinging under gravity; control: log E per cell."""
+    dom = create_rectangle(
+        MPI.COMM_SELF, [[0, 0], [2, 0.4]], [nx, 1], facets={1: lambda x: np.isclose(x[0], 0)}
+    )
+    model = ds.Model(dom, ds.NeoHookean(E=2e3, nu=0.3, density=10.0))
+    model.add_dirichlet(1, 0.0)
+    model.add_gravity(9.81)
+    sim = ds.Simulation(model, ds.BDF(2, 0.02, steps), ds.SolverOptions(rtol=1e-12), progress=False)
+    objective = time_integral(target_displacement(model, [0.0, -0.05]), "uniform")
+    return ReducedFunctional(sim, objective, [ParameterControl(model, "E", "field", log=True)])
+
+
+def _fd_errors(rf) -> list[float]:
+    """Relative FD errors in a random direction and along the gradient."""
+    q0 = rf.initial_parameters()
+    g = rf.gradient(q0)
+    d = np.random.default_rng(3).standard_normal(q0.size)
+    steps = np.array([1e-3, 1e-4])
+    errors = [
+        finite_difference_check(rf, q0, 0.1 * d / np.linalg.norm(d), steps, gradient=g),
+        finite_difference_check(rf, q0, 0.1 * g / np.linalg.norm(g), steps, gradient=g),
+    ]
+    rf.controls.assign(q0)
+    return [e.relative_error for e in errors]
+
+
+def test_store_thins_to_evenly_spaced_steps_and_gradient_stays_exact():
+    rf = _reduced_functional(steps=13)
+    store = rf.simulation.solver.factor_store
+    store.max_factors = 4
+    rf.forward(rf.initial_parameters())
+    kept = sorted(store.factors)
+    assert 1 <= len(kept) <= 4
+    assert store.stride == 4  # 13 steps through a cap of 4: strides 1 -> 2 -> 4
+    assert all(step % store.stride == 0 for step in kept)
+    for error in _fd_errors(rf):
+        assert error <= FD_TOLERANCE
+
+
+def test_process_wide_cap_holds_over_several_stores(monkeypatch):
+    gc.collect()  # stores of earlier tests free their factors
+    monkeypatch.setattr(FactorStore, "max_live", FactorStore._live + 3)
+    rfs = [_reduced_functional(steps=8), _reduced_functional(steps=8, nx=5)]
+    for rf in rfs:
+        rf.forward(rf.initial_parameters())
+        assert FactorStore._live <= FactorStore.max_live
+    stores = [rf.simulation.solver.factor_store for rf in rfs]
+    assert sum(len(s.factors) for s in stores) <= 3
+    for error in _fd_errors(rfs[1]):
+        assert error <= FD_TOLERANCE
+
+
+def test_a_long_trajectory_keeps_few_factorisations():
+    # before the cap: 450 live MUMPS instances ran out of MPI communicators and crashed
+    rf = _reduced_functional(steps=450, nx=2)
+    rf.forward(rf.initial_parameters())
+    store = rf.simulation.solver.factor_store
+    assert len(store.factors) <= store.max_factors
+    assert FactorStore._live <= FactorStore.max_live
+    g = rf.gradient(rf.initial_parameters())
+    assert np.all(np.isfinite(g)) and np.linalg.norm(g) > 0
+
+
+def test_solvers_are_freed_with_their_communicators():
+    # PETSc callbacks held the solver (a cycle through C): MUMPS instances and MPI
+    # communicators leaked with every solver until MPICH had none left
+    def free_communicators() -> int:
+        comms = []
+        try:
+            while len(comms) < 4096:
+                comms.append(MPI.COMM_SELF.Dup())
+        except MPI.Exception:
+            pass
+        for c in comms:
+            c.Free()
+        return len(comms)
+
+    gc.collect()
+    before = free_communicators()
+    for _ in range(3):
+        rf = _reduced_functional(steps=4)
+        rf.gradient(rf.initial_parameters())
+        solver = weakref.ref(rf.simulation.solver)
+        del rf
+        gc.collect()
+        assert solver() is None
+    assert free_communicators() == before
+
+
+def test_max_factors_must_be_positive():
+    with pytest.raises(ValueError, match="max_factors"):
+        FactorStore(max_factors=0)
