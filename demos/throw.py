@@ -22,7 +22,6 @@ Run ``python demos/throw.py`` or ``mpiexec -n 2 python demos/throw.py``.
 
 import logging
 import time
-from pathlib import Path
 
 import numpy as np
 from common import (
@@ -37,12 +36,19 @@ from common import (
     save_figure,
     size_name,
 )
+from dynamic_common import (
+    CentreOfMass,
+    TrajectoryKeeper,
+    add_contact,
+    body_nodes,
+    check_states,
+    write_states,
+)
 from mpi4py import MPI
 
 import diffsolids as ds
-from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
 from diffsolids.controls import RigidVelocity
-from diffsolids.io import TrajectoryWriter, configure_logging
+from diffsolids.io import configure_logging
 from diffsolids.mesh import from_geo
 from diffsolids.objectives import center_of_mass_trajectory, final_value
 from diffsolids.optimize import LBFGSOptions, minimize
@@ -105,10 +111,7 @@ def build_scene(args, comm):
     up = args.dim - 1
     model.add_dirichlet(lambda x: x[up] < 1e-9, 0.0)  # the ground: every node with z <= 0
     integrator = ds.BDF(2, args.dt, args.steps)
-    probe = ContactTerm(model, dhat=DHAT, stiffness=1.0, friction=FRICTION, eps_v=EPS_V)
-    kappa = suggest_barrier_stiffness(probe, integrator)
-    contact = ContactTerm(model, dhat=DHAT, stiffness=kappa, friction=FRICTION, eps_v=EPS_V)
-    model.add_numeric_term(contact)
+    contact = add_contact(model, integrator, DHAT, friction=FRICTION, eps_v=EPS_V)
     options = ds.SolverOptions(rtol=1e-8)
     sim = ds.Simulation(
         model, integrator, options, u0=settle(model, args.dt, options), progress=False
@@ -125,69 +128,10 @@ def settle(model, dt: float, options, steps: int = 20) -> np.ndarray:
     """
     traj = ds.Simulation(model, ds.BDF(1, dt, steps), options, progress=False).run()
     u0 = np.zeros_like(traj.u[-1])
-    nodes = np.unique(model.V.dofmap.list[model.domain.cells_of("B")])
+    nodes = body_nodes(model, "B")
     dim = model.dim
     u0.reshape(-1, dim)[nodes] = traj.u[-1].reshape(-1, dim)[nodes]
     return u0
-
-
-class CentreOfMass:
-    """Deformed centres of mass of bodies per state (compiled once)."""
-
-    def __init__(self, model, bodies):
-        from dolfinx import fem
-
-        self.model = model
-        f = model.fields
-        rho = model.coefficients["density"]
-        self.forms = {}
-        for body in bodies:
-            dx = f.dx(model.domain.body_id(body))
-            mass = fem.form(rho * dx)
-            moments = [fem.form(rho * (f.X[k] + f.u[k]) * dx) for k in range(model.dim)]
-            self.forms[body] = (mass, moments)
-
-    def path(self, body, states) -> np.ndarray:
-        """(len(states), dim) centre of mass of ``body`` for displacement arrays ``states``."""
-        from dolfinx import fem
-
-        comm = self.model.domain.comm
-        u = self.model.fields.u
-        saved = u.x.array.copy()
-        mass, moments = self.forms[body]
-        out = []
-        for state in states:
-            u.x.array[:] = state
-            m = comm.allreduce(fem.assemble_scalar(mass), op=MPI.SUM)
-            out.append([comm.allreduce(fem.assemble_scalar(f), op=MPI.SUM) / m for f in moments])
-        u.x.array[:] = saved
-        return np.array(out)
-
-
-def check_states(model, sim, contact, traj) -> tuple[int, int, float]:
-    """(states with inverted elements, intersecting states, minimum distance) of a trajectory."""
-    from diffsolids.errors import IntersectionError
-
-    inverted = intersecting = 0
-    min_distance = np.inf
-    u = model.fields.u
-    saved = u.x.array.copy()
-    for i, state in enumerate(traj.u):
-        u.x.array[:] = state
-        inverted += int(sim.solver.inverted())
-        try:
-            d = contact.check_configuration(contact.surface.gather(state), step=i)
-            min_distance = min(min_distance, d)
-        except IntersectionError:
-            intersecting += 1
-    u.x.array[:] = saved
-    return inverted, intersecting, float(min_distance)
-
-
-def write_states(model, traj, path: Path) -> None:
-    with TrajectoryWriter(model, path) as writer:
-        for t, u, v in zip(traj.times, traj.u, traj.v, strict=True):
-            writer.write(t, u, v)
 
 
 def body_segments(model, u=None) -> np.ndarray:
@@ -299,14 +243,12 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     rf = ReducedFunctional(sim, objective, control)
     q0 = np.concatenate([args.v0, np.zeros(control.size - len(args.v0))])
 
-    trajectories = {}
-
-    def target_reached(record, optimizer):
-        # keep the accepted trajectories (for the figure); stop once B ends well inside the circle
-        traj = optimizer.point.trajectory
-        trajectories[record.iteration] = traj
+    def target_reached(traj) -> bool:
+        # stop once B ends well inside the circle
         distance = np.linalg.norm(com.path("B", [traj.u[-1]])[0] - target)
         return bool(distance < STOP_FRACTION * args.radius)
+
+    keeper = TrajectoryKeeper(stop=target_reached, name="B ends inside the target circle")
 
     options = LBFGSOptions(
         max_iterations=args.iterations,
@@ -319,11 +261,10 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
         q0,
         options=options,
         output_dir=args.out,
-        stop_conditions=[target_reached],
+        stop_conditions=[keeper],
         plot_every=0,
     )
-    traj0 = trajectories[min(trajectories)]
-    traj1 = trajectories[max(trajectories)]
+    traj0, traj1 = keeper.first, keeper.last
     paths = {
         "A0": com.path("A", traj0.u),
         "B0": com.path("B", traj0.u),
@@ -337,8 +278,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     report = report_from("throw", args, result, t0)
     distance0 = float(np.linalg.norm(paths["B0"][-1] - target))
     distance1 = float(np.linalg.norm(paths["B1"][-1] - target))
-    inv0, hit0, gap0 = check_states(model, sim, contact, traj0)
-    inv1, hit1, gap1 = check_states(model, sim, contact, traj1)
+    inverted, intersecting, gap = check_states(sim, contact, [traj0, traj1])
     report.check(
         "objective decreased",
         report.final_objective,
@@ -347,17 +287,17 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     )
     report.check(
         "no inverted element",
-        inv0 + inv1,
+        inverted,
         0,
-        inv0 + inv1 == 0,
+        inverted == 0,
         "(states of the initial and final throws with an inverted element)",
     )
     report.check(
         "no intersection",
-        hit0 + hit1,
+        intersecting,
         0,
-        hit0 + hit1 == 0,
-        f"(intersecting states; smallest gap {min(gap0, gap1):.2e} m)",
+        intersecting == 0,
+        f"(intersecting states; smallest gap {gap:.2e} m)",
     )
     if not args.tiny:
         report.check(

@@ -19,7 +19,7 @@ from diffsolids.mesh import from_geo
 ROOT = Path(__file__).resolve().parents[1]
 DEMOS = ROOT / "demos"
 INVARIANTS = ["objective decreased", "no inverted element", "no intersection"]
-DEMO_NAMES = ["throw"]
+DEMO_NAMES = ["puzzle_initial_velocity", "shock_protection", "sliding_friction", "throw"]
 
 
 def _demo(name: str):

@@ -1,0 +1,318 @@
+"""Initial-condition optimisation (paper Fig. 14): recover the throw of a bouncing puzzle piece.
+
+A soft Neo-Hookean puzzle piece (``meshes/puzzle.geo``) is thrown over a wavy ground (a static
+obstacle) and bounces along it under gravity (BDF2, IPC contact with lagged smoothed friction).
+A forward run with a known initial velocity, a rigid motion v(x) = v + omega x (x - c) with
+translation v and spin omega (``RigidVelocity``), gives the target trajectory. The optimisation
+starts from a perturbed throw and minimises the trajectory misfit integrated over time (paper
+eq. 31 with a time integral),
+
+    J = 1 / (|P| T) sum_i dt int_P |u^i - u^i_target|^2 dx,
+
+the mean squared distance between the piece's material points and their target positions. The
+outcome checked: the target trajectory is matched and the throw recovered (relative error of
+(v_x, v_y, omega * size) below 1%).
+
+Sizes: ``--tiny`` (smoke test), default (well under 2 minutes), ``--full`` (finer mesh and time
+step). Writes into ``output/puzzle_initial_velocity/`` (``--out``): ``puzzle_target.bp``,
+``puzzle_initial.bp``, ``puzzle_final.bp`` (VTX, or ``.xdmf`` with ``--xdmf``),
+``puzzle_initial_velocity.png``, ``history.jsonl`` and ``result.json``.
+
+Run ``python demos/puzzle_initial_velocity.py`` or under ``mpiexec -n 2``.
+"""
+
+import logging
+import time
+
+import numpy as np
+from common import (
+    MESHES,
+    DemoReport,
+    boundary_segments,
+    demo_parser,
+    finish,
+    plot_history,
+    report_from,
+    run_demo,
+    save_figure,
+    size_name,
+)
+from dolfinx import fem
+from dynamic_common import CentreOfMass, TrajectoryKeeper, add_contact, check_states, write_states
+from mpi4py import MPI
+
+import diffsolids as ds
+from diffsolids.controls import RigidVelocity
+from diffsolids.io import configure_logging
+from diffsolids.mesh import from_geo
+from diffsolids.objectives import target_displacement, time_integral
+from diffsolids.optimize import LBFGSOptions, minimize
+from diffsolids.reduced_functional import ReducedFunctional
+
+GEO = MESHES / "puzzle.geo"
+TRUE_THROW = [1.2, 0.5, -6.0]  # v_x, v_y [m/s], omega [rad/s] of the target trajectory
+START_THROW = [1.0, 0.8, -4.0]  # the perturbed throw the optimisation starts from
+SIZE = 0.16  # side of the piece [m]: omega * SIZE is compared with the velocities
+E, NU, DENSITY, DAMPING = 2e5, 0.3, 1000.0, 50.0
+FRICTION, DHAT, EPS_V = 0.3, 1e-3, 0.01
+SIZES = {
+    "tiny": {"h": 0.04, "dt": 0.02, "steps": 20, "iterations": 3},
+    "default": {"h": 0.02, "dt": 0.01, "steps": 50, "iterations": 30},
+    "full": {"h": 0.008, "dt": 0.005, "steps": 120, "iterations": 40},
+}
+RECOVERY_RTOL = 0.01  # relative error of the recovered throw
+
+
+def parse_args(argv=None):
+    p = demo_parser(__doc__.splitlines()[0], "puzzle_initial_velocity")
+    args = p.parse_args(argv)
+    size = SIZES[size_name(args)]
+    if args.iterations is None:
+        args.iterations = size["iterations"]
+    args.h, args.dt, args.steps = size["h"], size["dt"], size["steps"]
+    return args
+
+
+class TargetSimulation(ds.Simulation):
+    """A Simulation that also loads the target displacement of step i into a Function.
+
+    ``load_step`` is called by the forward run, the objective evaluation and the adjoint
+    sweep before anything of step i is assembled, so a ``target_displacement`` objective with
+    ``self.target`` compares u^i with the target of the same step.
+    """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.target = fem.Function(self.model.V, name="target")
+        self.targets: list[np.ndarray] | None = None
+
+    def load_step(self, i, traj):
+        """Set step ``i`` (see Simulation.load_step) and the target displacement u^i_target."""
+        if self.targets is not None:
+            self.target.x.array[:] = self.targets[i]
+        return super().load_step(i, traj)
+
+
+def build_scene(args, comm):
+    """Model, contact term and simulation of the piece over the wavy ground."""
+    domain = from_geo(GEO, comm, numbers={"h": args.h, "s": SIZE})
+    material = ds.NeoHookean(E=E, nu=NU, density=DENSITY, damping_psi=DAMPING)
+    model = ds.Model(domain, material, degree=1)
+    model.add_gravity(9.81)
+    model.add_dirichlet(lambda x: x[1] < 0.1, 0.0)  # the ground (the piece starts above 0.2)
+    integrator = ds.BDF(2, args.dt, args.steps)
+    contact = add_contact(model, integrator, DHAT, friction=FRICTION, eps_v=EPS_V)
+    sim = TargetSimulation(model, integrator, ds.SolverOptions(rtol=1e-9), progress=False)
+    return model, contact, sim
+
+
+def throw_error(q, true) -> float:
+    """Relative error of a throw, omega measured as the speed omega * SIZE."""
+    scale = np.array([1.0, 1.0, SIZE])
+    return float(np.linalg.norm((q - true) * scale) / np.linalg.norm(true * scale))
+
+
+def plot(path, args, model, trajs, paths, q0, q1, result, comm) -> None:
+    """Target, initial and recovered trajectories (outlines and centre of mass), J history."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    steps = [round(k * args.steps / 3) for k in range(4)]
+    rest = boundary_segments(model.domain)
+    on_piece = rest[:, :, 1].min(axis=1) > 0.1  # the piece starts above y = 0.1, the ground below
+    outlines = {
+        key: [boundary_segments(model.domain, traj.u[i], model.V)[on_piece] for i in steps]
+        for key, traj in trajs.items()
+    }
+    if comm.rank != 0:
+        return
+    fig = plt.figure(figsize=(11, 6.0))
+    grid = fig.add_gridspec(2, 2, height_ratios=[1.3, 1], width_ratios=[1.5, 1])
+    ax = fig.add_subplot(grid[0, :])
+    ax_v = fig.add_subplot(grid[1, 0])
+    ax_h = fig.add_subplot(grid[1, 1])
+    ax.add_collection(LineCollection(rest[~on_piece], colors="0.4", lw=1.0))
+    styles = {
+        "initial": ("tab:blue", "--", 0.9, "initial guess"),
+        "target": ("k", "-", 2.2, "target"),
+        "final": ("tab:red", "-", 0.9, "recovered"),
+    }
+    for key, (color, ls, lw, label) in styles.items():
+        for k, segs in enumerate(outlines[key]):
+            ax.add_collection(
+                LineCollection(
+                    segs, colors=color, linestyles=ls, lw=lw, label=label if k == 0 else None
+                )
+            )
+        ax.plot(paths[key][:, 0], paths[key][:, 1], color=color, ls=":", lw=1.0)
+    ax.set_aspect("equal")
+    ax.autoscale_view()
+    xs = np.concatenate([p[:, 0] for p in paths.values()])
+    ax.set_xlim(xs.min() - 0.3, xs.max() + 0.45)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.legend(fontsize=8, loc="upper right")
+    times = ", ".join(f"{i * args.dt:.2g}" for i in steps)
+    ax.set_title(
+        f"puzzle piece thrown over a wavy ground: outlines at t = {times} s and "
+        "centre-of-mass paths (dotted)",
+        fontsize=9,
+    )
+    its = [r.iteration for r in result.history]
+    qs = np.array([r.q for r in result.history])
+    true = np.array(TRUE_THROW)
+    for k, (name, color) in enumerate(
+        (
+            ("v_x [m/s]", "tab:blue"),
+            ("v_y [m/s]", "tab:orange"),
+            ("omega [rad/s] / 10", "tab:green"),
+        )
+    ):
+        scale = 0.1 if k == 2 else 1.0
+        ax_v.plot(its, scale * qs[:, k], "o-", ms=3, color=color, label=name)
+        ax_v.axhline(scale * true[k], color=color, ls="--", lw=0.8)
+    ax_v.set_xlabel("iteration")
+    ax_v.set_title("initial velocity (dashed: true values)", fontsize=9)
+    ax_v.legend(fontsize=8)
+    ax_v.grid(alpha=0.3)
+    plot_history(ax_h, result, "J")
+    ax_h.set_title("trajectory misfit J [m^2]", fontsize=9)
+    fig.tight_layout()
+    save_figure(fig, path, comm)
+    plt.close(fig)
+
+
+def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
+    args = parse_args(argv)
+    configure_logging(logging.INFO if args.verbose else logging.WARNING, comm)
+    t0 = time.perf_counter()
+    cpu0 = time.process_time()
+    model, contact, sim = build_scene(args, comm)
+    control = RigidVelocity(sim, "piece", angular=True)
+    true, q0 = np.array(TRUE_THROW), np.array(START_THROW)
+
+    # the target trajectory: a forward run with the true throw
+    control.assign(true)
+    target = sim.run()
+    sim.targets = [u.copy() for u in target.u]
+
+    area = comm.allreduce(
+        fem.assemble_scalar(fem.form(1.0 * model.body_measure("piece"))), op=MPI.SUM
+    )
+    misfit = target_displacement(model, sim.target, bodies="piece")
+    T = args.steps * args.dt
+    objective = time_integral(misfit, "uniform") * (1.0 / (area * T))
+    rf = ReducedFunctional(sim, objective, control)
+    keeper = TrajectoryKeeper()
+    options = LBFGSOptions(
+        max_iterations=args.iterations,
+        gradient_rtol=1e-7,
+        initial_step=0.5,
+        max_change=2.0,
+    )
+    # precondition: a spin omega moves the piece's points by omega * r, r ~ SIZE / 2, so L-BFGS
+    # starts from the metric of (v_x, v_y, omega * r) instead of (v_x, v_y, omega)
+    scale = np.array([1.0, 1.0, (2.0 / SIZE) ** 2])
+    result = minimize(
+        rf,
+        q0,
+        options=options,
+        inner_product=lambda g: scale * g,
+        output_dir=args.out,
+        stop_conditions=[keeper],
+        plot_every=0,
+        write_parameters=True,
+    )
+    traj0, traj1 = keeper.first, keeper.last
+    trajs = {"target": target, "initial": traj0, "final": traj1}
+    com = CentreOfMass(model, ["piece"])
+    paths = {k: com.path("piece", t.u) for k, t in trajs.items()}
+    suffix = ".xdmf" if args.xdmf else ".bp"
+    files = [args.out / f"puzzle_{k}{suffix}" for k in trajs]
+    for f, traj in zip(files, trajs.values(), strict=True):
+        write_states(model, traj, f)
+    files += [args.out / "history.jsonl", args.out / "result.json"]
+
+    report = report_from("puzzle_initial_velocity", args, result, t0)
+    error0, error1 = throw_error(q0, true), throw_error(result.q, true)
+    path_error = float(np.abs(paths["final"] - paths["target"]).max())
+    inverted, intersecting, gap = check_states(sim, contact, [target, traj0, traj1])
+    report.check(
+        "objective decreased",
+        report.final_objective,
+        report.initial_objective,
+        report.final_objective < report.initial_objective,
+    )
+    report.check("no inverted element", inverted, 0, inverted == 0, "(states with one)")
+    report.check(
+        "no intersection",
+        intersecting,
+        0,
+        intersecting == 0,
+        f"(intersecting states; smallest gap {gap:.2e} m)",
+    )
+    if not args.tiny:
+        report.check(
+            "relative error of the recovered throw",
+            error1,
+            RECOVERY_RTOL,
+            error1 < RECOVERY_RTOL,
+            f"(initial guess: {error0:.3f}; recovered {np.round(result.q, 4).tolist()}, "
+            f"true {TRUE_THROW})",
+        )
+        report.check(
+            "largest centre-of-mass distance to the target path [m]",
+            path_error,
+            1e-3,
+            path_error < 1e-3,
+        )
+    if not args.no_plot:
+        plot(
+            args.out / "puzzle_initial_velocity.png",
+            args,
+            model,
+            trajs,
+            paths,
+            q0,
+            result.q,
+            result,
+            comm,
+        )
+        files.append(args.out / "puzzle_initial_velocity.png")
+    report.extra.update(
+        {
+            "dofs": model.V.dofmap.index_map.size_global * model.dim,
+            "ranks": comm.size,
+            "steps": args.steps,
+            "dt": args.dt,
+            "throw_true": TRUE_THROW,
+            "throw_initial": q0.tolist(),
+            "throw_final": result.q.tolist(),
+            "throw_error_initial": error0,
+            "throw_error_final": error1,
+            "path_error_final": path_error,
+            "forward_solves": result.num_forward,
+            "cpu_seconds_all_ranks": comm.allreduce(time.process_time() - cpu0, op=MPI.SUM),
+            "files": [str(f) for f in files],
+        }
+    )
+    report.wall_seconds = time.perf_counter() - t0
+    finish(report, args, comm)
+    if comm.rank == 0:
+        print(
+            f"puzzle_initial_velocity: throw (v_x, v_y, omega) {q0.tolist()} -> "
+            f"{np.round(result.q, 4).tolist()} (true {TRUE_THROW}); relative error "
+            f"{error0:.3f} -> {error1:.2e}; centre of mass within {path_error:.2e} m of the "
+            f"target path; {report.extra['dofs']} dofs, {args.steps} steps, "
+            f"{result.num_forward} forward solves; CPU "
+            f"{report.extra['cpu_seconds_all_ranks']:.1f} s (all ranks)",
+            flush=True,
+        )
+    return report
+
+
+if __name__ == "__main__":
+    run_demo(main)

@@ -1,0 +1,289 @@
+"""Friction optimisation (paper Fig. 21): the friction coefficient that slides a block to a line.
+
+A soft rounded block (Neo-Hookean) starts at rest on a 30 degree ramp and slides down under
+gravity (BDF2, IPC contact with lagged smoothed friction between block and ramp). The control is
+the friction coefficient of the block-ramp pair (``FrictionControl``, parametrised by its
+logarithm); the objective the squared
+distance of the block's centre of mass at the final time from a vertical target line, (c_x(T) -
+x_line)^2. The line is where the block ends with mu = 0.1; the optimisation starts from mu = 0.5
+(the block then barely moves) and must recover 0.1.
+
+Sizes: ``--tiny`` (smoke test), default (2D, ``meshes/sliding.geo``, well under 2 minutes),
+``--full`` (finer mesh and time step, longer slide).
+
+Writes into ``output/sliding_friction/`` (``--out``): ``sliding_initial.bp`` /
+``sliding_final.bp`` (VTX, or ``.xdmf`` with ``--xdmf``), ``sliding_friction.png`` (block at
+rest, at the end of the initial and the optimised run, the line; centre-of-mass x(t); objective
+and mu per iteration), ``history.jsonl`` and ``result.json``.
+
+Run ``python demos/sliding_friction.py`` or ``mpiexec -n 2 python demos/sliding_friction.py``.
+"""
+
+import logging
+import time
+
+import numpy as np
+from common import (
+    MESHES,
+    DemoReport,
+    boundary_segments,
+    demo_parser,
+    finish,
+    plot_history,
+    report_from,
+    run_demo,
+    save_figure,
+    size_name,
+)
+from dynamic_common import (
+    CentreOfMass,
+    TrajectoryKeeper,
+    add_contact,
+    body_nodes,
+    check_states,
+    write_states,
+)
+from mpi4py import MPI
+
+import diffsolids as ds
+from diffsolids.controls import FrictionControl
+from diffsolids.io import configure_logging
+from diffsolids.mesh import from_geo
+from diffsolids.objectives import center_of_mass, final_value
+from diffsolids.optimize import LBFGSOptions, minimize
+from diffsolids.reduced_functional import ReducedFunctional
+
+GEO = MESHES / "sliding.geo"
+THETA = 30.0  # slope [degrees]; tan(30 deg) = 0.577: the block slides for mu < 0.577
+MU_TRUE, MU_START = 0.1, 0.5
+E, NU, DENSITY, DAMPING = 1e5, 0.3, 1000.0, 100.0
+DHAT, EPS_V = 1e-3, 0.01
+SIZES = {
+    "tiny": {"h": 0.05, "dt": 0.02, "steps": 25, "iterations": 3},
+    "default": {"h": 0.025, "dt": 0.01, "steps": 60, "iterations": 15},
+    "full": {"h": 0.01, "dt": 0.005, "steps": 160, "iterations": 20},
+}
+# the run must recover mu within this relative error
+MU_RTOL = 0.02
+
+
+def parse_args(argv=None):
+    p = demo_parser(__doc__.splitlines()[0], "sliding_friction")
+    p.add_argument("--mu-true", type=float, default=MU_TRUE, help="coefficient of the target")
+    p.add_argument("--mu-start", type=float, default=MU_START, help="initial coefficient")
+    args = p.parse_args(argv)
+    size = SIZES[size_name(args)]
+    if args.iterations is None:
+        args.iterations = size["iterations"]
+    args.h, args.dt, args.steps = size["h"], size["dt"], size["steps"]
+    return args
+
+
+def build_scene(args, comm):
+    """Model, contact term and simulation of the block on the ramp; u0 = the block at rest."""
+    domain = from_geo(GEO, comm, numbers={"h": args.h, "theta": THETA})
+    material = ds.NeoHookean(E=E, nu=NU, density=DENSITY, damping_psi=DAMPING)
+    model = ds.Model(domain, material, degree=1)
+    model.add_gravity(9.81)
+    t = np.deg2rad(THETA)
+    top = 2.0 * np.tan(t) * np.cos(t)  # the slope is the line n.x = top, n = (sin t, cos t)
+    model.add_dirichlet(lambda x: np.sin(t) * x[0] + np.cos(t) * x[1] < top + 1e-9, 0.0)
+    integrator = ds.BDF(2, args.dt, args.steps)
+    contact = add_contact(
+        model, integrator, DHAT, friction={("ramp", "block"): args.mu_start}, eps_v=EPS_V
+    )
+    options = ds.SolverOptions(rtol=1e-8)
+    u0 = settle(model, contact, args.dt, options)
+    sim = ds.Simulation(model, integrator, options, u0=u0, progress=False)
+    return model, contact, sim
+
+
+def settle(model, contact, dt: float, options, steps: int = 15) -> np.ndarray:
+    """The block at rest on the slope: a few dissipative steps with sticking friction."""
+    mu = contact.friction_coefficients
+    contact.set_friction("ramp", "block", 5.0)
+    try:
+        traj = ds.Simulation(model, ds.BDF(1, dt, steps), options, progress=False).run()
+    finally:
+        contact.friction_coefficients = mu
+    u0 = np.zeros_like(traj.u[-1])
+    nodes = body_nodes(model, "block")
+    u0.reshape(-1, model.dim)[nodes] = traj.u[-1].reshape(-1, model.dim)[nodes]
+    return u0
+
+
+def plot(path, args, model, traj0, traj1, paths, line, result, mus, comm) -> None:
+    """Block at rest and at the end of both runs, target line, x(t), objective and mu."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    t = np.deg2rad(THETA)
+    normal, top = np.array([np.sin(t), np.cos(t)]), 2.0 * np.sin(t)
+    segs = []
+    for u in (None, traj0.u[-1], traj1.u[-1]):
+        s = boundary_segments(model.domain, u, model.V if u is not None else None)
+        segs.append(s[(s @ normal).max(axis=1) > top + 1e-7])  # the block's edges
+    if comm.rank != 0:
+        return
+    fig = plt.figure(figsize=(11, 6.0))
+    grid = fig.add_gridspec(2, 3, height_ratios=[1.3, 1])
+    ax = fig.add_subplot(grid[0, :])
+    ax_x = fig.add_subplot(grid[1, 0])
+    ax_h = fig.add_subplot(grid[1, 1])
+    ax_mu = fig.add_subplot(grid[1, 2])
+    styles = [("0.55", "-", "rest"), ("tab:blue", "--", f"end, mu = {mus[0]:.3g}")]
+    styles.append(("tab:red", "-", f"end, mu = {mus[-1]:.4g} (optimised)"))
+    ax.fill([0, 2.0, 0], [0, 0, 2.0 * np.tan(t)], color="0.85", zorder=0, label="ramp")
+    for s, (color, ls, label) in zip(segs, styles, strict=True):
+        ax.add_collection(LineCollection(s, colors=color, linestyles=ls, lw=1.0, label=label))
+    ax.axvline(line, color="k", lw=1.5, label=f"target line x = {line:.3f} m")
+    ax.plot(paths[0][:, 0], paths[0][:, 1], color="tab:blue", lw=1.0, ls=":")
+    ax.plot(paths[1][:, 0], paths[1][:, 1], color="tab:red", lw=1.0, ls=":")
+    ax.set_aspect("equal")
+    ax.autoscale_view()
+    ax.set_xlim(-0.05, 2.05)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.legend(fontsize=8, loc="upper right")
+    ax.set_title(
+        f"block sliding down a {THETA:g} degree ramp for {args.steps * args.dt:g} s: "
+        "friction coefficient found so that it ends on the line",
+        fontsize=9,
+    )
+    times = np.asarray(traj1.times)
+    ax_x.plot(times, paths[0][:, 0], color="tab:blue", label="initial mu")
+    ax_x.plot(times, paths[1][:, 0], color="tab:red", label="optimised mu")
+    ax_x.axhline(line, color="k", lw=1.0)
+    ax_x.set_xlabel("time [s]")
+    ax_x.set_ylabel("x of the centre of mass [m]")
+    ax_x.legend(fontsize=8)
+    ax_x.grid(alpha=0.3)
+    plot_history(ax_h, result, "J")
+    ax_h.set_title("objective (c_x(T) - x_line)^2", fontsize=9)
+    ax_mu.plot(range(len(mus)), mus, "o-", ms=3)
+    ax_mu.axhline(args.mu_true, color="k", lw=1.0, ls="--", label=f"true mu = {args.mu_true:g}")
+    ax_mu.set_xlabel("iteration")
+    ax_mu.set_ylabel("friction coefficient")
+    ax_mu.legend(fontsize=8)
+    ax_mu.grid(alpha=0.3)
+    fig.tight_layout()
+    save_figure(fig, path, comm)
+    plt.close(fig)
+
+
+def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
+    args = parse_args(argv)
+    configure_logging(logging.INFO if args.verbose else logging.WARNING, comm)
+    t0 = time.perf_counter()
+    cpu0 = time.process_time()
+    model, contact, sim = build_scene(args, comm)
+    com = CentreOfMass(model, ["block"])
+    control = FrictionControl(contact, pairs=[("ramp", "block")], log=True)
+
+    # the target: where the block ends with the true coefficient
+    control.assign(np.log([args.mu_true]))
+    target_traj = sim.run()
+    line = float(com.path("block", [target_traj.u[-1]])[0, 0])
+    control.assign(np.log([args.mu_start]))
+
+    c_x = center_of_mass(model, "block")[0]
+    rf = ReducedFunctional(sim, final_value((c_x - line) ** 2), control)
+    keeper = TrajectoryKeeper()
+    options = LBFGSOptions(
+        max_iterations=args.iterations, gradient_rtol=1e-6, initial_step=0.5, max_change=0.5
+    )
+    result = minimize(
+        rf,
+        np.log([args.mu_start]),
+        options=options,
+        output_dir=args.out,
+        stop_conditions=[keeper],
+        plot_every=0,
+        write_parameters=True,
+    )
+    traj0, traj1 = keeper.first, keeper.last
+    paths = [com.path("block", traj0.u), com.path("block", traj1.u)]
+    suffix = ".xdmf" if args.xdmf else ".bp"
+    files = [args.out / f"sliding_initial{suffix}", args.out / f"sliding_final{suffix}"]
+    write_states(model, traj0, files[0])
+    write_states(model, traj1, files[1])
+    files += [args.out / "history.jsonl", args.out / "result.json"]
+
+    report = report_from("sliding_friction", args, result, t0)
+    mu = float(np.exp(result.q[0]))
+    mus = [float(np.exp(r.q[0])) for r in result.history]
+    inverted, intersecting, gap = check_states(sim, contact, [traj0, traj1])
+    report.check(
+        "objective decreased",
+        report.final_objective,
+        report.initial_objective,
+        report.final_objective < report.initial_objective,
+    )
+    report.check("no inverted element", inverted, 0, inverted == 0, "(states with one)")
+    report.check(
+        "no intersection",
+        intersecting,
+        0,
+        intersecting == 0,
+        f"(intersecting states; smallest gap {gap:.2e} m)",
+    )
+    error = abs(mu - args.mu_true) / args.mu_true
+    if not args.tiny:
+        report.check(
+            "relative error of the recovered mu",
+            error,
+            MU_RTOL,
+            error < MU_RTOL,
+            f"(mu {args.mu_start:g} -> {mu:.5f}, true {args.mu_true:g})",
+        )
+    if not args.no_plot:
+        plot(
+            args.out / "sliding_friction.png",
+            args,
+            model,
+            traj0,
+            traj1,
+            paths,
+            line,
+            result,
+            mus,
+            comm,
+        )
+        files.append(args.out / "sliding_friction.png")
+    report.extra.update(
+        {
+            "dofs": model.V.dofmap.index_map.size_global * model.dim,
+            "ranks": comm.size,
+            "steps": args.steps,
+            "dt": args.dt,
+            "mu_start": args.mu_start,
+            "mu_true": args.mu_true,
+            "mu_final": mu,
+            "mu_history": mus,
+            "line_x": line,
+            "final_x_initial": float(paths[0][-1, 0]),
+            "final_x_final": float(paths[1][-1, 0]),
+            "forward_solves": result.num_forward,
+            "cpu_seconds_all_ranks": comm.allreduce(time.process_time() - cpu0, op=MPI.SUM),
+            "files": [str(f) for f in files],
+        }
+    )
+    report.wall_seconds = time.perf_counter() - t0
+    finish(report, args, comm)
+    if comm.rank == 0:
+        print(
+            f"sliding_friction: mu {args.mu_start:g} -> {mu:.5f} (true {args.mu_true:g}, "
+            f"error {100 * error:.2f}%); the block ends {abs(paths[0][-1, 0] - line):.3f} m -> "
+            f"{abs(paths[1][-1, 0] - line):.2e} m from the line; "
+            f"{report.extra['dofs']} dofs, {args.steps} steps, {result.num_forward} forward "
+            f"solves; CPU {report.extra['cpu_seconds_all_ranks']:.1f} s (all ranks)",
+            flush=True,
+        )
+    return report
+
+
+if __name__ == "__main__":
+    run_demo(main)
