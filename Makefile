@@ -25,7 +25,7 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 
 demo: $(STAMP)
-	$(PY) demos/beam_swing.py
+	$(PY) demos/throw.py
 
 demos: $(STAMP)
 	$(PY) demos/run_all.py
