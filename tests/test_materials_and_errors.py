@@ -229,6 +229,17 @@ def test_non_finite_loads_and_initial_values(model):
         ds.Simulation(model, ds.Static(), v0=[1.0, 0.0])
 
 
+def test_gravity_is_a_magnitude_along_an_axis(model):
+    with pytest.raises(ds.ParameterError, match="use add_body_force for a vector"):
+        model.add_gravity([0.0, -9.81])
+    with pytest.raises(ds.ParameterError, match="finite number"):
+        model.add_gravity(np.inf)
+    with pytest.raises(ds.ParameterError, match="axis 2 is not an axis of a 2D mesh"):
+        model.add_gravity(9.81, axis=2)
+    model.add_gravity(9.81, axis=0)
+    assert np.allclose(model.coefficients["gravity"].x.array.reshape(-1, 2)[0], [-9.81, 0.0])
+
+
 # -- inverted input meshes -----------------------------------------------------------------------
 def _moved_vertex_mesh(target):
     """A 2x2 square mesh whose centre vertex (1/2, 1/2) is moved to ``target``."""

@@ -5,6 +5,7 @@ fields, densities, damping, loads), so controls and the adjoint find them by nam
 """
 
 import functools
+import numbers
 from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
@@ -233,9 +234,21 @@ class Model:
         return self.add_term(BodyForce(name, ids))
 
     def add_gravity(self, g: float = 9.81, axis: int | None = None) -> Term:
-        """Gravity of magnitude g along -axis (default: the last axis)."""
+        """Gravity of magnitude g along -axis (default: the last axis).
+
+        Raises:
+            ParameterError: g is not a finite number, or axis is not an axis of the mesh.
+        """
+        if not isinstance(g, numbers.Real) or not np.isfinite(g):
+            raise ParameterError(
+                f"gravity: g must be a finite number (a magnitude along -axis), got {g!r}; "
+                "use add_body_force for a vector"
+            )
+        axis = self.dim - 1 if axis is None else axis
+        if axis not in range(self.dim):
+            raise ParameterError(f"gravity: axis {axis} is not an axis of a {self.dim}D mesh")
         vec = np.zeros(self.dim)
-        vec[self.dim - 1 if axis is None else axis] = -g
+        vec[axis] = -g
         return self.add_body_force(vec, name="gravity")
 
     def add_traction(self, facet_tag: int | str, traction, name: str | None = None) -> Term:
