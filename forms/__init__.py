@@ -13,9 +13,11 @@ from diffsolids.forms.elasticity import (
     lame_parameters,
     linear_energy,
     neo_hookean_energy,
+    plane_strain_normal_stress,
     st_venant_kirchhoff_energy,
     strain_energy,
     von_mises,
+    von_mises_tensor,
 )
 from diffsolids.forms.inertia import inertia_energy
 from diffsolids.forms.kinematics import deformation_gradient, green_strain, small_strain
@@ -46,6 +48,7 @@ __all__ = [
     "linear_energy",
     "neo_hookean_energy",
     "penalty",
+    "plane_strain_normal_stress",
     "small_strain",
     "st_venant_kirchhoff_energy",
     "strain_energy",
@@ -54,5 +57,6 @@ __all__ = [
     "stress_penalty",
     "traction_potential",
     "von_mises",
+    "von_mises_tensor",
     "weighted_squared_distance",
 ]

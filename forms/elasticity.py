@@ -21,6 +21,7 @@ __all__ = [
     "st_venant_kirchhoff_energy",
     "strain_energy",
     "von_mises",
+    "von_mises_tensor",
 ]
 
 
@@ -107,6 +108,20 @@ def plane_strain_normal_stress(name: str, u, lmbda, mu):
     if name == "st_venant_kirchhoff":
         return lmbda * ufl.tr(green_strain(F)) / J
     return lmbda * ufl.ln(J) / J
+
+
+def von_mises_tensor(sigma, sigma_zz=0.0):
+    """sqrt(3/2) dev(sigma), a 3x3 tensor whose Frobenius norm is the von Mises stress.
+
+    A 2x2 (plane) ``sigma`` is completed by the out-of-plane normal stress ``sigma_zz`` as in
+    :func:`von_mises`. Stress objectives (L_p norms, soft bounds) of the von Mises stress take
+    the norm of this tensor.
+    """
+    if sigma.ufl_shape[0] == 2:
+        sigma = ufl.as_matrix(
+            [[sigma[0, 0], sigma[0, 1], 0], [sigma[1, 0], sigma[1, 1], 0], [0, 0, sigma_zz]]
+        )
+    return float(1.5**0.5) * ufl.dev(sigma)
 
 
 def von_mises(sigma, sigma_zz=0.0):

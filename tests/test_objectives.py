@@ -451,3 +451,22 @@ def test_regularisers_in_reduced_functional(integrator):
         assert taylor.min_rate >= 1.9, taylor
     finally:
         rf.controls.assign(q0)
+
+
+@pytest.mark.parametrize("plane_stress", [False, True])
+def test_von_mises_objective_is_the_3d_von_mises_stress(plane_stress):
+    """L4 norm of the von Mises stress of a uniform state = |area|^(1/4) times the von Mises
+    stress of the 3x3 Cauchy stress (plane strain: with its sigma_zz; computed with numpy)."""
+    from dolfinx import fem
+    from output_checks import expected_von_mises, gradient, model_on
+
+    from diffsolids.solvers.forms import compile_form
+
+    dom = create_rectangle(MPI.COMM_SELF, [[0, 0], [2, 1]], [2, 2])
+    model = model_on(dom, 1, plane_stress=plane_stress)
+    G = gradient(2)
+    model.fields.u.interpolate(lambda x: 1.5 * G @ x[:2])
+    (leaf,) = stress_lp_norm(model, 4, "von_mises").leaves()
+    integral = fem.assemble_scalar(compile_form(leaf.form(model.fields)))
+    expected = expected_von_mises(2, 1.5, plane_stress)
+    assert integral**0.25 == pytest.approx(2.0**0.25 * expected, rel=1e-10)

@@ -125,15 +125,15 @@ def _data(model, value, shape: tuple, what: str):
     return fem.Constant(mesh, np.broadcast_to(arr, shape).copy() if shape else arr)
 
 
-def _stress_tensor(kind: str, law: str, u, lmbda, mu):
+def _stress_tensor(kind: str, law: str, u, lmbda, mu, plane_strain: bool):
     if kind == "piola":
         return forms.first_piola_kirchhoff(law, u, lmbda, mu)
     sigma = forms.cauchy_stress(law, u, lmbda, mu)
     if kind == "cauchy":
         return sigma
-    # von Mises: ||sqrt(3/2) dev(sigma)||_F (in-plane deviator in 2D)
-    d = sigma.ufl_shape[0]
-    return float(np.sqrt(1.5)) * (sigma - ufl.tr(sigma) / d * ufl.Identity(d))
+    # von Mises of the 3x3 stress: plane strain (2D) completes it with its sigma_zz
+    sigma_zz = forms.plane_strain_normal_stress(law, u, lmbda, mu) if plane_strain else 0.0
+    return forms.von_mises_tensor(sigma, sigma_zz)
 
 
 def _stress_integral(model, integrand: Callable, kind: str, bodies: Tags, name: str) -> Integral:
@@ -142,6 +142,7 @@ def _stress_integral(model, integrand: Callable, kind: str, bodies: Tags, name: 
         raise ParameterError(f"unknown stress {kind!r}; choose from {_STRESSES}")
     wanted = {model.domain.body_id(b) for b in _tags(bodies)} or set(model.domain.body_ids)
     laws = [t for t in model.terms if isinstance(t, ElasticEnergy)]
+    plane_strain = model.dim == 2 and not model.plane_stress
 
     def form(f):
         total = 0
@@ -150,7 +151,7 @@ def _stress_integral(model, integrand: Callable, kind: str, bodies: Tags, name: 
             if not ids:
                 continue
             lmbda, mu = term.lame(f)
-            sigma = _stress_tensor(kind, term.law, f.u, lmbda, mu)
+            sigma = _stress_tensor(kind, term.law, f.u, lmbda, mu, plane_strain)
             whole = term.bodies is None and ids == set(model.domain.body_ids)
             dx = f.dx if whole else f.dx(tuple(sorted(ids)))
             total = total + integrand(sigma) * dx
