@@ -6,8 +6,9 @@ are reused where that stays exact:
 * quadratic potentials (linear elasticity): K is the forward matrix itself; the forward LU solves
   the adjoint directly (one factorisation per distinct beta dt);
 * otherwise the closest available LU (the forward's last Newton factorisation of the same step
-  when the forward kept it, else the latest one) preconditions GMRES on the exact K applied
-  matrix-free (a couple of iterations, converged to round-off); when GMRES does not converge
+  when the forward kept it, else the latest one) preconditions flexible GMRES on the exact K
+  applied matrix-free (a couple of iterations, converged to round-off; FGMRES keeps the
+  preconditioned directions, so no extra LU solve forms the solution); when it does not converge
   quickly, K is assembled and factorised and preconditions the following steps.
 """
 
@@ -65,7 +66,7 @@ class AdjointLinearSolver:
         self._precond = None  # (PETSc.PC, index of the frozen matrix or -1 for the forward one)
         self.stats = {"krylov_iterations": 0, "factorisations": 0, "direct_solves": 0}
         self._gmres = PETSc.KSP().create(self.comm)
-        self._gmres.setType("gmres")
+        self._gmres.setType("fgmres")  # no final preconditioner application
         self._gmres.setTolerances(rtol=self.options.rtol, atol=0.0, max_it=self.options.max_krylov)
         self._gmres.setGMRESRestart(self.options.max_krylov)
         self._gmres.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
