@@ -24,10 +24,10 @@ from diffsolids.verification import finite_difference_check
 FD_TOLERANCE = 1e-6
 
 
-def _reduced_functional(steps: int, nx: int = 4) -> ReducedFunctional:
+def _reduced_functional(steps: int, nx: int = 4, comm=MPI.COMM_SELF) -> ReducedFunctional:
     """Neo-Hookean strip clamped on the left, swinging under gravity; control: log E per cell."""
     dom = create_rectangle(
-        MPI.COMM_SELF, [[0, 0], [2, 0.4]], [nx, 1], facets={1: lambda x: np.isclose(x[0], 0)}
+        comm, [[0, 0], [2, 0.4]], [nx, 1], facets={1: lambda x: np.isclose(x[0], 0)}
     )
     model = ds.Model(dom, ds.NeoHookean(E=2e3, nu=0.3, density=10.0))
     model.add_dirichlet(1, 0.0)
