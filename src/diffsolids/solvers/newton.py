@@ -17,7 +17,7 @@ from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from diffsolids.errors import NewtonConvergenceError
+from diffsolids.errors import NewtonConvergenceError, ParameterError
 from diffsolids.solvers.callbacks import weak_callback
 from diffsolids.solvers.forms import compile_form
 from diffsolids.solvers.inversion import InversionGuard
@@ -86,7 +86,7 @@ class FactorStore:
 
     def __init__(self, budget_mb: float = 2000.0, max_factors: int = 64):
         if max_factors < 1:
-            raise ValueError(f"max_factors must be at least 1, got {max_factors}")
+            raise ParameterError(f"max_factors must be at least 1, got {max_factors}")
         self.budget_mb = budget_mb
         self.max_factors = max_factors
         self.factors: dict[int, PETSc.KSP] = {}
@@ -135,10 +135,10 @@ class FactorStore:
         pc = old.getPC()
         if pc.getType() != "lu" or pc.getFactorSolverType() != "mumps":
             return
-        comm = old.comm.tompi4py()
-        if step % self.stride or not self._room(comm):
+        if step % self.stride:
             return
-        if step % self.stride:  # the stride just doubled
+        comm = old.comm.tompi4py()
+        if not self._room(comm) or step % self.stride:  # thinning may have doubled the stride
             return
         size_mb = float(pc.getFactorMatrix().getMumpsInfog(22))  # MB used by the factorisation
         size_mb = comm.allreduce(size_mb, op=MPI.MAX)
