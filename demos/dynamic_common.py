@@ -18,6 +18,7 @@ __all__ = [
     "TrajectoryKeeper",
     "add_contact",
     "body_nodes",
+    "check_invariants",
     "check_states",
     "write_states",
 ]
@@ -86,6 +87,27 @@ def check_states(sim, contact, trajectories) -> tuple[int, int, float]:
                 intersecting += 1
     u.x.array[:] = saved
     return inverted, intersecting, float(gap)
+
+
+def check_invariants(report, inverted: int, intersecting: int, gap: float) -> None:
+    """Add the checks every run makes: objective decreased, no inverted element, no intersection.
+
+    ``inverted``, ``intersecting`` and ``gap`` are the counts of :func:`check_states`.
+    """
+    report.check(
+        "objective decreased",
+        report.final_objective,
+        report.initial_objective,
+        report.final_objective < report.initial_objective,
+    )
+    report.check("no inverted element", inverted, 0, inverted == 0, "(states with one)")
+    report.check(
+        "no intersection",
+        intersecting,
+        0,
+        intersecting == 0,
+        f"(intersecting states; smallest gap {gap:.2e} m)",
+    )
 
 
 def write_states(model, traj, path) -> None:

@@ -43,7 +43,14 @@ from common import (
     size_name,
 )
 from dolfinx import fem
-from dynamic_common import TrajectoryKeeper, add_contact, body_nodes, check_states, write_states
+from dynamic_common import (
+    TrajectoryKeeper,
+    add_contact,
+    body_nodes,
+    check_invariants,
+    check_states,
+    write_states,
+)
 from mpi4py import MPI
 
 import diffsolids as ds
@@ -296,22 +303,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     report = report_from("shock_protection", args, result, t0)
     reduction = 1.0 - report.final_objective / report.initial_objective
     peak_reduction = 1.0 - stress1.max() / stress0.max()
-    report.check(
-        "objective decreased",
-        report.final_objective,
-        report.initial_objective,
-        report.final_objective < report.initial_objective,
-    )
-    inverted = inverted0 + inverted1
-    intersecting = intersecting0 + intersecting1
-    report.check("no inverted element", inverted, 0, inverted == 0, "(states with one)")
-    report.check(
-        "no intersection",
-        intersecting,
-        0,
-        intersecting == 0,
-        f"(intersecting states; smallest gap {min(gap0, gap1):.2e} m)",
-    )
+    check_invariants(report, inverted0 + inverted1, intersecting0 + intersecting1, min(gap0, gap1))
     if not args.tiny:
         report.check(
             "stress reduction (space-time L4)",

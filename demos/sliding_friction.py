@@ -40,6 +40,7 @@ from dynamic_common import (
     TrajectoryKeeper,
     add_contact,
     body_nodes,
+    check_invariants,
     check_states,
     write_states,
 )
@@ -216,20 +217,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     mu = float(np.exp(result.q[0]))
     mus = [float(np.exp(r.q[0])) for r in result.history]
     inverted, intersecting, gap = check_states(sim, contact, [traj0, traj1])
-    report.check(
-        "objective decreased",
-        report.final_objective,
-        report.initial_objective,
-        report.final_objective < report.initial_objective,
-    )
-    report.check("no inverted element", inverted, 0, inverted == 0, "(states with one)")
-    report.check(
-        "no intersection",
-        intersecting,
-        0,
-        intersecting == 0,
-        f"(intersecting states; smallest gap {gap:.2e} m)",
-    )
+    check_invariants(report, inverted, intersecting, gap)
     error = abs(mu - args.mu_true) / args.mu_true
     if not args.tiny:
         report.check(

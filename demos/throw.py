@@ -41,6 +41,7 @@ from dynamic_common import (
     TrajectoryKeeper,
     add_contact,
     body_nodes,
+    check_invariants,
     check_states,
     write_states,
 )
@@ -279,26 +280,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     distance0 = float(np.linalg.norm(paths["B0"][-1] - target))
     distance1 = float(np.linalg.norm(paths["B1"][-1] - target))
     inverted, intersecting, gap = check_states(sim, contact, [traj0, traj1])
-    report.check(
-        "objective decreased",
-        report.final_objective,
-        report.initial_objective,
-        report.final_objective < report.initial_objective,
-    )
-    report.check(
-        "no inverted element",
-        inverted,
-        0,
-        inverted == 0,
-        "(states of the initial and final throws with an inverted element)",
-    )
-    report.check(
-        "no intersection",
-        intersecting,
-        0,
-        intersecting == 0,
-        f"(intersecting states; smallest gap {gap:.2e} m)",
-    )
+    check_invariants(report, inverted, intersecting, gap)
     if not args.tiny:
         report.check(
             "final distance of B to the target [m]",
