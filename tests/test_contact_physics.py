@@ -11,7 +11,7 @@ import diffsolids as ds
 from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
 from diffsolids.contact.scenes import combine_meshes, simplex_ball, simplex_box
 from diffsolids.errors import IntersectionError, ParameterError
-from diffsolids.mesh import Domain, tag_facets
+from diffsolids.mesh import Domain, gmsh_session, tag_facets
 from diffsolids.simulation import Trajectory
 
 COMM = MPI.COMM_WORLD
@@ -121,23 +121,18 @@ def test_ball_dropped_on_slab(dim):
 
 
 def _c_shape(comm) -> Domain:
-    import gmsh
     from dolfinx.io import gmsh as gmsh_io
 
-    if not gmsh.isInitialized():
-        gmsh.initialize(interruptible=False)
-    gmsh.option.setNumber("General.Terminal", 0)
-    gmsh.model.add("c_shape")
-    if comm.rank == 0:
-        outer = gmsh.model.occ.addRectangle(0, 0, 0, 1, 0.5)
-        slot = gmsh.model.occ.addRectangle(0.2, 0.2, 0, 0.8, 0.1)
-        parts, _ = gmsh.model.occ.cut([(2, outer)], [(2, slot)])
-        gmsh.model.occ.synchronize()
-        gmsh.model.addPhysicalGroup(2, [t for _, t in parts], 1)
-        gmsh.option.setNumber("Mesh.CharacteristicLengthMax", 0.05)
-        gmsh.model.mesh.generate(2)
-    data = gmsh_io.model_to_mesh(gmsh.model, comm, 0, gdim=2)
-    gmsh.model.remove()
+    with gmsh_session() as gmsh:
+        if comm.rank == 0:
+            outer = gmsh.model.occ.addRectangle(0, 0, 0, 1, 0.5)
+            slot = gmsh.model.occ.addRectangle(0.2, 0.2, 0, 0.8, 0.1)
+            parts, _ = gmsh.model.occ.cut([(2, outer)], [(2, slot)])
+            gmsh.model.occ.synchronize()
+            gmsh.model.addPhysicalGroup(2, [t for _, t in parts], 1)
+            gmsh.option.setNumber("Mesh.CharacteristicLengthMax", 0.05)
+            gmsh.model.mesh.generate(2)
+        data = gmsh_io.model_to_mesh(gmsh.model, comm, 0, gdim=2)
     facets = tag_facets(
         data.mesh,
         {

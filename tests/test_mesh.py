@@ -16,6 +16,7 @@ from diffsolids.mesh import (
     create_box,
     create_rectangle,
     from_geo,
+    gmsh_session,
     min_scaled_jacobian,
     read_mesh,
     signed_cell_volumes,
@@ -169,17 +170,11 @@ def test_missing_files_and_unsupported_order(tmp_path):
 # -- .msh files -----------------------------------------------------------------------------------
 def _write_msh(geo: Path, dst: Path, dim: int) -> None:
     """Mesh a .geo with the gmsh API and save it as .msh (what a user would bring)."""
-    import gmsh
-
     if MPI.COMM_WORLD.rank == 0:
-        if not gmsh.isInitialized():
-            gmsh.initialize(interruptible=False)
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.clear()
-        gmsh.open(str(geo))
-        gmsh.model.mesh.generate(dim)
-        gmsh.write(str(dst))
-        gmsh.clear()
+        with gmsh_session() as gmsh:
+            gmsh.open(str(geo))
+            gmsh.model.mesh.generate(dim)
+            gmsh.write(str(dst))
     MPI.COMM_WORLD.barrier()
 
 

@@ -7,6 +7,7 @@ from dolfinx import fem
 from mpi4py import MPI
 
 import diffsolids as ds
+from diffsolids.contact.scenes import simplex_ball
 from diffsolids.controls import InitialCondition, ParameterControl
 from diffsolids.errors import MeshError
 from diffsolids.mesh import (
@@ -15,6 +16,7 @@ from diffsolids.mesh import (
     create_box,
     create_rectangle,
     from_gmsh_model,
+    gmsh_session,
     min_scaled_jacobian,
 )
 from diffsolids.objectives import Integral, final_value
@@ -35,40 +37,30 @@ CLAMP, HOLE = 1, 5
 
 def _plate_with_hole(comm=COMM) -> Domain:
     """Two bodies [0,1]x[0,1] and [1,2]x[0,1] (shared edge), a hole in the right one."""
-    gmsh = None
-    if comm.rank == 0:
-        import gmsh
-
-        if not gmsh.isInitialized():
-            gmsh.initialize(interruptible=False)
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.clear()
-        occ = gmsh.model.occ
-        left = occ.addRectangle(0, 0, 0, 1, 1)
-        right = occ.addRectangle(1, 0, 0, 1, 1)
-        disk = occ.addDisk(1.5, 0.5, 0, 0.2, 0.2)
-        right_cut, _ = occ.cut([(2, right)], [(2, disk)])
-        occ.fragment([(2, left)], right_cut)
-        occ.synchronize()
-        for _, tag in gmsh.model.getEntities(2):
-            body = 1 if occ.getCenterOfMass(2, tag)[0] < 1 else 2
-            gmsh.model.addPhysicalGroup(2, [tag], body, name=f"body{body}")
-        clamp, hole = [], []
-        for _, tag in gmsh.model.getEntities(1):
-            x, y, _ = occ.getCenterOfMass(1, tag)
-            if abs(x) < 1e-9:
-                clamp.append(tag)
-            elif np.hypot(x - 1.5, y - 0.5) < 0.1:
-                hole.append(tag)
-        gmsh.model.addPhysicalGroup(1, clamp, CLAMP, name="clamp")
-        gmsh.model.addPhysicalGroup(1, hole, HOLE, name="hole")
-        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.2)
-        gmsh.model.mesh.generate(2)
-    try:
-        return from_gmsh_model(gmsh.model if gmsh else None, comm, 2)
-    finally:
+    with gmsh_session() as gmsh:
         if comm.rank == 0:
-            gmsh.clear()
+            occ = gmsh.model.occ
+            left = occ.addRectangle(0, 0, 0, 1, 1)
+            right = occ.addRectangle(1, 0, 0, 1, 1)
+            disk = occ.addDisk(1.5, 0.5, 0, 0.2, 0.2)
+            right_cut, _ = occ.cut([(2, right)], [(2, disk)])
+            occ.fragment([(2, left)], right_cut)
+            occ.synchronize()
+            for _, tag in gmsh.model.getEntities(2):
+                body = 1 if occ.getCenterOfMass(2, tag)[0] < 1 else 2
+                gmsh.model.addPhysicalGroup(2, [tag], body, name=f"body{body}")
+            clamp, hole = [], []
+            for _, tag in gmsh.model.getEntities(1):
+                x, y, _ = occ.getCenterOfMass(1, tag)
+                if abs(x) < 1e-9:
+                    clamp.append(tag)
+                elif np.hypot(x - 1.5, y - 0.5) < 0.1:
+                    hole.append(tag)
+            gmsh.model.addPhysicalGroup(1, clamp, CLAMP, name="clamp")
+            gmsh.model.addPhysicalGroup(1, hole, HOLE, name="hole")
+            gmsh.option.setNumber("Mesh.MeshSizeMax", 0.2)
+            gmsh.model.mesh.generate(2)
+        return from_gmsh_model(gmsh.model, comm, 2)
 
 
 def _measures(arrays: MeshArrays) -> dict[int, float]:
@@ -148,6 +140,20 @@ def test_remesh_keeps_boundary_interfaces_tags_and_bodies(scene):
         assert old_tags.keys() == new_tags.keys()
         for tag in old_tags:
             assert np.abs(old_tags[tag] - new_tags[tag]).max() <= snap / 2
+
+
+def test_remesh_options_do_not_leak_into_later_gmsh_meshes():
+    """The CI failure of stop 8: a 3D remesh (Mesh.Renumber = 0) then a gmsh ball in the same
+    process gave non-contiguous node tags, which DOLFINx's gmsh reader refuses."""
+    box = create_box(COMM, [[0, 0, 0], [1, 1, 1]], [3, 3, 3])
+    remesh_domain(box)
+    ball = simplex_ball([0.5, 0.5, 0.35], 0.2, 0.1)
+    assert ball.topology.index_map(3).size_local > 0
+    with pytest.raises(RuntimeError), gmsh_session() as gmsh:
+        gmsh.option.setNumber("Mesh.Renumber", 0)
+        raise RuntimeError("a failing mesher")
+    with gmsh_session() as gmsh:
+        assert gmsh.option.getNumber("Mesh.Renumber") == 1
 
 
 def test_domain_checkpoint_roundtrip_keeps_canonical_order(tmp_path):

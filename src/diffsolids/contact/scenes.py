@@ -9,7 +9,7 @@ import ufl
 from mpi4py import MPI
 
 from diffsolids.errors import MeshError
-from diffsolids.mesh import Domain, tag_facets
+from diffsolids.mesh import Domain, gmsh_session, tag_facets
 
 __all__ = ["combine_meshes", "simplex_ball", "simplex_box"]
 
@@ -103,17 +103,11 @@ def simplex_ball(center, radius: float, size: float) -> dolfinx.mesh.Mesh:
         radius: Radius.
         size: Target edge length.
     """
-    import gmsh
     from dolfinx.io import gmsh as gmsh_io
 
     center = np.asarray(center, dtype=float)
     dim = len(center)
-    initialised = gmsh.isInitialized()
-    if not initialised:
-        gmsh.initialize(interruptible=False)
-    gmsh.option.setNumber("General.Terminal", 0)
-    gmsh.model.add("simplex_ball")
-    try:
+    with gmsh_session() as gmsh:
         if dim == 2:
             tag = gmsh.model.occ.addDisk(center[0], center[1], 0.0, radius, radius)
         else:
@@ -124,8 +118,4 @@ def simplex_ball(center, radius: float, size: float) -> dolfinx.mesh.Mesh:
         gmsh.option.setNumber("Mesh.CharacteristicLengthMin", size / 2)
         gmsh.model.mesh.generate(dim)
         data = gmsh_io.model_to_mesh(gmsh.model, MPI.COMM_SELF, 0, gdim=dim)
-    finally:
-        gmsh.model.remove()
-        if not initialised:
-            gmsh.finalize()
     return data.mesh

@@ -1,6 +1,7 @@
 """Meshes with body (cell) and boundary (facet) tags: built-in boxes, gmsh and meshio files."""
 
 from diffsolids.mesh.domain import Domain, create_box, create_rectangle, tag_facets
+from diffsolids.mesh.gmsh_session import gmsh_session
 from diffsolids.mesh.quality import (
     check_orientation,
     inverted_cells,
@@ -16,6 +17,7 @@ __all__ = [
     "create_rectangle",
     "from_geo",
     "from_gmsh_model",
+    "gmsh_session",
     "inverted_cells",
     "min_scaled_jacobian",
     "read_mesh",

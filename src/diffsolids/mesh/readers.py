@@ -11,17 +11,9 @@ from mpi4py import MPI
 
 from diffsolids.errors import MeshError
 from diffsolids.mesh.domain import Domain
+from diffsolids.mesh.gmsh_session import gmsh_session
 
 __all__ = ["from_geo", "from_gmsh_model", "read_mesh"]
-
-
-def _gmsh():
-    import gmsh
-
-    if not gmsh.isInitialized():
-        gmsh.initialize(interruptible=False)
-    gmsh.option.setNumber("General.Terminal", 0)
-    return gmsh
 
 
 def from_gmsh_model(model, comm: MPI.Comm, dim: int, rank: int = 0) -> Domain:
@@ -56,21 +48,34 @@ def from_geo(
         raise MeshError(f"gmsh geometry file {path} does not exist")
     if order != 1:
         raise MeshError("only affine (order 1) geometry is supported")
-    gdim = comm.bcast(_mesh_geo_on_root(path, dim, mesh_size, numbers) if comm.rank == 0 else None)
-    gmsh = _gmsh() if comm.rank == 0 else None
-    try:
-        return from_gmsh_model(gmsh.model if gmsh else None, comm, gdim)
-    finally:
-        if comm.rank == 0:
-            gmsh.clear()
+
+    def mesh_geo(gmsh) -> int:
+        return _mesh_geo(gmsh, path, dim, mesh_size, numbers)
+
+    return _on_root(comm, mesh_geo)
 
 
-def _mesh_geo_on_root(path, dim, mesh_size, numbers) -> int:
-    gmsh = _gmsh()
-    # Parser variables and options survive gmsh.clear(): restart gmsh so an earlier mesh's
-    # numbers or mesh size cannot leak into this one.
-    gmsh.finalize()
-    gmsh = _gmsh()
+def _on_root(comm: MPI.Comm, build) -> Domain:
+    """Run ``build(gmsh)`` (returns the dimension) in a gmsh session on rank 0; distribute.
+
+    A failure on rank 0 is raised on every rank (the others would wait in the broadcast).
+    """
+    if comm.rank != 0:
+        gdim = comm.bcast(None)
+        if isinstance(gdim, str):
+            raise MeshError(gdim)
+        return from_gmsh_model(None, comm, gdim)
+    with gmsh_session() as gmsh:
+        try:
+            gdim = build(gmsh)
+        except Exception as error:
+            comm.bcast(f"gmsh failed on rank 0: {error}")
+            raise
+        comm.bcast(gdim)
+        return from_gmsh_model(gmsh.model, comm, gdim)
+
+
+def _mesh_geo(gmsh, path, dim, mesh_size, numbers) -> int:
     for name, value in (numbers or {}).items():
         gmsh.parser.setNumber(name, [float(value)])
     # gmsh.open would clear the parser variables just set; merge keeps them (DefineConstant then
@@ -97,19 +102,12 @@ def read_mesh(path: str | os.PathLike, comm: MPI.Comm = MPI.COMM_WORLD, dim: int
     if path.suffix == ".geo":
         return from_geo(path, comm, dim)
     if path.suffix == ".msh":
-        gdim = None
-        if comm.rank == 0:
-            gmsh = _gmsh()
-            gmsh.clear()
+
+        def open_msh(gmsh) -> int:
             gmsh.open(str(path))
-            gdim = dim or gmsh.model.getDimension()
-        gdim = comm.bcast(gdim)
-        gmsh = _gmsh() if comm.rank == 0 else None
-        try:
-            return from_gmsh_model(gmsh.model if gmsh else None, comm, gdim)
-        finally:
-            if comm.rank == 0:
-                gmsh.clear()
+            return dim or gmsh.model.getDimension()
+
+        return _on_root(comm, open_msh)
     tmp = None
     if comm.rank == 0:
         tmp = tempfile.mkdtemp(prefix="diffsolids-mesh-")

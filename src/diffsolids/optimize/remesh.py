@@ -39,7 +39,7 @@ from mpi4py import MPI
 
 from diffsolids.controls import InitialCondition, ParameterControl, ShapeControl
 from diffsolids.errors import MeshError
-from diffsolids.mesh import Domain, min_scaled_jacobian
+from diffsolids.mesh import Domain, gmsh_session, min_scaled_jacobian
 
 __all__ = [
     "MeshArrays",
@@ -393,16 +393,6 @@ def _boundary_pieces(points: np.ndarray, boundaries: dict[int, np.ndarray]):
 
 
 # -- gmsh --------------------------------------------------------------------------------------
-def _gmsh():
-    import gmsh
-
-    if not gmsh.isInitialized():
-        gmsh.initialize(interruptible=False)
-    gmsh.option.setNumber("General.Terminal", 0)
-    gmsh.option.setNumber("General.NumThreads", 1)
-    return gmsh
-
-
 def _mean_edge_length(arrays: MeshArrays) -> float:
     c = arrays.cells
     pts = arrays.points
@@ -431,6 +421,38 @@ def _snapped(points: np.ndarray) -> np.ndarray:
     return np.round(points / quantum) * quantum
 
 
+def _add_boundary_entities(gmsh, pts: np.ndarray, boundaries) -> list[tuple[int, int]]:
+    """Add each body's kept boundary as discrete gmsh entities; return (entity, body) pairs."""
+    dim = pts.shape[1]
+    xyz = np.zeros((len(pts), 3))
+    xyz[:, :dim] = pts
+    added = np.zeros(len(pts), dtype=bool)
+    pieces, bodies = _boundary_pieces(pts, boundaries)
+    piece_tags = []
+    for piece in pieces:
+        ent = gmsh.model.addDiscreteEntity(dim - 1)
+        elems = np.c_[piece, np.roll(piece, -1)] if dim == 2 else piece
+        nodes = np.unique(elems)
+        new = nodes[~added[nodes]]
+        added[new] = True
+        gmsh.model.mesh.addNodes(dim - 1, ent, new + 1, xyz[new].ravel())
+        gmsh.model.mesh.addElementsByType(ent, dim - 1, [], (elems + 1).ravel())
+        piece_tags.append(ent)
+    entities = []
+    for body, components in bodies:
+        for component in components:
+            tags = [[piece_tags[k] for k in shell] for shell in component]
+            if dim == 2:
+                loops = [gmsh.model.geo.addCurveLoop(t) for t in tags]
+                entity = gmsh.model.geo.addPlaneSurface(loops)
+            else:
+                loops = [gmsh.model.geo.addSurfaceLoop(t) for t in tags]
+                entity = gmsh.model.geo.addVolume(loops)
+            entities.append((entity, body))
+    gmsh.model.geo.synchronize()
+    return entities
+
+
 def _remesh_arrays(
     arrays: MeshArrays, mesh_size: float | None, gmsh_options: Mapping[str, float] | None
 ) -> MeshArrays:
@@ -441,36 +463,8 @@ def _remesh_arrays(
     boundaries = _region_boundaries(arrays)
     _check_tagged_facets(arrays, boundaries)
     _check_boundary_free(pts, boundaries)
-    gmsh = _gmsh()
-    gmsh.clear()
-    gmsh.model.add("diffsolids-remesh")
-    xyz = np.zeros((len(pts), 3))
-    xyz[:, :dim] = pts
-    added = np.zeros(len(pts), dtype=bool)
-    entities: list[tuple[int, int]] = []  # (gmsh entity, body)
-    try:
-        pieces, bodies = _boundary_pieces(pts, boundaries)
-        piece_tags = []
-        for piece in pieces:
-            ent = gmsh.model.addDiscreteEntity(dim - 1)
-            elems = np.c_[piece, np.roll(piece, -1)] if dim == 2 else piece
-            nodes = np.unique(elems)
-            new = nodes[~added[nodes]]
-            added[new] = True
-            gmsh.model.mesh.addNodes(dim - 1, ent, new + 1, xyz[new].ravel())
-            gmsh.model.mesh.addElementsByType(ent, dim - 1, [], (elems + 1).ravel())
-            piece_tags.append(ent)
-        for body, components in bodies:
-            for component in components:
-                tags = [[piece_tags[k] for k in shell] for shell in component]
-                if dim == 2:
-                    loops = [gmsh.model.geo.addCurveLoop(t) for t in tags]
-                    entity = gmsh.model.geo.addPlaneSurface(loops)
-                else:
-                    loops = [gmsh.model.geo.addSurfaceLoop(t) for t in tags]
-                    entity = gmsh.model.geo.addVolume(loops)
-                entities.append((entity, body))
-        gmsh.model.geo.synchronize()
+    with gmsh_session() as gmsh:
+        entities = _add_boundary_entities(gmsh, pts, boundaries)
         size = _mean_edge_length(arrays) if mesh_size is None else float(mesh_size)
         gmsh.option.setNumber("Mesh.MeshSizeMax", size)
         for name, value in {**_GMSH_DEFAULTS[dim], **(gmsh_options or {})}.items():
@@ -485,8 +479,6 @@ def _remesh_arrays(
                 raise MeshError(f"gmsh produced element types {list(types)} while remeshing")
             cells.append(nodes[0].reshape(-1, dim + 1).astype(np.int64))
             values.append(np.full(len(cells[-1]), body, dtype=np.int32))
-    finally:
-        gmsh.clear()
     order = np.argsort(node_tags)
     node_tags = node_tags[order]
     new_points = coords.reshape(-1, 3)[order, :dim]
