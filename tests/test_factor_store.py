@@ -18,7 +18,7 @@ from diffsolids.controls import ParameterControl
 from diffsolids.mesh import create_rectangle
 from diffsolids.objectives import target_displacement, time_integral
 from diffsolids.reduced_functional import ReducedFunctional
-from diffsolids.solvers.newton import FactorStore
+from diffsolids.solvers.factor_store import FactorStore, factor_memory_mb
 from diffsolids.verification import finite_difference_check
 
 FD_TOLERANCE = 1e-6
@@ -117,3 +117,34 @@ def test_solvers_are_freed_with_their_communicators():
 def test_max_factors_must_be_positive():
     with pytest.raises(ValueError, match="max_factors"):
         FactorStore(max_factors=0)
+
+
+@pytest.mark.parametrize("kwargs", [{"budget_mb": -1.0}, {"reserve": 1.0}, {"reserve": -0.1}])
+def test_memory_settings_are_checked(kwargs):
+    with pytest.raises(ValueError, match=next(iter(kwargs))):
+        FactorStore(**kwargs)
+
+
+def test_default_budget_keeps_factors_while_the_node_has_memory_to_spare(monkeypatch):
+    """Without a budget, factors are kept until the node's available memory nears the reserve."""
+    import diffsolids.solvers.factor_store as factor_store
+
+    rf = _reduced_functional(steps=10)
+    store = rf.simulation.solver.factor_store
+    assert store.budget_mb is None  # the ReducedFunctional's default
+    state = {"per_factor": None}
+
+    def fake_memory():
+        # a node of 1000 MB whose available memory shrinks by what the store keeps, starting
+        # 3.5 factorisations above the reserve (25 % of the total); at the first call the SNES
+        # still holds the factors of step 1
+        if state["per_factor"] is None:
+            ksp = rf.simulation.solver.snes.getKSP()
+            state["per_factor"] = factor_memory_mb(ksp.getPC().getFactorMatrix())
+        return 250.0 + 3.5 * state["per_factor"] - store.used_mb, 1000.0
+
+    monkeypatch.setattr(factor_store, "node_memory_mb", fake_memory)
+    rf.forward(rf.initial_parameters())
+    assert len(store.factors) == 3  # the fourth would leave less than the reserve
+    for error in _fd_errors(rf):
+        assert error <= FD_TOLERANCE

@@ -15,7 +15,7 @@ from diffsolids.errors import DiffsolidsError
 from diffsolids.objectives import Objective, ObjectiveError, TimeGrid
 from diffsolids.objectives.terms import objective_terms
 from diffsolids.solvers import compile_form
-from diffsolids.solvers.newton import FactorStore
+from diffsolids.solvers.factor_store import FactorStore
 
 __all__ = ["AdjointError", "ReducedFunctional"]
 
@@ -35,7 +35,9 @@ class ReducedFunctional:
         controls: One Control or a sequence (concatenated into one parameter vector).
         adjoint_options: Options of the adjoint linear solves.
         factor_memory_mb: Memory (per rank) for keeping each forward step's last Newton
-            factorisation as the adjoint preconditioner of that step (0 disables).
+            factorisation as the adjoint preconditioner of that step (0 disables; None, the
+            default, keeps factors while the node has a quarter of its memory available:
+            see :class:`~diffsolids.solvers.factor_store.FactorStore`).
 
     Example:
         ``rf = ReducedFunctional(sim, objective, [ParameterControl(model, "E", "bodies")])``;
@@ -48,7 +50,7 @@ class ReducedFunctional:
         objective: Objective,
         controls: Control | Sequence[Control],
         adjoint_options: AdjointSolverOptions | None = None,
-        factor_memory_mb: float = 2000.0,
+        factor_memory_mb: float | None = None,
     ):
         if not isinstance(objective, Objective):
             raise ObjectiveError(
@@ -66,7 +68,7 @@ class ReducedFunctional:
             leaf: compile_form(leaf.form(self.model.fields)) for leaf in self.leaves
         }
         self._sweep: BackwardSweep | None = None
-        if factor_memory_mb > 0 and simulation.integrator.num_steps > 1:
+        if factor_memory_mb != 0 and simulation.integrator.num_steps > 1:
             simulation.solver.factor_store = FactorStore(factor_memory_mb)
         self._state = None  # (q, trajectory, table, reg values, J)
         self.timings: dict[str, float] = {}

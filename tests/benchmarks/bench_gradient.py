@@ -54,8 +54,9 @@ def _parse(argv):
     p.add_argument(
         "--factor-memory-mb",
         type=float,
-        default=2000.0,
-        help="memory for the forward factorisations kept for the adjoint (ReducedFunctional)",
+        default=None,
+        help="memory per rank for the forward factorisations kept for the adjoint "
+        "(ReducedFunctional; default: while the node keeps 25%% of its memory available)",
     )
     p.add_argument(
         "--only", choices=["static", "dynamic"], default=None, help="run one scenario only"

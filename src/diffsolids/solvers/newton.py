@@ -5,9 +5,7 @@ the step (no inverted element; the contact term adds its collision-free bound to
 and a residual tolerance scaled by a characteristic force of the simulation.
 """
 
-import gc
 from dataclasses import dataclass, field
-from typing import ClassVar
 
 import dolfinx.fem.petsc as fem_petsc
 import dolfinx.la.petsc
@@ -17,13 +15,14 @@ from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from diffsolids.errors import NewtonConvergenceError, ParameterError
+from diffsolids.errors import NewtonConvergenceError
 from diffsolids.solvers.callbacks import weak_callback
+from diffsolids.solvers.factor_store import FactorStore
 from diffsolids.solvers.forms import compile_form
 from diffsolids.solvers.inversion import InversionGuard
 from diffsolids.solvers.sparsity import GrowingPattern
 
-__all__ = ["FactorStore", "NewtonResult", "NewtonSolver", "SolverOptions"]
+__all__ = ["NewtonResult", "NewtonSolver", "SolverOptions"]
 
 _DEFAULT_PETSC = {
     "snes_type": "newtonls",
@@ -55,106 +54,6 @@ class SolverOptions:
     prefix: str = "diffsolids_"
     prevent_inversion: bool = True
     step_safety: float = 0.9
-
-
-class FactorStore:
-    """Keeps the last Newton factorisation of steps for the adjoint (within a memory budget).
-
-    After a converged step the SNES's KSP (its PC holding the LU factors of the Jacobian at the
-    last Newton iterate) is set to reuse its factors and stored; SNES continues with a fresh KSP
-    of the same type. The adjoint then preconditions the exact Jacobian of step i with the
-    factors of step i: a Krylov solve of one or two iterations.
-
-    Every MUMPS instance holds several MPI communicators, and an MPI library has a few thousand
-    (MPICH: 2048 per process; MUMPS does not check for failure and corrupts memory when they run
-    out, after about 400 live instances). The number of stored factorisations is therefore
-    capped, per store and for all stores of the process together. A store that reaches its cap
-    keeps every other factorisation and from then on only steps that are multiples of a doubled
-    stride, so a long trajectory keeps evenly spaced factors; the adjoint preconditions the steps
-    in between with the nearest later factors (or refactorises when that needs many iterations).
-
-    Args:
-        budget_mb: Memory for stored factors (per rank, estimated from MUMPS' report).
-        max_factors: Most factorisations this store keeps.
-
-    Attributes:
-        max_live: Most stored factorisations of all stores of the process together.
-    """
-
-    max_live: ClassVar[int] = 160
-    _live: ClassVar[int] = 0
-
-    def __init__(self, budget_mb: float = 2000.0, max_factors: int = 64):
-        if max_factors < 1:
-            raise ParameterError(f"max_factors must be at least 1, got {max_factors}")
-        self.budget_mb = budget_mb
-        self.max_factors = max_factors
-        self.factors: dict[int, PETSc.KSP] = {}
-        self.sizes_mb: dict[int, float] = {}
-        self.used_mb = 0.0
-        self.stride = 1
-
-    def __del__(self):
-        FactorStore._live -= len(getattr(self, "factors", ()))
-
-    def clear(self) -> None:
-        """Free all stored factorisations (a new trajectory starts with stride 1)."""
-        for ksp in self.factors.values():
-            ksp.destroy()
-        FactorStore._live -= len(self.factors)
-        self.factors.clear()
-        self.sizes_mb.clear()
-        self.used_mb = 0.0
-        self.stride = 1
-
-    def _drop(self, step: int) -> None:
-        self.factors.pop(step).destroy()
-        self.used_mb -= self.sizes_mb.pop(step)
-        FactorStore._live -= 1
-
-    def _thin(self) -> None:
-        """Keep every other stored factorisation and double the stride."""
-        self.stride *= 2
-        for step in [s for s in self.factors if s % self.stride]:
-            self._drop(step)
-
-    def _room(self, comm: MPI.Comm) -> bool:
-        """Whether one more factorisation may be stored (collective: same answer on all ranks)."""
-        if FactorStore._live >= FactorStore.max_live:
-            gc.collect()  # stores of unreachable solvers free their factors
-        full = len(self.factors) >= self.max_factors or FactorStore._live >= FactorStore.max_live
-        if comm.allreduce(full, op=MPI.LOR):
-            if not self.factors:
-                return False
-            self._thin()
-        return True
-
-    def keep(self, step: int, snes: PETSc.SNES) -> None:
-        """Store the current KSP of ``snes`` for ``step`` if it fits; give SNES a new KSP."""
-        old = snes.getKSP()
-        pc = old.getPC()
-        if pc.getType() != "lu" or pc.getFactorSolverType() != "mumps":
-            return
-        if step % self.stride:
-            return
-        comm = old.comm.tompi4py()
-        if not self._room(comm) or step % self.stride:  # thinning may have doubled the stride
-            return
-        size_mb = float(pc.getFactorMatrix().getMumpsInfog(22))  # MB used by the factorisation
-        size_mb = comm.allreduce(size_mb, op=MPI.MAX)
-        if self.used_mb + size_mb > self.budget_mb:
-            return
-        pc.setReusePreconditioner(True)
-        self.factors[step] = old
-        self.sizes_mb[step] = size_mb
-        self.used_mb += size_mb
-        FactorStore._live += 1
-        new = PETSc.KSP().create(old.comm)
-        new.setOptionsPrefix(old.getOptionsPrefix())
-        new.setType(old.getType())
-        new.getPC().setType("lu")
-        new.getPC().setFactorSolverType("mumps")
-        snes.setKSP(new)
 
 
 @dataclass
