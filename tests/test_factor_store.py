@@ -148,3 +148,29 @@ def test_default_budget_keeps_factors_while_the_node_has_memory_to_spare(monkeyp
     assert len(store.factors) == 3  # the fourth would leave less than the reserve
     for error in _fd_errors(rf):
         assert error <= FD_TOLERANCE
+
+
+def test_a_container_limit_lowers_the_node_memory(tmp_path):
+    """Inside a container /proc/meminfo shows the host: the cgroup's limit must win."""
+    from diffsolids.solvers.factor_store import node_memory_mb
+
+    meminfo = tmp_path / "meminfo"
+    meminfo.write_text("MemTotal:       65536000 kB\nMemAvailable:   60000000 kB\n")
+    host = node_memory_mb(meminfo, tmp_path / "no-cgroup")
+    assert host == pytest.approx((60000000 / 1024, 65536000 / 1024))
+    v2 = tmp_path / "v2"
+    v2.mkdir()
+    (v2 / "memory.max").write_text(f"{4 * 2**30}\n")
+    (v2 / "memory.current").write_text(f"{3 * 2**30}\n")
+    (v2 / "memory.stat").write_text(f"anon 1\ninactive_file {2**29}\n")
+    assert node_memory_mb(meminfo, v2) == pytest.approx((1536.0, 4096.0))
+    (v2 / "memory.max").write_text("max\n")
+    assert node_memory_mb(meminfo, v2) == pytest.approx(host)
+    v1 = tmp_path / "v1" / "memory"
+    v1.mkdir(parents=True)
+    (v1 / "memory.limit_in_bytes").write_text(f"{2 * 2**30}\n")
+    (v1 / "memory.usage_in_bytes").write_text(f"{2**30}\n")
+    (v1 / "memory.stat").write_text("total_inactive_file 0\n")
+    assert node_memory_mb(meminfo, v1.parent) == pytest.approx((1024.0, 2048.0))
+    (v1 / "memory.limit_in_bytes").write_text("9223372036854771712\n")  # v1's "no limit"
+    assert node_memory_mb(meminfo, v1.parent) == pytest.approx(host)

@@ -26,3 +26,24 @@ def test_thinned_store_world_equals_self():
     (J_par, g_par), (J_ser, g_ser) = results
     assert abs(J_par / J_ser - 1) <= RTOL
     assert np.abs(g_par - g_ser).max() <= RTOL * np.abs(g_ser).max()
+
+
+def test_memory_decision_is_collective(monkeypatch):
+    """Ranks that see different spare memory keep the same factors (the smaller count)."""
+    import diffsolids.solvers.factor_store as factor_store
+
+    comm = MPI.COMM_WORLD
+    rf = _reduced_functional(steps=8, nx=8, comm=comm)
+    store = rf.simulation.solver.factor_store
+    room = 3 if comm.rank == 0 else 2  # factorisations each rank's node has room for
+
+    def fake_memory():  # a huge MB per factorisation, far above the real ones
+        return 250.0 + 1e6 * (room - len(store.factors)), 1000.0
+
+    monkeypatch.setattr(factor_store, "node_memory_mb", fake_memory)
+    J, g = rf.value_and_gradient(rf.initial_parameters())
+    assert sorted(store.factors) == [1, 2]
+    serial = _reduced_functional(steps=8, nx=8, comm=MPI.COMM_SELF)
+    J_ser, g_ser = serial.value_and_gradient(serial.initial_parameters())
+    assert abs(J / J_ser - 1) <= RTOL
+    assert np.abs(g - g_ser).max() <= RTOL * np.abs(g_ser).max()

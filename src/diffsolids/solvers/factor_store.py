@@ -1,6 +1,7 @@
 """Forward factorisations kept for the adjoint, within the memory the machine can spare."""
 
 import gc
+from pathlib import Path
 from typing import ClassVar
 
 from mpi4py import MPI
@@ -11,14 +12,50 @@ from diffsolids.errors import ParameterError
 __all__ = ["FactorStore", "factor_memory_mb", "node_memory_mb"]
 
 
-def node_memory_mb() -> tuple[float, float] | None:
-    """(available, total) memory of this node in MB from ``/proc/meminfo``; None elsewhere."""
+def node_memory_mb(
+    meminfo: Path = Path("/proc/meminfo"), cgroup: Path = Path("/sys/fs/cgroup")
+) -> tuple[float, float] | None:
+    """(available, total) memory in MB for this process: the node's, or its container's.
+
+    The node's from ``/proc/meminfo`` (Linux), lowered to the memory limit of the process's
+    cgroup (v2 ``memory.max``, v1 ``memory/memory.limit_in_bytes``) when one is set: inside a
+    container ``/proc/meminfo`` shows the host. None where neither is known.
+    """
     try:
-        with open("/proc/meminfo") as f:
-            info = dict(line.split(":", 1) for line in f)
-        return tuple(float(info[k].split()[0]) / 1024 for k in ("MemAvailable", "MemTotal"))
+        with open(meminfo) as f:
+            info = dict(line.split(":", 1) for line in f if ":" in line)
+        available, total = (float(info[k].split()[0]) / 1024 for k in ("MemAvailable", "MemTotal"))
     except (OSError, KeyError, ValueError):
         return None
+    limit = _cgroup_memory_mb(cgroup)
+    if limit is not None:
+        available, total = min(available, limit[0]), min(total, limit[1])
+    return available, total
+
+
+def _cgroup_memory_mb(root: Path) -> tuple[float, float] | None:
+    """(available, limit) in MB of a cgroup with a memory limit; None without one."""
+    layouts = [  # (limit, usage, stat, reclaimable page cache key) of cgroup v2 and v1
+        ("memory.max", "memory.current", "memory.stat", "inactive_file"),
+        (
+            "memory/memory.limit_in_bytes",
+            "memory/memory.usage_in_bytes",
+            "memory/memory.stat",
+            "total_inactive_file",
+        ),
+    ]
+    for limit_file, usage_file, stat_file, cache_key in layouts:
+        try:
+            text = (root / limit_file).read_text().strip()
+            if text == "max" or float(text) >= 2.0**60:  # no limit
+                return None
+            limit, usage = float(text), float((root / usage_file).read_text())
+            stat = dict(line.split() for line in (root / stat_file).read_text().splitlines())
+        except (OSError, ValueError):
+            continue
+        available = limit - usage + float(stat.get(cache_key, 0.0))
+        return available / 2**20, limit / 2**20
+    return None
 
 
 def factor_memory_mb(factor: PETSc.Mat) -> float:
