@@ -267,3 +267,16 @@ def test_meshio_without_volume_cells(tmp_path):
     MPI.COMM_WORLD.barrier()
     with pytest.raises(ds.MeshError, match="no triangle/tetra cells found"):
         read_mesh(path, MPI.COMM_WORLD)
+
+
+def test_a_broken_geo_file_is_named_with_gmsh_error(tmp_path):
+    """A syntax error used to surface as DOLFINx's "No 'physical groups' in gmsh mesh"."""
+    path = MPI.COMM_WORLD.bcast(str(tmp_path / "broken.geo"))
+    if MPI.COMM_WORLD.rank == 0:
+        Path(path).write_text("Point(1) = {0, 0, 0;\nthis is not gmsh\n")
+    MPI.COMM_WORLD.barrier()
+    with pytest.raises(ds.MeshError, match=r"broken\.geo.*syntax error"):
+        from_geo(path)
+    # a later mesh in the same process is unaffected
+    dom = from_geo(MESHES / "test_two_squares.geo")
+    assert dom.mesh.topology.index_map(2).size_global > 0

@@ -107,3 +107,17 @@ def test_world_equals_self(dim, degree, integrator):
     # every rank holds the same records
     energies = MPI.COMM_WORLD.allgather([r.energy for r in rec_par])
     assert all(e == energies[0] for e in energies)
+
+
+def test_a_gmsh_failure_on_rank_0_raises_on_every_rank(tmp_path):
+    """Rank 0 meshes; the other ranks wait in a broadcast and must not hang when it fails."""
+    from pathlib import Path
+
+    from diffsolids.mesh import from_geo
+
+    path = MPI.COMM_WORLD.bcast(str(tmp_path / "broken.geo"))
+    if MPI.COMM_WORLD.rank == 0:
+        Path(path).write_text("Point(1) = {0, 0, 0;\n")
+    MPI.COMM_WORLD.barrier()
+    with pytest.raises(ds.MeshError, match=r"broken\.geo"):
+        from_geo(path)

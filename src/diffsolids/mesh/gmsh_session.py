@@ -30,7 +30,9 @@ def gmsh_session() -> Iterator:
 
 
 def _reset(gmsh) -> None:
+    gmsh.option.setNumber("General.Terminal", 0)
     gmsh.clear()
+    gmsh.parser.clear()
     gmsh.option.restoreDefaults()
     gmsh.option.setNumber("General.Terminal", 0)
     gmsh.option.setNumber("General.NumThreads", 1)

@@ -81,6 +81,8 @@ def _mesh_geo(gmsh, path, dim, mesh_size, numbers) -> int:
     # gmsh.open would clear the parser variables just set; merge keeps them (DefineConstant then
     # leaves them alone, like -setnumber on the command line).
     gmsh.merge(str(path))
+    if not gmsh.model.getEntities():
+        raise MeshError(f"gmsh found no geometry in {path}: {gmsh.logger.getLastError()}")
     if mesh_size is not None:
         gmsh.option.setNumber("Mesh.CharacteristicLengthMax", float(mesh_size))
     dim = dim or gmsh.model.getDimension()
