@@ -2,10 +2,14 @@
 
 A contact term with the suggested barrier stiffness, deformed centres of mass per state, the
 invariants every run checks (no inverted element and no intersection in any reported state),
-trajectory output, and an optimiser stop condition that keeps the accepted trajectories.
+trajectory output, an optimiser stop condition that keeps the accepted trajectories, and the
+closing figures and summary line every run prints.
 """
 
+import time
+
 import numpy as np
+from common import finish
 from dolfinx import fem
 from mpi4py import MPI
 
@@ -20,6 +24,7 @@ __all__ = [
     "body_nodes",
     "check_invariants",
     "check_states",
+    "finish_transient",
     "write_states",
 ]
 
@@ -139,3 +144,41 @@ class TrajectoryKeeper:
             self.first = traj
         self.last = traj
         return self.name if self.stop is not None and self.stop(traj) else False
+
+
+def finish_transient(report, args, comm, model, result, times, files, figures, headline):
+    """Record a transient demo's figures, write ``result.json`` and print its summary line.
+
+    Args:
+        report: The DemoReport.
+        args: Parsed arguments (``steps``, ``dt``, ``out``).
+        comm: Communicator of the run.
+        model: The Model (its dof count).
+        result: The OptimizationResult.
+        times: (wall-clock start, CPU start) of the run.
+        files: Files the run wrote.
+        figures: The demo's own figures for ``report.extra``.
+        headline: The demo's part of the summary line (the run's size and cost follow).
+    """
+    t0, cpu0 = times
+    cpu = comm.allreduce(time.process_time() - cpu0, op=MPI.SUM)
+    dofs = model.V.dofmap.index_map.size_global * model.dim
+    report.extra.update(
+        {"dofs": dofs, "ranks": comm.size, "steps": args.steps, "dt": args.dt, **figures}
+    )
+    report.extra.update(
+        {
+            "forward_solves": result.num_forward,
+            "cpu_seconds_all_ranks": cpu,
+            "files": [str(f) for f in files],
+        }
+    )
+    report.wall_seconds = time.perf_counter() - t0
+    finish(report, args, comm)
+    if comm.rank == 0:
+        print(
+            f"{headline}; {dofs} dofs, {args.steps} steps, {result.num_forward} forward solves; "
+            f"CPU {cpu:.1f} s (all ranks)",
+            flush=True,
+        )
+    return report

@@ -30,7 +30,6 @@ from common import (
     DemoReport,
     boundary_segments,
     demo_parser,
-    finish,
     plot_history,
     report_from,
     run_demo,
@@ -44,6 +43,7 @@ from dynamic_common import (
     add_contact,
     check_invariants,
     check_states,
+    finish_transient,
     write_states,
 )
 from mpi4py import MPI
@@ -276,36 +276,21 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
             comm,
         )
         files.append(args.out / "puzzle_initial_velocity.png")
-    report.extra.update(
-        {
-            "dofs": model.V.dofmap.index_map.size_global * model.dim,
-            "ranks": comm.size,
-            "steps": args.steps,
-            "dt": args.dt,
-            "throw_true": TRUE_THROW,
-            "throw_initial": q0.tolist(),
-            "throw_final": result.q.tolist(),
-            "throw_error_initial": error0,
-            "throw_error_final": error1,
-            "path_error_final": path_error,
-            "forward_solves": result.num_forward,
-            "cpu_seconds_all_ranks": comm.allreduce(time.process_time() - cpu0, op=MPI.SUM),
-            "files": [str(f) for f in files],
-        }
+    figures = {
+        "throw_true": TRUE_THROW,
+        "throw_initial": q0.tolist(),
+        "throw_final": result.q.tolist(),
+        "throw_error_initial": error0,
+        "throw_error_final": error1,
+        "path_error_final": path_error,
+    }
+    headline = (
+        f"puzzle_initial_velocity: throw (v_x, v_y, omega) {q0.tolist()} -> "
+        f"{np.round(result.q, 4).tolist()} (true {TRUE_THROW}); relative error "
+        f"{error0:.3f} -> {error1:.2e}; centre of mass within {path_error:.2e} m of the "
+        f"target path"
     )
-    report.wall_seconds = time.perf_counter() - t0
-    finish(report, args, comm)
-    if comm.rank == 0:
-        print(
-            f"puzzle_initial_velocity: throw (v_x, v_y, omega) {q0.tolist()} -> "
-            f"{np.round(result.q, 4).tolist()} (true {TRUE_THROW}); relative error "
-            f"{error0:.3f} -> {error1:.2e}; centre of mass within {path_error:.2e} m of the "
-            f"target path; {report.extra['dofs']} dofs, {args.steps} steps, "
-            f"{result.num_forward} forward solves; CPU "
-            f"{report.extra['cpu_seconds_all_ranks']:.1f} s (all ranks)",
-            flush=True,
-        )
-    return report
+    return finish_transient(report, args, comm, model, result, (t0, cpu0), files, figures, headline)
 
 
 if __name__ == "__main__":

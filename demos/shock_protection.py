@@ -35,7 +35,6 @@ from common import (
     DemoReport,
     boundary_segments,
     demo_parser,
-    finish,
     plot_history,
     report_from,
     run_demo,
@@ -49,6 +48,7 @@ from dynamic_common import (
     body_nodes,
     check_invariants,
     check_states,
+    finish_transient,
     write_states,
 )
 from mpi4py import MPI
@@ -334,36 +334,21 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
             comm,
         )
         files.append(args.out / "shock_protection.png")
-    report.extra.update(
-        {
-            "dofs": model.V.dofmap.index_map.size_global * model.dim,
-            "ranks": comm.size,
-            "steps": args.steps,
-            "dt": args.dt,
-            "design": dict(zip(MODES, result.q.tolist(), strict=True)),
-            "reduction": reduction,
-            "peak_stress_initial": float(stress0.max()),
-            "peak_stress_final": float(stress1.max()),
-            "forward_solves": result.num_forward,
-            "invalid_trials": result.num_invalid_trials,
-            "cpu_seconds_all_ranks": comm.allreduce(time.process_time() - cpu0, op=MPI.SUM),
-            "files": [str(f) for f in files],
-        }
+    figures = {
+        "design": dict(zip(MODES, result.q.tolist(), strict=True)),
+        "reduction": reduction,
+        "peak_stress_initial": float(stress0.max()),
+        "peak_stress_final": float(stress1.max()),
+        "invalid_trials": result.num_invalid_trials,
+    }
+    headline = (
+        f"shock_protection: hole shape ({', '.join(MODES)}) -> "
+        f"{np.round(result.q, 4).tolist()}; load stress (space-time L4) "
+        f"{report.initial_objective:.4g} -> {report.final_objective:.4g} Pa "
+        f"({100 * reduction:.1f}% lower), peak per-step L4 {stress0.max():.4g} -> "
+        f"{stress1.max():.4g} Pa"
     )
-    report.wall_seconds = time.perf_counter() - t0
-    finish(report, args, comm)
-    if comm.rank == 0:
-        print(
-            f"shock_protection: hole shape ({', '.join(MODES)}) -> "
-            f"{np.round(result.q, 4).tolist()}; load stress (space-time L4) "
-            f"{report.initial_objective:.4g} -> {report.final_objective:.4g} Pa "
-            f"({100 * reduction:.1f}% lower), peak per-step L4 {stress0.max():.4g} -> "
-            f"{stress1.max():.4g} Pa; {report.extra['dofs']} dofs, {args.steps} steps, "
-            f"{result.num_forward} forward solves; CPU "
-            f"{report.extra['cpu_seconds_all_ranks']:.1f} s (all ranks)",
-            flush=True,
-        )
-    return report
+    return finish_transient(report, args, comm, model, result, (t0, cpu0), files, figures, headline)
 
 
 if __name__ == "__main__":

@@ -28,7 +28,6 @@ from common import (
     DemoReport,
     boundary_segments,
     demo_parser,
-    finish,
     plot_history,
     report_from,
     run_demo,
@@ -42,6 +41,7 @@ from dynamic_common import (
     body_nodes,
     check_invariants,
     check_states,
+    finish_transient,
     write_states,
 )
 from mpi4py import MPI
@@ -241,36 +241,21 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
             comm,
         )
         files.append(args.out / "sliding_friction.png")
-    report.extra.update(
-        {
-            "dofs": model.V.dofmap.index_map.size_global * model.dim,
-            "ranks": comm.size,
-            "steps": args.steps,
-            "dt": args.dt,
-            "mu_start": args.mu_start,
-            "mu_true": args.mu_true,
-            "mu_final": mu,
-            "mu_history": mus,
-            "line_x": line,
-            "final_x_initial": float(paths[0][-1, 0]),
-            "final_x_final": float(paths[1][-1, 0]),
-            "forward_solves": result.num_forward,
-            "cpu_seconds_all_ranks": comm.allreduce(time.process_time() - cpu0, op=MPI.SUM),
-            "files": [str(f) for f in files],
-        }
+    figures = {
+        "mu_start": args.mu_start,
+        "mu_true": args.mu_true,
+        "mu_final": mu,
+        "mu_history": mus,
+        "line_x": line,
+        "final_x_initial": float(paths[0][-1, 0]),
+        "final_x_final": float(paths[1][-1, 0]),
+    }
+    headline = (
+        f"sliding_friction: mu {args.mu_start:g} -> {mu:.5f} (true {args.mu_true:g}, "
+        f"error {100 * error:.2f}%); the block ends {abs(paths[0][-1, 0] - line):.3f} m -> "
+        f"{abs(paths[1][-1, 0] - line):.2e} m from the line"
     )
-    report.wall_seconds = time.perf_counter() - t0
-    finish(report, args, comm)
-    if comm.rank == 0:
-        print(
-            f"sliding_friction: mu {args.mu_start:g} -> {mu:.5f} (true {args.mu_true:g}, "
-            f"error {100 * error:.2f}%); the block ends {abs(paths[0][-1, 0] - line):.3f} m -> "
-            f"{abs(paths[1][-1, 0] - line):.2e} m from the line; "
-            f"{report.extra['dofs']} dofs, {args.steps} steps, {result.num_forward} forward "
-            f"solves; CPU {report.extra['cpu_seconds_all_ranks']:.1f} s (all ranks)",
-            flush=True,
-        )
-    return report
+    return finish_transient(report, args, comm, model, result, (t0, cpu0), files, figures, headline)
 
 
 if __name__ == "__main__":

@@ -29,7 +29,6 @@ from common import (
     DemoReport,
     boundary_segments,
     demo_parser,
-    finish,
     plot_history,
     report_from,
     run_demo,
@@ -43,6 +42,7 @@ from dynamic_common import (
     body_nodes,
     check_invariants,
     check_states,
+    finish_transient,
     write_states,
 )
 from mpi4py import MPI
@@ -303,41 +303,26 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     if not args.no_plot:
         plot(args.out / "throw.png", args, model, traj0, traj1, paths, q0, result.q, result, comm)
         files.append(args.out / "throw.png")
-    report.extra.update(
-        {
-            "dim": args.dim,
-            "dofs": model.V.dofmap.index_map.size_global * model.dim,
-            "ranks": comm.size,
-            "steps": args.steps,
-            "dt": args.dt,
-            "v0_initial": q0.tolist(),
-            "v0_optimised": result.q.tolist(),
-            "target": target.tolist(),
-            "radius": args.radius,
-            "distance_initial": distance0,
-            "distance_final": distance1,
-            "newton_iterations_final": traj1.newton_iterations(),
-            "forward_solves": result.num_forward,
-            "cpu_seconds_all_ranks": comm.allreduce(time.process_time() - cpu0, op=MPI.SUM),
-            "files": [str(f) for f in files],
-        }
+    names = ["v_x", "v_y", "v_z"][: args.dim]
+    if args.angular:
+        names += ["omega"] if args.dim == 2 else ["omega_x", "omega_y", "omega_z"]
+    figures = {
+        "dim": args.dim,
+        "v0_initial": q0.tolist(),
+        "v0_optimised": result.q.tolist(),
+        "target": target.tolist(),
+        "radius": args.radius,
+        "distance_initial": distance0,
+        "distance_final": distance1,
+        "newton_iterations_final": traj1.newton_iterations(),
+    }
+    headline = (
+        f"throw: A's initial velocity ({', '.join(names)}) "
+        f"{np.round(q0, 3).tolist()} -> {np.round(result.q, 3).tolist()}; "
+        f"B ends {distance0:.3f} m -> {distance1:.3f} m from the target "
+        f"(radius {args.radius} m); output in {args.out}/"
     )
-    report.wall_seconds = time.perf_counter() - t0
-    finish(report, args, comm)
-    if comm.rank == 0:
-        names = ["v_x", "v_y", "v_z"][: args.dim]
-        if args.angular:
-            names += ["omega"] if args.dim == 2 else ["omega_x", "omega_y", "omega_z"]
-        print(
-            f"throw: A's initial velocity ({', '.join(names)}) "
-            f"{np.round(q0, 3).tolist()} -> {np.round(result.q, 3).tolist()}; "
-            f"B ends {distance0:.3f} m -> {distance1:.3f} m from the target "
-            f"(radius {args.radius} m); {report.extra['dofs']} dofs, {args.steps} steps, "
-            f"{result.num_forward} forward solves; CPU {report.extra['cpu_seconds_all_ranks']:.1f}"
-            f" s (all ranks); output in {args.out}/",
-            flush=True,
-        )
-    return report
+    return finish_transient(report, args, comm, model, result, (t0, cpu0), files, figures, headline)
 
 
 if __name__ == "__main__":
