@@ -150,7 +150,11 @@ class AdjointLinearSolver:
         ksp.setOperators(A)
         ksp.getPC().setPythonContext(_FrozenPC(pc))
         x.set(0.0)
-        ksp.solve(b, x)
+        if self.action is not None:
+            with self.action.fixed_state():
+                ksp.solve(b, x)
+        else:
+            ksp.solve(b, x)
         its = ksp.getIterationNumber()
         self.stats["krylov_iterations"] += its
         if ksp.getConvergedReason() <= 0:
