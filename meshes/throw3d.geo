@@ -1,5 +1,7 @@
 // Throw scene for demos/throw.py --full (3D): a static ground slab, a ball "A" (the thrown body)
 // and a puck "B" (a short vertical cylinder) resting on the ground a small gap above it.
+// B (3.1 kg at 1000 kg/m^3) is lighter than A (5.3 kg at 3000 kg/m^3), so a throw of a few
+// m/s sends it sliding most of a metre.
 // Physical groups: volumes "ground" (cell tag 1), "A" (2), "B" (3); surface "ground_top"
 // (facet tag 1). Override the constants with -setnumber (diffsolids.mesh.from_geo's `numbers`).
 SetFactory("OpenCASCADE");
@@ -13,10 +15,10 @@ DefineConstant[
   ay = {0.0, Name "Parameters/ay"},
   az = {0.085, Name "Parameters/az"},
   ar = {0.075, Name "Parameters/ar"},                // radius of ball A
-  bx = {0.45, Name "Parameters/bx"},                 // axis of puck B
+  bx = {0.4, Name "Parameters/bx"},                  // axis of puck B
   by = {0.0, Name "Parameters/by"},
-  br = {0.15, Name "Parameters/br"},                 // radius and height of puck B
-  bh = {0.14, Name "Parameters/bh"},
+  br = {0.1, Name "Parameters/br"},                  // radius and height of puck B
+  bh = {0.1, Name "Parameters/bh"},
   gap = {0.0005, Name "Parameters/gap"},             // initial gap between B and the ground
   h = {0.035, Name "Parameters/h"},                  // mesh size of the bodies
   hg = {10, Name "Parameters/hg"}                    // mesh size of the ground (see below)
