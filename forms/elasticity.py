@@ -87,12 +87,22 @@ def first_piola_kirchhoff(name: str, u, lmbda, mu):
 
 
 def cauchy_stress(name: str, u, lmbda, mu):
-    """Cauchy stress sigma = P F^T / J (the small-strain stress for "linear")."""
-    P = first_piola_kirchhoff(name, u, lmbda, mu)
+    """Cauchy stress sigma = P F^T / J (the small-strain stress for "linear").
+
+    Written out for the finite-strain laws (Neo-Hookean: (mu (B - I) + lambda ln(J) I) / J with
+    B = F F^T; St. Venant-Kirchhoff: F S F^T / J with S = lambda tr(E) I + 2 mu E), which equals
+    P F^T / J without the inverse of F that dpsi/dF carries: the stress objectives and their
+    derivatives compile to about half the operations.
+    """
     if name == "linear":
-        return P
+        return first_piola_kirchhoff(name, u, lmbda, mu)
     F = deformation_gradient(u)
-    return P * F.T / ufl.det(F)
+    J = ufl.det(F)
+    Id = ufl.Identity(F.ufl_shape[0])
+    if name == "st_venant_kirchhoff":
+        E = green_strain(F)
+        return F * (lmbda * ufl.tr(E) * Id + 2 * mu * E) * F.T / J
+    return (mu * (F * F.T - Id) + lmbda * ufl.ln(J) * Id) / J  # Neo-Hookean
 
 
 def plane_strain_normal_stress(name: str, u, lmbda, mu):

@@ -470,3 +470,32 @@ def test_von_mises_objective_is_the_3d_von_mises_stress(plane_stress):
     integral = fem.assemble_scalar(compile_form(leaf.form(model.fields)))
     expected = expected_von_mises(2, 1.5, plane_stress)
     assert integral**0.25 == pytest.approx(2.0**0.25 * expected, rel=1e-10)
+
+
+@pytest.mark.parametrize("law", ["neo_hookean", "st_venant_kirchhoff"])
+@pytest.mark.parametrize("dim", [2, 3])
+def test_written_out_cauchy_stress_is_p_ft_over_j(law, dim):
+    """The closed-form Cauchy stress of each finite-strain law equals dpsi/dF F^T / J."""
+    from dolfinx import fem
+
+    from diffsolids import forms
+    from diffsolids.solvers.forms import compile_form
+
+    dom = (create_rectangle if dim == 2 else create_box)(
+        MPI.COMM_SELF, [[0.0] * dim, [1.0] * dim], [2] * dim
+    )
+    V = fem.functionspace(dom.mesh, ("Lagrange", 2, (dim,)))
+    u = fem.Function(V)
+    u.interpolate(
+        lambda x: 0.2 * np.array([np.sin(2 * x[k] + k) * x[(k + 1) % dim] for k in range(dim)])
+    )
+    lmbda, mu = 3.0, 1.5
+    F = forms.deformation_gradient(u)
+    reference = forms.first_piola_kirchhoff(law, u, lmbda, mu) * F.T / ufl.det(F)
+    sigma = forms.cauchy_stress(law, u, lmbda, mu)
+    diff = sigma - reference
+    dx = ufl.dx(domain=dom.mesh)
+    err = fem.assemble_scalar(compile_form(ufl.inner(diff, diff) * dx))
+    size = fem.assemble_scalar(compile_form(ufl.inner(reference, reference) * dx))
+    assert size > 1e-3
+    assert err <= 1e-26 * size
