@@ -12,6 +12,7 @@ are reused where that stays exact:
   quickly, K is assembled and factorised and preconditions the following steps.
 """
 
+from contextlib import nullcontext
 from dataclasses import dataclass
 
 from petsc4py import PETSc
@@ -150,10 +151,7 @@ class AdjointLinearSolver:
         ksp.setOperators(A)
         ksp.getPC().setPythonContext(_FrozenPC(pc))
         x.set(0.0)
-        if self.action is not None:
-            with self.action.fixed_state():
-                ksp.solve(b, x)
-        else:
+        with self.action.fixed_state() if self.action is not None else nullcontext():
             ksp.solve(b, x)
         its = ksp.getIterationNumber()
         self.stats["krylov_iterations"] += its
