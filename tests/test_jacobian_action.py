@@ -1,6 +1,8 @@
 """The matrix-free step Jacobian of the adjoint solves: K x equals the assembled exact Jacobian
 times x, also when the coefficients are packed once per solve and only the direction changes."""
 
+from contextlib import nullcontext
+
 import numpy as np
 import pytest
 from mpi4py import MPI
@@ -27,25 +29,31 @@ def damped_newton(comm=MPI.COMM_SELF, degree: int = 1):
     return sim.solver
 
 
-def actions(newton, directions, fixed: bool) -> list[np.ndarray]:
-    """Owned entries of K x for each direction (one Krylov solve's worth if ``fixed``)."""
-    action = JacobianAction(newton)
+def actions(newton, directions, fixed: bool, action=None):
+    """(owned entries of K x per direction, the JacobianAction); one Krylov solve's worth of
+    actions under a fixed state if ``fixed``."""
+    action = action or JacobianAction(newton)
     x, y = action.mat.createVecs()
     out = []
-
-    def apply(d):
-        x.array_w[:] = d
-        action.mult(action.mat, x, y)
-        out.append(y.array_r.copy())
-
-    if fixed:
-        with action.fixed_state():
-            for d in directions:
-                apply(d)
-    else:
+    with action.fixed_state() if fixed else nullcontext():
         for d in directions:
-            apply(d)
+            x.array_w[:] = d
+            action.mult(action.mat, x, y)
+            out.append(y.array_r.copy())
     return out, action
+
+
+def exact_products(newton, directions) -> list[np.ndarray]:
+    """Owned entries of K x with K the assembled exact Jacobian at the current state."""
+    A = newton.create_matrix()
+    newton.assemble_jacobian(A, exact=True)
+    x, y = A.createVecs()
+    out = []
+    for d in directions:
+        x.array_w[:] = d
+        A.mult(x, y)
+        out.append(y.array_r.copy())
+    return out
 
 
 @pytest.mark.parametrize("degree", [1, 2])
@@ -57,14 +65,9 @@ def test_action_is_the_exact_jacobian_with_coefficients_packed_once(degree):
     fixed, action = actions(newton, directions, fixed=True)
     assert action._direction_columns is not None  # the packed-once path is the one tested
     plain, _ = actions(newton, directions, fixed=False)
-    A = newton.create_matrix()
-    newton.assemble_jacobian(A, exact=True)
-    x, y = A.createVecs()
-    for d, yf, yp in zip(directions, fixed, plain, strict=True):
-        x.array_w[:] = d
-        A.mult(x, y)
-        scale = np.linalg.norm(y.array_r)
-        assert np.linalg.norm(yf - y.array_r) <= 1e-12 * scale
+    exact = exact_products(newton, directions)
+    for yf, yp, ye in zip(fixed, plain, exact, strict=True):
+        assert np.linalg.norm(yf - ye) <= 1e-12 * np.linalg.norm(ye)
         assert np.array_equal(yf, yp)
 
 
@@ -72,19 +75,10 @@ def test_state_changes_between_solves_are_seen():
     """A new state packs anew: the second solve's action uses the new u."""
     newton = damped_newton()
     n = newton.create_matrix().getLocalSize()[0]
-    d = np.random.default_rng(5).standard_normal(n)
-    action = JacobianAction(newton)
-    x, y = action.mat.createVecs()
-    x.array_w[:] = d
-    with action.fixed_state():
-        action.mult(action.mat, x, y)
-    first = y.array_r.copy()
+    d = [np.random.default_rng(5).standard_normal(n)]
+    (first,), action = actions(newton, d, fixed=True)
     newton.model.fields.u.x.array[:] *= 2.0
-    with action.fixed_state():
-        action.mult(action.mat, x, y)
-    A = newton.create_matrix()
-    newton.assemble_jacobian(A, exact=True)
-    ref = A.createVecLeft()
-    A.mult(x, ref)
-    assert np.linalg.norm(y.array_r - ref.array_r) <= 1e-12 * np.linalg.norm(ref.array_r)
-    assert not np.allclose(first, ref.array_r)
+    (second,), _ = actions(newton, d, fixed=True, action=action)
+    (exact,) = exact_products(newton, d)
+    assert np.linalg.norm(second - exact) <= 1e-12 * np.linalg.norm(exact)
+    assert not np.allclose(first, exact)
