@@ -64,6 +64,17 @@ def test_store_thins_to_evenly_spaced_steps_and_gradient_stays_exact():
         assert error <= FD_TOLERANCE
 
 
+def test_the_sweep_reports_where_its_time_went():
+    rf = _reduced_functional(steps=3)
+    rf.gradient(rf.initial_parameters())
+    stats = rf.adjoint_stats
+    phases = stats["phase_seconds"]
+    assert set(phases) == {"objective_state", "linear_solves", "history", "parameters", "other"}
+    assert all(t >= 0.0 for t in phases.values())
+    assert sum(phases.values()) == pytest.approx(stats["seconds"], rel=1e-12)
+    assert stats["krylov_iterations"] == sum(stats["krylov_per_step"]) > 0
+
+
 def test_process_wide_cap_holds_over_several_stores(monkeypatch):
     gc.collect()  # stores of earlier tests free their factors
     monkeypatch.setattr(FactorStore, "max_live", FactorStore._live + 3)

@@ -18,6 +18,9 @@ coordinate derivative of the inertia term inside L_i.
 
 import logging
 import time
+from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import dolfinx.la
 import numpy as np
@@ -41,6 +44,11 @@ class BackwardSweep:
         leaves: Integral leaves of the objective.
         targets: Sensitivities to compute.
         options: Adjoint linear-solver options.
+
+    Attributes:
+        stats: Of the last sweep: wall ``seconds``, the linear solver's counts, Krylov iterations
+            per step and ``phase_seconds``: the objective's state partials, the linear solves, the
+            pushes into earlier steps (history), the parameter and shape partials, and the rest.
     """
 
     def __init__(
@@ -59,6 +67,16 @@ class BackwardSweep:
         self._rhs = simulation.solver.create_matrix().createVecRight()
         self._sol = self._rhs.duplicate()
         self.stats: dict = {}
+        self._phases: dict[str, float] = defaultdict(float)
+
+    @contextmanager
+    def _phase(self, name: str) -> Iterator[None]:
+        """Adds the wall time of the block to phase ``name`` of :attr:`stats`."""
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self._phases[name] += time.perf_counter() - t0
 
     # -- assembly helpers ----------------------------------------------------------------
     def _assemble(self, form) -> np.ndarray:
@@ -91,32 +109,35 @@ class BackwardSweep:
                 term.begin_step(i, traj, c, sim)
             active = forms.set_weights(leaf_weights, i)
             if active:
-                self._add(ubar[i], forms.objective_u)
-                self._add(vbar[i], forms.objective_v)
+                with self._phase("objective_state"):
+                    self._add(ubar[i], forms.objective_u)
+                    self._add(vbar[i], forms.objective_v)
             # 1. v^i = (u^i + sum_j alpha_j u^{i-j}) / (beta dt)
             ubar[i] += vbar[i] / c.beta_dt
             for j, a in enumerate(c.alpha, start=1):
                 ubar[i - j] += a * vbar[i] / c.beta_dt
             # 2. K_i lambda_i = -ubar^i on free dofs
-            krylov.append(self._solve(ubar[i], i))
+            with self._phase("linear_solves"):
+                krylov.append(self._solve(ubar[i], i))
             # 3. push lambda_i (and the objective's own partials) into the inputs of step i
-            if forms.history_tilde is not None:
-                g = self._assemble(forms.history_tilde)
-                for j, a in enumerate(c.alpha, start=1):
-                    ubar[i - j][: self.owned] -= a * g
-                    vbar[i - j][: self.owned] -= a * c.beta_dt * g
-            self._add(ubar[i - 1], forms.history_prev)
-            self._numeric_history(ubar, i)
-            self._parameters(sens, active)
+            with self._phase("history"):
+                self._history(ubar, vbar, i, c)
+            with self._phase("parameters"):
+                self._parameters(sens, active)
             if self.targets.dirichlet:
                 ubar[i][: self.owned] += self._assemble(forms.jacobian_action)
                 sens.dirichlet[i] = ubar[i]
         self._initial_step(traj, leaf_weights, ubar, vbar, sens)
+        seconds = time.perf_counter() - t0
+        phases = dict(self._phases)
+        phases["other"] = seconds - sum(phases.values())  # loading states, step 0, Dirichlet
         self.stats = {
-            "seconds": time.perf_counter() - t0,
+            "seconds": seconds,
             **self.linear.stats,
+            "phase_seconds": phases,
             "krylov_per_step": krylov[::-1],
         }
+        self._phases.clear()
         return sens
 
     def _empty_sensitivities(self, N: int) -> Sensitivities:
@@ -147,6 +168,17 @@ class BackwardSweep:
         lam.x.petsc_vec.array_w[:] = sol.array_r
         lam.x.scatter_forward()
         return its
+
+    def _history(self, ubar, vbar, i: int, c) -> None:
+        """lambda_i . G_i pushed into u^{i-j}, v^{i-j} (through u_tilde) and u^{i-1}."""
+        forms = self.forms
+        if forms.history_tilde is not None:
+            g = self._assemble(forms.history_tilde)
+            for j, a in enumerate(c.alpha, start=1):
+                ubar[i - j][: self.owned] -= a * g
+                vbar[i - j][: self.owned] -= a * c.beta_dt * g
+        self._add(ubar[i - 1], forms.history_prev)
+        self._numeric_history(ubar, i)
 
     def _numeric_history(self, ubar, i: int) -> None:
         lam = self.forms.lam.x.array
