@@ -94,6 +94,7 @@ class BackwardSweep:
     def run(self, traj, leaf_weights: dict) -> Sensitivities:
         """Backward sweep over ``traj`` with chain-rule weights ``leaf_weights[leaf][i]``."""
         t0 = time.perf_counter()
+        self._phases.clear()  # also drops the times of a sweep that raised part-way
         sim, forms = self.sim, self.forms
         n = len(traj.u[0])
         N = traj.num_steps
@@ -137,7 +138,6 @@ class BackwardSweep:
             "phase_seconds": phases,
             "krylov_per_step": krylov[::-1],
         }
-        self._phases.clear()
         return sens
 
     def _empty_sensitivities(self, N: int) -> Sensitivities:
