@@ -20,6 +20,7 @@ $(STAMP): pyproject.toml
 	fi
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e ".[dolfinx,test]"
+	$(PY) -m diffsolids_mpi_first --install
 	@touch $(STAMP)
 
 setup: $(STAMP)

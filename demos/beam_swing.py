@@ -30,6 +30,7 @@ from mpi4py import MPI
 import diffsolids as ds
 from diffsolids.io import TrajectoryWriter, configure_logging
 from diffsolids.mesh import from_geo
+from diffsolids.parallel import collective_comm
 
 ROOT = Path(__file__).resolve().parents[1]
 GEO = ROOT / "meshes" / "beam.geo"
@@ -83,7 +84,7 @@ def tip_displacement(model: ds.Model, nodes: np.ndarray, u: np.ndarray) -> np.nd
     """Mean displacement of the tip-face nodes, the same on every rank."""
     d = model.dim
     local = np.append(u.reshape(-1, d)[nodes].sum(axis=0), len(nodes))
-    total = model.domain.comm.allreduce(local, op=MPI.SUM)
+    total = collective_comm(model.domain.comm).allreduce(local, op=MPI.SUM)
     return total[:d] / total[d]
 
 
@@ -135,7 +136,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> dict:
     nodes = tip_dofs(model)
     times = np.asarray(traj.times)
     tip = np.array([tip_displacement(model, nodes, u) for u in traj.u])
-    seconds = comm.allreduce(time.perf_counter() - t0, op=MPI.MAX)
+    seconds = collective_comm(comm).allreduce(time.perf_counter() - t0, op=MPI.MAX)
     dofs = model.V.dofmap.index_map.size_global * model.dim
     low = int(np.argmin(tip[:, 2]))
     rebound = low + int(np.argmax(tip[low:, 2]))

@@ -46,6 +46,7 @@ from diffsolids.mesh import from_geo
 from diffsolids.objectives import final_value
 from diffsolids.objectives.library import target_displacement
 from diffsolids.optimize import LBFGSOptions, minimize
+from diffsolids.parallel import collective_comm
 from diffsolids.reduced_functional import ReducedFunctional
 
 GEO = MESHES / "bridge.geo"
@@ -193,7 +194,9 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
             "recovered": found,
             "relative_errors": errors,
             "max_displacement": float(
-                comm.allreduce(np.abs(target_traj.u[-1]).max(initial=0.0), op=MPI.MAX)
+                collective_comm(comm).allreduce(
+                    np.abs(target_traj.u[-1]).max(initial=0.0), op=MPI.MAX
+                )
             ),
             "min_volume_ratio": volumes,
             "num_forward": result.num_forward,

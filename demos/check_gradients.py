@@ -39,6 +39,7 @@ import ufl
 from mpi4py import MPI
 
 import diffsolids as ds
+from diffsolids.parallel import collective_comm
 from diffsolids.verification import finite_difference_check, taylor_test
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -85,7 +86,9 @@ def _static_shape(comm, tiny: bool):
     sim = ds.Simulation(model, ds.Static(), ds.SolverOptions(rtol=1e-12), progress=False)
     shape = MeshMotionControl(model, exclude_facets=fixed + loads)
     # a volume target 2 % below the initial one: the penalty is active and differentiable
-    area = comm.allreduce(fem.assemble_scalar(fem.form(1.0 * model.fields.dx)), op=MPI.SUM)
+    area = collective_comm(comm).allreduce(
+        fem.assemble_scalar(fem.form(1.0 * model.fields.dx)), op=MPI.SUM
+    )
     V = 0.98 * area
     J = (
         final_value(stress_lp_norm(model, 8, "von_mises"))

@@ -20,6 +20,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import numpy as np
 from mpi4py import MPI
 
+from diffsolids.parallel import collective_comm
+
 ROOT = Path(__file__).resolve().parents[1]
 MESHES = ROOT / "meshes"
 
@@ -169,7 +171,7 @@ def boundary_segments(domain, displacement: np.ndarray | None = None, V=None) ->
         node_of_dof = np.empty(len(x), dtype=np.int64)
         node_of_dof[mesh.geometry.dofmaps[0].ravel()] = P1.dofmap.list.ravel()
         x += u1.x.array.reshape(-1, 2)[node_of_dof]
-    return np.concatenate(mesh.comm.allgather(x[nodes]))
+    return np.concatenate(collective_comm(mesh.comm).allgather(x[nodes]))
 
 
 def save_figure(fig, path: Path, comm: MPI.Comm = MPI.COMM_WORLD) -> None:

@@ -16,6 +16,7 @@ from mpi4py import MPI
 from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
 from diffsolids.errors import IntersectionError
 from diffsolids.io import TrajectoryWriter
+from diffsolids.parallel import collective_comm
 
 __all__ = [
     "CentreOfMass",
@@ -66,8 +67,13 @@ class CentreOfMass:
         out = []
         for state in states:
             u.x.array[:] = state
-            m = comm.allreduce(fem.assemble_scalar(mass), op=MPI.SUM)
-            out.append([comm.allreduce(fem.assemble_scalar(f), op=MPI.SUM) / m for f in moments])
+            m = collective_comm(comm).allreduce(fem.assemble_scalar(mass), op=MPI.SUM)
+            out.append(
+                [
+                    collective_comm(comm).allreduce(fem.assemble_scalar(f), op=MPI.SUM) / m
+                    for f in moments
+                ]
+            )
         u.x.array[:] = saved
         return np.array(out)
 
@@ -161,7 +167,7 @@ def finish_transient(report, args, comm, model, result, times, files, figures, h
         headline: The demo's part of the summary line (the run's size and cost follow).
     """
     t0, cpu0 = times
-    cpu = comm.allreduce(time.process_time() - cpu0, op=MPI.SUM)
+    cpu = collective_comm(comm).allreduce(time.process_time() - cpu0, op=MPI.SUM)
     dofs = model.V.dofmap.index_map.size_global * model.dim
     report.extra.update(
         {"dofs": dofs, "ranks": comm.size, "steps": args.steps, "dt": args.dt, **figures}

@@ -49,6 +49,7 @@ from diffsolids.mesh import from_geo
 from diffsolids.objectives import time_integral
 from diffsolids.objectives.library import target_displacement
 from diffsolids.optimize import LBFGSOptions, minimize
+from diffsolids.parallel import collective_comm
 from diffsolids.reduced_functional import ReducedFunctional
 
 GEO = MESHES / "kangaroo.geo"
@@ -122,7 +123,7 @@ def plot(path, model, states, steps, com, result, comm) -> None:
         label: [deformed_triangles(model, traj.u[k])[0] for k in shown]
         for label, (_, traj) in states.items()
     }
-    body_all = np.concatenate(comm.allgather(body))
+    body_all = np.concatenate(collective_comm(comm).allgather(body))
     if comm.rank != 0:
         return
     fig = plt.figure(figsize=(13, 7))

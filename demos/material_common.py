@@ -16,6 +16,7 @@ from mpi4py import MPI
 
 from diffsolids.io import TrajectoryWriter
 from diffsolids.mesh import signed_cell_volumes
+from diffsolids.parallel import collective_comm
 
 __all__ = [
     "TrajectoryGrabber",
@@ -32,7 +33,7 @@ __all__ = [
 
 def cpu_seconds(comm: MPI.Comm, start: float = 0.0) -> float:
     """Process CPU time since ``start`` summed over the ranks (the machine is shared)."""
-    return comm.allreduce(time.process_time() - start, op=MPI.SUM)
+    return collective_comm(comm).allreduce(time.process_time() - start, op=MPI.SUM)
 
 
 class TrajectoryGrabber:
@@ -84,7 +85,7 @@ def min_volume_ratio(model, u: np.ndarray) -> float:
     rest = signed_cell_volumes(mesh)[:owned]
     deformed = signed_cell_volumes(mesh, x)[:owned]
     local = float((deformed / rest).min()) if owned else np.inf
-    return mesh.comm.allreduce(local, op=MPI.MIN)
+    return collective_comm(mesh.comm).allreduce(local, op=MPI.MIN)
 
 
 def intersection_free(contact, trajectories) -> bool:
@@ -118,10 +119,10 @@ def deformed_triangles(model, u: np.ndarray | None, values: np.ndarray | None = 
         x += _p1_displacement(model, u)
     tris = x[mesh.geometry.dofmaps[0][:owned, :3]]
     comm = mesh.comm
-    tris = np.concatenate(comm.allgather(tris))
+    tris = np.concatenate(collective_comm(comm).allgather(tris))
     if values is None:
         return tris, None
-    return tris, np.concatenate(comm.allgather(np.asarray(values)))
+    return tris, np.concatenate(collective_comm(comm).allgather(np.asarray(values)))
 
 
 def write_states(
@@ -157,13 +158,18 @@ def center_of_mass_history(model, trajectory, body) -> np.ndarray:
     rho = model.coefficients["density"]
     dx = f.dx(model.domain.body_id(body))
     comm = model.domain.comm
-    mass = comm.allreduce(fem.assemble_scalar(fem.form(rho * dx)), op=MPI.SUM)
+    mass = collective_comm(comm).allreduce(fem.assemble_scalar(fem.form(rho * dx)), op=MPI.SUM)
     moments = [fem.form(rho * (f.X[k] + f.u[k]) * dx) for k in range(model.dim)]
     saved = f.u.x.array.copy()
     out = []
     for u in trajectory.u:
         f.u.x.array[:] = u
-        out.append([comm.allreduce(fem.assemble_scalar(m), op=MPI.SUM) / mass for m in moments])
+        out.append(
+            [
+                collective_comm(comm).allreduce(fem.assemble_scalar(m), op=MPI.SUM) / mass
+                for m in moments
+            ]
+        )
     f.u.x.array[:] = saved
     return np.array(out)
 

@@ -54,6 +54,7 @@ from diffsolids.io import configure_logging
 from diffsolids.mesh import from_geo
 from diffsolids.objectives import target_displacement, time_integral
 from diffsolids.optimize import LBFGSOptions, minimize
+from diffsolids.parallel import collective_comm
 from diffsolids.reduced_functional import ReducedFunctional
 
 GEO = MESHES / "puzzle.geo"
@@ -206,7 +207,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     target = sim.run()
     sim.targets = [u.copy() for u in target.u]
 
-    area = comm.allreduce(
+    area = collective_comm(comm).allreduce(
         fem.assemble_scalar(fem.form(1.0 * model.body_measure("piece"))), op=MPI.SUM
     )
     misfit = target_displacement(model, sim.target, bodies="piece")

@@ -21,6 +21,7 @@ from diffsolids.io import TrajectoryWriter
 from diffsolids.io.output import von_mises_field
 from diffsolids.mesh import inverted_cells, min_scaled_jacobian
 from diffsolids.optimize import MeshMotionControl
+from diffsolids.parallel import collective_comm
 
 __all__ = [
     "BoundaryCheck",
@@ -48,7 +49,7 @@ def vertex_coordinates(domain) -> np.ndarray:
     n = mesh.geometry.index_map().size_local
     out = np.zeros((mesh.geometry.index_map().size_global, dim))
     out[mesh.geometry.input_global_indices[:n]] = mesh.geometry.x[:n, :dim]
-    return domain.comm.allreduce(out, op=MPI.SUM)
+    return collective_comm(domain.comm).allreduce(out, op=MPI.SUM)
 
 
 def design_vertex_coordinates(control) -> np.ndarray:
@@ -59,26 +60,26 @@ def design_vertex_coordinates(control) -> np.ndarray:
     n = mesh.geometry.index_map().size_local
     out = np.zeros((motion.num_vertices, motion.dim))
     out[mesh.geometry.input_global_indices[:n]] = X[:n]
-    return motion.comm.allreduce(out, op=MPI.SUM)[motion.design]
+    return collective_comm(motion.comm).allreduce(out, op=MPI.SUM)[motion.design]
 
 
 def volume(model) -> float:
     """Rest volume (area in 2D) of the model's mesh."""
     local = fem.assemble_scalar(fem.form(1.0 * model.fields.dx))
-    return model.domain.comm.allreduce(local, op=MPI.SUM)
+    return collective_comm(model.domain.comm).allreduce(local, op=MPI.SUM)
 
 
 def max_von_mises(model, u: np.ndarray) -> float:
     """Largest cellwise (midpoint) von Mises stress of a displacement array."""
     field = von_mises_field(model, u)
     local = field.x.array.max() if field.x.array.size else -np.inf
-    return model.domain.comm.allreduce(float(local), op=MPI.MAX)
+    return collective_comm(model.domain.comm).allreduce(float(local), op=MPI.MAX)
 
 
 def num_inverted(model) -> int:
     """Cells of the current rest mesh whose orientation flipped against the original mesh."""
     bad = inverted_cells(model.domain.mesh, model.reference_signs)
-    return model.domain.comm.allreduce(len(bad), op=MPI.SUM)
+    return collective_comm(model.domain.comm).allreduce(len(bad), op=MPI.SUM)
 
 
 def min_quality(model) -> float:
@@ -186,7 +187,7 @@ def facet_polygons_2d(model, u: np.ndarray | None = None) -> np.ndarray:
     x = mesh.geometry.x[:, :2].copy()
     if u is not None:
         x += _nodal_displacement(model, u)
-    return np.concatenate(mesh.comm.allgather(x[nodes]))
+    return np.concatenate(collective_comm(mesh.comm).allgather(x[nodes]))
 
 
 def silhouettes_3d(model, axes=(1, 2)) -> list[np.ndarray]:
@@ -209,7 +210,7 @@ def silhouettes_3d(model, axes=(1, 2)) -> list[np.ndarray]:
     centroid = x[corner].mean(axis=1)  # inside the cell: the normal points away from it
     normal *= -np.sign(np.sum(normal * (centroid - tri[:, 0]), axis=1))[:, None]
     ids = mesh.geometry.input_global_indices[nodes]
-    parts = mesh.comm.allgather((ids, tri, normal))
+    parts = collective_comm(mesh.comm).allgather((ids, tri, normal))
     ids, tri, normal = (np.concatenate([p[k] for p in parts]) for k in range(3))
     _, first = np.unique(np.sort(ids, axis=1), axis=0, return_index=True)  # once per facet
     tri_ids, tri, normal = ids[first], tri[first], normal[first]

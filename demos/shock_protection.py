@@ -60,6 +60,7 @@ from diffsolids.io import configure_logging
 from diffsolids.mesh import from_geo
 from diffsolids.objectives import Integral, time_integral
 from diffsolids.optimize import LBFGSOptions, minimize
+from diffsolids.parallel import collective_comm
 from diffsolids.reduced_functional import ReducedFunctional
 
 GEO = MESHES / "shock.geo"
@@ -124,12 +125,12 @@ class HoleShape(ShapeControl):
         local = mesh.geometry.input_global_indices
         # rest positions in canonical (input) order, and the vertices of the strip
         X = np.zeros((num, 2))
-        X[np.concatenate(comm.allgather(local))] = np.concatenate(
-            comm.allgather(mesh.geometry.x[:, :2])
+        X[np.concatenate(collective_comm(comm).allgather(local))] = np.concatenate(
+            collective_comm(comm).allgather(mesh.geometry.x[:, :2])
         )
         nodes = np.unique(mesh.geometry.dofmaps[0][model.domain.cells_of("strip")])
         strip = np.zeros(num, dtype=bool)
-        strip[np.concatenate(comm.allgather(local[nodes]))] = True
+        strip[np.concatenate(collective_comm(comm).allgather(local[nodes]))] = True
         modes = hole_modes(X) * strip[:, None, None]
         super().__init__(model, linear_map=modes.reshape(num * 2, len(MODES)))
 
@@ -185,7 +186,7 @@ class StressHistory:
         out = []
         for state in traj.u:
             u.x.array[:] = state
-            out.append(comm.allreduce(fem.assemble_scalar(self.form), op=MPI.SUM))
+            out.append(collective_comm(comm).allreduce(fem.assemble_scalar(self.form), op=MPI.SUM))
         u.x.array[:] = saved
         return (np.maximum(np.array(out), 0.0) / self.volume) ** (1.0 / P)
 
@@ -260,7 +261,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     cpu0 = time.process_time()
     model, contact, sim = build_scene(args, comm)
     control = HoleShape(model)
-    volume = comm.allreduce(
+    volume = collective_comm(comm).allreduce(
         fem.assemble_scalar(fem.form(1.0 * model.body_measure("load"))), op=MPI.SUM
     )
     T = args.steps * args.dt

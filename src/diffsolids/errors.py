@@ -8,6 +8,7 @@ __all__ = [
     "MeshError",
     "NewtonConvergenceError",
     "ParameterError",
+    "PortabilityError",
     "TagError",
 ]
 
@@ -67,3 +68,7 @@ class NewtonConvergenceError(ConvergenceError):
             f"Newton solve of step {step} failed after {iterations} iterations: residual "
             f"{residual:.3e} (tolerance {tolerance:.3e}), reason: {reason}"
         )
+
+
+class PortabilityError(DiffsolidsError, ImportError):
+    """A compiled dependency that cannot run on this CPU (e.g. built for AVX-512)."""

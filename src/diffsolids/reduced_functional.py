@@ -10,10 +10,12 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from diffsolids.adjoint import AdjointSolverOptions, BackwardSweep, Sensitivities
+from diffsolids.adjoint.forms import check_objective_fields
 from diffsolids.controls import Control, ControlSet
 from diffsolids.errors import DiffsolidsError
 from diffsolids.objectives import Objective, ObjectiveError, TimeGrid
 from diffsolids.objectives.terms import objective_terms
+from diffsolids.parallel import collective_comm
 from diffsolids.solvers import compile_form
 from diffsolids.solvers.factor_store import FactorStore
 
@@ -38,6 +40,11 @@ class ReducedFunctional:
             factorisation as the adjoint preconditioner of that step (0 disables; None, the
             default, keeps factors while the node has a quarter of its memory available:
             see :class:`~diffsolids.solvers.factor_store.FactorStore`).
+
+    Raises:
+        ObjectiveError: ``objective`` is not an Objective.
+        ParameterError: An objective integral reads a history field where it is undefined
+            (``u_prev`` or ``u_tilde`` at step 0, ``u_tilde`` in a static run).
 
     Example:
         ``rf = ReducedFunctional(sim, objective, [ParameterControl(model, "E", "bodies")])``;
@@ -64,6 +71,7 @@ class ReducedFunctional:
         self.comm = self.model.domain.comm
         self.leaves = list(dict.fromkeys(objective.leaves()))
         self.regularisers = list(dict.fromkeys(objective.regularisers()))
+        check_objective_fields(objective, self.model.fields, self.grid)
         self._value_forms = {
             leaf: compile_form(leaf.form(self.model.fields)) for leaf in self.leaves
         }
@@ -124,7 +132,7 @@ class ReducedFunctional:
             for leaf, leaf_steps in needed.items():
                 if i in leaf_steps:
                     local = fem.assemble_scalar(self._value_forms[leaf])
-                    table[leaf][i] = self.comm.allreduce(local, op=MPI.SUM)
+                    table[leaf][i] = collective_comm(self.comm).allreduce(local, op=MPI.SUM)
         return table
 
     def __call__(self, q) -> float:

@@ -30,6 +30,7 @@ from mpi4py import MPI
 from diffsolids.adjoint.forms import AdjointForms
 from diffsolids.adjoint.linear import AdjointLinearSolver, AdjointSolverOptions
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
+from diffsolids.parallel import collective_comm
 
 __all__ = ["BackwardSweep"]
 
@@ -204,7 +205,7 @@ class BackwardSweep:
             # collective decision: the numeric terms' kernels gather the surface on every rank
             # (a rank whose dofs are all prescribed holds lambda = 0 alone)
             comm = self.model.domain.comm
-            if comm.allreduce(bool(np.any(lam)), op=MPI.LOR):
+            if collective_comm(comm).allreduce(bool(np.any(lam)), op=MPI.LOR):
                 for term in self.model.numeric_terms:
                     sens.shape += term.adjoint_shape(self.model.fields.u, lam)[: len(sens.shape)]
         lam = self.forms.lam.x.array

@@ -1,8 +1,8 @@
-"""Shape derivative of the barrier gradient, with a correction for ipctk 1.6.1 in 3D.
+"""Shape derivative of the barrier gradient, with a correction for ipctk 1.6.0/1.6.1 in 3D.
 
 ``BarrierPotential.shape_derivative`` returns S[i, j] = d(grad_x B)_i / dX_j at fixed
 displacement (X the rest positions). For mollified edge-edge pairs (near-parallel edges, 3D)
-ipctk 1.6.1 assembles, per pair with barrier value f = w kappa b(d), barrier gradient
+ipctk 1.6.0 and 1.6.1 assemble, per pair with barrier value f = w kappa b(d), barrier gradient
 gf = grad_x f, mollifier m(s, eps(X)) of the cross norm s(x) = |ea x eb|^2 and
 gxm = (dm/deps) grad_X eps:
 

@@ -14,6 +14,7 @@ import ufl
 from dolfinx import fem
 from mpi4py import MPI
 
+from diffsolids.parallel import collective_comm
 from diffsolids.solvers.forms import compile_form
 
 __all__ = ["suggest_barrier_stiffness"]
@@ -45,16 +46,18 @@ def suggest_barrier_stiffness(contact, integrator=None, u: fem.Function | None =
     surf = contact.surface
     dim = model.dim
     dx = model.fields.dx
-    volume = comm.allreduce(fem.assemble_scalar(compile_form(1.0 * dx)), op=MPI.SUM)
+    volume = collective_comm(comm).allreduce(
+        fem.assemble_scalar(compile_form(1.0 * dx)), op=MPI.SUM
+    )
     num_nodes = model.V.dofmap.index_map.size_global
     if integrator is not None and integrator.dynamic:
-        mass = comm.allreduce(
+        mass = collective_comm(comm).allreduce(
             fem.assemble_scalar(compile_form(model.coefficients["density"] * dx)), op=MPI.SUM
         )
         beta_dt = integrator.coefficients(1).beta_dt
         nodal = mass / num_nodes / beta_dt**2
     else:
-        E = comm.allreduce(
+        E = collective_comm(comm).allreduce(
             fem.assemble_scalar(compile_form(_young_modulus(model) * dx)), op=MPI.SUM
         )
         h = np.mean(np.linalg.norm(np.diff(surf.rest_positions[surf.edges], axis=1), axis=-1))
@@ -80,4 +83,4 @@ def suggest_barrier_stiffness(contact, integrator=None, u: fem.Function | None =
     kappa, _ = ipctk.initial_barrier_stiffness(
         float(np.linalg.norm(hi - lo)), unit.barrier, contact.dhat, nodal, grad_energy, grad_barrier
     )
-    return float(comm.bcast(kappa, root=0))
+    return float(collective_comm(comm).bcast(kappa, root=0))

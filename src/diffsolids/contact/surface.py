@@ -25,6 +25,8 @@ from mpi4py.util import dtlib
 from petsc4py import PETSc
 
 from diffsolids.errors import MeshError
+from diffsolids.parallel import collective_comm
+from diffsolids.portability import ensure_ipctk_runs
 
 __all__ = ["CollisionSurface"]
 
@@ -49,10 +51,12 @@ class _OwnedMap:
         self.comm = comm
         self.cv = owned_cv
         self.blocks = blocks
-        counts = np.array(comm.allgather(len(owned_cv)), dtype=np.int64)
+        counts = np.array(collective_comm(comm).allgather(len(owned_cv)), dtype=np.int64)
         self.counts = counts
         self.displs = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        order = np.concatenate(comm.allgather(owned_cv)) if comm.size > 1 else owned_cv
+        order = (
+            np.concatenate(collective_comm(comm).allgather(owned_cv)) if comm.size > 1 else owned_cv
+        )
         if len(order) != nv or len(np.unique(order)) != nv:
             raise MeshError("collision surface vertices are not owned exactly once across ranks")
         self.order = order
@@ -112,6 +116,7 @@ class CollisionSurface:
         self.bs = V.dofmap.index_map_bs
         self.body_ids = domain.body_ids
         self._domain = domain
+        ensure_ipctk_runs(self.comm)  # a PortabilityError here instead of a SIGILL below
         self._facet_data(domain)
         self._build_ipc_mesh()
         self._node_blocks = _vertex_blocks(mesh, V)
@@ -138,7 +143,7 @@ class CollisionSurface:
             input_ids[nodes.ravel()],
             mesh.geometry.x[nodes.ravel(), : self.dim],
         )
-        parts = self.comm.allgather(local)
+        parts = collective_comm(self.comm).allgather(local)
         facet_ids = np.concatenate([p[0] for p in parts])
         facet_body = np.concatenate([p[1] for p in parts])
         node_ids = np.concatenate([p[2] for p in parts])

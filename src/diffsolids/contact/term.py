@@ -34,6 +34,7 @@ from scipy.spatial import cKDTree
 from diffsolids.contact.shape import barrier_shape_derivative
 from diffsolids.contact.surface import CollisionSurface, block_pattern
 from diffsolids.errors import IntersectionError, ParameterError
+from diffsolids.parallel import collective_comm
 
 __all__ = ["ContactRecord", "ContactTerm"]
 
@@ -266,7 +267,7 @@ class ContactTerm:
         """
         bc = np.asarray(bc_dofs)
         key = (len(bc), hash(bc.tobytes()))
-        changed = self.comm.allreduce(key != self._free_key, op=MPI.LOR)
+        changed = collective_comm(self.comm).allreduce(key != self._free_key, op=MPI.LOR)
         if changed:
             self._free = ~self.surface.dof_mask(bc)
             self._free_key = key
@@ -396,7 +397,7 @@ class ContactTerm:
             if T is not None:
                 V = np.asfortranarray(self._velocity(ev.U))
                 e += self._step["beta_dt"] * self.friction_potential(T, mesh, V)
-            ev.energy = float(self.comm.bcast(e, root=0))
+            ev.energy = float(collective_comm(self.comm).bcast(e, root=0))
 
     def _gradient(self, ev: _Evaluation) -> np.ndarray:
         if ev.gradient is None:
@@ -584,7 +585,7 @@ class ContactTerm:
                 self.surface.mesh, x0, x1, 0.0, self.ccd
             )
         self._segment = (U0, dU, candidates, self._token)
-        return self.comm.allreduce(float(toi) * _CCD_REACH, op=MPI.MIN)
+        return collective_comm(self.comm).allreduce(float(toi) * _CCD_REACH, op=MPI.MIN)
 
     # -- configuration checks ----------------------------------------------------------------
     def _body_label(self, body: int) -> str:
@@ -814,7 +815,7 @@ class ContactTerm:
             T = self._tangential_collisions(self._mu_table(unit))
             if len(T):
                 out[p] = self.friction_potential.gradient(T, self.surface.mesh, V) @ lam_c
-        return self.comm.bcast(out, root=0)
+        return collective_comm(self.comm).bcast(out, root=0)
 
 
 def _edges_of(faces: np.ndarray) -> np.ndarray:

@@ -7,6 +7,7 @@ from mpi4py import MPI
 
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.controls.base import Control, ControlError
+from diffsolids.parallel import collective_comm
 
 __all__ = ["DirichletControl"]
 
@@ -78,4 +79,4 @@ class DirichletControl(Control):
             k = i - 1 if self.per_step else 0
             for c, dofs in enumerate(self._dofs_by_comp):
                 g[k, c] += sens.dirichlet[i][dofs].sum()
-        return self.sim.model.domain.comm.allreduce(g, op=MPI.SUM).ravel()
+        return collective_comm(self.sim.model.domain.comm).allreduce(g, op=MPI.SUM).ravel()

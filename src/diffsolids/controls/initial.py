@@ -9,6 +9,7 @@ from mpi4py import MPI
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.controls.base import Control, ControlError
 from diffsolids.controls.ordering import CanonicalLayout
+from diffsolids.parallel import collective_comm
 
 __all__ = ["InitialCondition", "RigidVelocity"]
 
@@ -89,8 +90,10 @@ class RigidVelocity(Control):
         x = V.tabulate_dof_coordinates()[:, : self.dim]
         owned_nodes = self.nodes[self.nodes < self.owned]
         comm = model.domain.comm
-        count = comm.allreduce(len(owned_nodes), op=MPI.SUM)
-        self.center = comm.allreduce(x[owned_nodes].sum(axis=0), op=MPI.SUM) / count
+        count = collective_comm(comm).allreduce(len(owned_nodes), op=MPI.SUM)
+        self.center = (
+            collective_comm(comm).allreduce(x[owned_nodes].sum(axis=0), op=MPI.SUM) / count
+        )
         self.r = x[self.nodes] - self.center
         self.comm = comm
         self.q = np.zeros(self.size)
@@ -146,4 +149,4 @@ class RigidVelocity(Control):
                 parts.append(np.array([np.sum(-r[:, 1] * g_nodes[:, 0] + r[:, 0] * g_nodes[:, 1])]))
             else:
                 parts.append(np.cross(r, g_nodes).sum(axis=0))
-        return self.comm.allreduce(np.concatenate(parts), op=MPI.SUM)
+        return collective_comm(self.comm).allreduce(np.concatenate(parts), op=MPI.SUM)

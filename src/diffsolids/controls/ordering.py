@@ -9,6 +9,8 @@ import numpy as np
 from dolfinx import fem
 from mpi4py import MPI
 
+from diffsolids.parallel import collective_comm
+
 __all__ = ["CanonicalLayout"]
 
 
@@ -47,7 +49,7 @@ class CanonicalLayout:
 
     def _coordinate_order(self) -> np.ndarray:
         x = self.V.tabulate_dof_coordinates()[: self.num_owned]
-        gathered = self.comm.allgather(x)
+        gathered = collective_comm(self.comm).allgather(x)
         allx = np.vstack(gathered)
         scale = max(float(np.abs(allx).max()), 1.0) * 1e-10
         keys = np.round(allx / scale)
@@ -72,4 +74,4 @@ class CanonicalLayout:
         """Global canonical vector from owned local entries (identical on all ranks)."""
         out = np.zeros((self.num_global, self.bs))
         out[self.positions] = np.asarray(local)[: self.num_owned * self.bs].reshape(-1, self.bs)
-        return self.comm.allreduce(out, op=MPI.SUM).ravel()
+        return collective_comm(self.comm).allreduce(out, op=MPI.SUM).ravel()

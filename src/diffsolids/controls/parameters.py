@@ -8,6 +8,7 @@ from mpi4py import MPI
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.controls.base import Control, ControlError
 from diffsolids.controls.ordering import CanonicalLayout
+from diffsolids.parallel import collective_comm
 
 __all__ = ["ParameterControl"]
 
@@ -100,11 +101,13 @@ class ParameterControl(Control):
             for k, cells in enumerate(self._cells):
                 owned = cells[cells < self.owned]
                 local = arr[owned].mean(axis=0) if len(owned) else np.full(self.bs, -np.inf)
-                vals[k] = self.comm.allreduce(local, op=MPI.MAX)
+                vals[k] = collective_comm(self.comm).allreduce(local, op=MPI.MAX)
             return vals.ravel()
         if self.mode == "uniform":
-            n = self.comm.allreduce(len(arr[: self.owned]), op=MPI.SUM)
-            return self.comm.allreduce(arr[: self.owned].sum(axis=0), op=MPI.SUM) / n
+            n = collective_comm(self.comm).allreduce(len(arr[: self.owned]), op=MPI.SUM)
+            return (
+                collective_comm(self.comm).allreduce(arr[: self.owned].sum(axis=0), op=MPI.SUM) / n
+            )
         return np.array([self._scale])
 
     @override
@@ -141,12 +144,18 @@ class ParameterControl(Control):
         elif self.mode == "bodies":
             view = g_local.reshape(-1, self.bs)
             local = np.array([view[c[c < self.owned]].sum(axis=0) for c in self._cells])
-            g = self.comm.allreduce(local, op=MPI.SUM).ravel()
+            g = collective_comm(self.comm).allreduce(local, op=MPI.SUM).ravel()
         elif self.mode == "uniform":
-            g = self.comm.allreduce(g_local.reshape(-1, self.bs).sum(axis=0), op=MPI.SUM)
+            g = collective_comm(self.comm).allreduce(
+                g_local.reshape(-1, self.bs).sum(axis=0), op=MPI.SUM
+            )
         else:
             g = np.array(
-                [self.comm.allreduce(float(g_local @ self.base[: len(g_local)]), op=MPI.SUM)]
+                [
+                    collective_comm(self.comm).allreduce(
+                        float(g_local @ self.base[: len(g_local)]), op=MPI.SUM
+                    )
+                ]
             )
         if self.log:
             g = g * np.exp(self.value())

@@ -12,6 +12,7 @@ from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.controls.base import Control, ControlError
 from diffsolids.errors import InvertedElementError
 from diffsolids.mesh import inverted_cells
+from diffsolids.parallel import collective_comm
 
 __all__ = ["ShapeControl", "boundary_vertices"]
 
@@ -29,7 +30,7 @@ def boundary_vertices(domain, exclude_facets: Sequence[int | str] = ()) -> np.nd
         ex = np.unique(dolfinx.mesh.entities_to_geometry(mesh, fdim, np.concatenate(excluded)))
         nodes = np.setdiff1d(nodes, ex)
     ids = mesh.geometry.input_global_indices[nodes]
-    return np.unique(np.concatenate(domain.comm.allgather(ids)))
+    return np.unique(np.concatenate(collective_comm(domain.comm).allgather(ids)))
 
 
 class ShapeControl(Control):
@@ -97,7 +98,7 @@ class ShapeControl(Control):
         if callable(vertices):
             mask = np.asarray(vertices(self.X0.T), dtype=bool)
             ids = self.input_index[mask]
-            return np.unique(np.concatenate(self.comm.allgather(ids)))
+            return np.unique(np.concatenate(collective_comm(self.comm).allgather(ids)))
         ids = np.unique(np.asarray(vertices, dtype=np.int64))
         if ids.size and (ids.min() < 0 or ids.max() >= self.num_vertices):
             raise ControlError(f"vertex indices out of range 0..{self.num_vertices - 1}")
@@ -127,10 +128,12 @@ class ShapeControl(Control):
         dX = self.displacement(np.asarray(q, dtype=float))
         new = self.X0 + dX[self.input_index]
         bad = inverted_cells(mesh, self.model.reference_signs, _padded(new, mesh.geometry.x))
-        total = self.comm.allreduce(len(bad), op=MPI.SUM)
+        total = collective_comm(self.comm).allreduce(len(bad), op=MPI.SUM)
         if total:
             orig = mesh.topology.original_cell_index[bad]
-            shown = sorted(set().union(*self.comm.allgather(set(orig[:20].tolist()))))
+            shown = sorted(
+                set().union(*collective_comm(self.comm).allgather(set(orig[:20].tolist())))
+            )
             raise InvertedElementError(
                 f"shape update inverts {total} cells (input cell indices {shown[:20]})", cells=bad
             )
@@ -150,7 +153,7 @@ class ShapeControl(Control):
         nodes = self._s_to_node[: self._s_owned]
         out = np.zeros((self.num_vertices, self.dim))
         out[self.input_index[nodes]] = g
-        return self.comm.allreduce(out, op=MPI.SUM)
+        return collective_comm(self.comm).allreduce(out, op=MPI.SUM)
 
     @override
     def pullback(self, sens: Sensitivities) -> np.ndarray:

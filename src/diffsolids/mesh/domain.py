@@ -8,6 +8,7 @@ import numpy as np
 from mpi4py import MPI
 
 from diffsolids.errors import TagError
+from diffsolids.parallel import collective_comm
 
 __all__ = ["Domain", "create_box", "create_rectangle", "tag_facets"]
 
@@ -120,7 +121,7 @@ class Domain:
 
 def _global_unique(comm: MPI.Comm, values: np.ndarray) -> list[int]:
     local = np.unique(values).astype(int).tolist()
-    return sorted(set().union(*comm.allgather(local)))
+    return sorted(set().union(*collective_comm(comm).allgather(local)))
 
 
 def tag_facets(

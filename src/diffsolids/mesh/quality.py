@@ -5,6 +5,7 @@ import numpy as np
 from mpi4py import MPI
 
 from diffsolids.errors import InvertedElementError, MeshError
+from diffsolids.parallel import collective_comm
 
 __all__ = [
     "cell_vertex_coordinates",
@@ -74,9 +75,10 @@ def check_orientation(mesh: dolfinx.mesh.Mesh, rtol: float = 1e-10) -> np.ndarra
     _raise_if_any(mesh, degenerate, "degenerate (zero-volume) cells")
     signs = _facet_opposite_orientations(mesh)
     folded = np.flatnonzero(signs[:, 0] == signs[:, 1])
-    if mesh.comm.allreduce(folded.size, op=MPI.SUM):
+    n_folded = collective_comm(mesh.comm).allreduce(folded.size, op=MPI.SUM)
+    if n_folded:
         raise InvertedElementError(
-            f"inverted input mesh: {mesh.comm.allreduce(folded.size, op=MPI.SUM)} interior facets "
+            f"inverted input mesh: {n_folded} interior facets "
             "have both neighbouring cells on the same side (folded or inverted elements)",
             cells=folded,
         )
@@ -92,9 +94,9 @@ def inverted_cells(
 
 
 def _raise_if_any(mesh, cells: np.ndarray, what: str) -> None:
-    total = mesh.comm.allreduce(cells.size, op=MPI.SUM)
+    total = collective_comm(mesh.comm).allreduce(cells.size, op=MPI.SUM)
     if total:
-        shown = mesh.comm.allgather(cells[:10].tolist())
+        shown = collective_comm(mesh.comm).allgather(cells[:10].tolist())
         raise InvertedElementError(f"{total} {what}; first local cells per rank: {shown}", cells)
 
 
@@ -105,7 +107,7 @@ def _mean_edge_length(mesh: dolfinx.mesh.Mesh) -> float:
     else:
         e = np.linalg.norm(v[:, 1:, :] - v[:, :1, :], axis=2)
         local = (float(e.sum()), e.size)
-    total = mesh.comm.allreduce(np.array(local, dtype=float), op=MPI.SUM)
+    total = collective_comm(mesh.comm).allreduce(np.array(local, dtype=float), op=MPI.SUM)
     if total[1] == 0:
         raise MeshError("the mesh has no cells")
     return total[0] / total[1]
@@ -133,4 +135,4 @@ def min_scaled_jacobian(
             lengths = np.prod(np.linalg.norm(edges, axis=2), axis=1)
             sj = reference_signs * det / lengths / ideal
             worst = min(worst, float(sj.min()))
-    return mesh.comm.allreduce(worst, op=MPI.MIN)
+    return collective_comm(mesh.comm).allreduce(worst, op=MPI.MIN)

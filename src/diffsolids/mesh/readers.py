@@ -12,6 +12,7 @@ from mpi4py import MPI
 from diffsolids.errors import MeshError
 from diffsolids.mesh.domain import Domain
 from diffsolids.mesh.gmsh_session import gmsh_session
+from diffsolids.parallel import collective_comm
 
 __all__ = ["from_geo", "from_gmsh_model", "read_mesh"]
 
@@ -61,7 +62,7 @@ def _on_root(comm: MPI.Comm, build) -> Domain:
     A failure on rank 0 is raised on every rank (the others would wait in the broadcast).
     """
     if comm.rank != 0:
-        gdim = comm.bcast(None)
+        gdim = collective_comm(comm).bcast(None)
         if isinstance(gdim, str):
             raise MeshError(gdim)
         return from_gmsh_model(None, comm, gdim)
@@ -69,9 +70,9 @@ def _on_root(comm: MPI.Comm, build) -> Domain:
         try:
             gdim = build(gmsh)
         except Exception as error:
-            comm.bcast(f"gmsh failed on rank 0: {error}")
+            collective_comm(comm).bcast(f"gmsh failed on rank 0: {error}")
             raise
-        comm.bcast(gdim)
+        collective_comm(comm).bcast(gdim)
         return from_gmsh_model(gmsh.model, comm, gdim)
 
 
@@ -114,7 +115,7 @@ def read_mesh(path: str | os.PathLike, comm: MPI.Comm = MPI.COMM_WORLD, dim: int
     if comm.rank == 0:
         tmp = tempfile.mkdtemp(prefix="diffsolids-mesh-")
         _meshio_to_msh(path, Path(tmp) / "mesh.msh", dim)
-    tmp = comm.bcast(tmp)
+    tmp = collective_comm(comm).bcast(tmp)
     try:
         return read_mesh(Path(tmp) / "mesh.msh", comm, dim)
     finally:

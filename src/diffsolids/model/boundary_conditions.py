@@ -9,6 +9,7 @@ from dolfinx import fem
 from mpi4py import MPI
 
 from diffsolids.errors import ParameterError, TagError
+from diffsolids.parallel import collective_comm
 
 __all__ = ["DirichletCondition", "RealisedDirichlet"]
 
@@ -67,7 +68,7 @@ class RealisedDirichlet:
             gc = fem.Function(Vc)
             self._parts.append((c, gc, pair[1], Vc))
             self.bcs.append(fem.dirichletbc(gc, pair, V.sub(c)))
-        count = mesh.comm.allreduce(len(self._parts[0][2]), op=MPI.SUM)
+        count = collective_comm(mesh.comm).allreduce(len(self._parts[0][2]), op=MPI.SUM)
         if count == 0:
             raise TagError(f"Dirichlet condition on {condition.where!r} constrains no dof")
         self.dofs = np.unique(np.concatenate([bc.dof_indices()[0] for bc in self.bcs]))

@@ -28,6 +28,7 @@ from diffsolids.model.terms import (
     Term,
     Traction,
 )
+from diffsolids.parallel import collective_comm
 
 __all__ = ["Model"]
 
@@ -145,13 +146,17 @@ class Model:
             if name not in self.coefficients:
                 continue
             arr = self.coefficients[name].x.array
-            bad_nan = comm.allreduce(int(np.count_nonzero(~np.isfinite(arr))), op=MPI.SUM)
+            bad_nan = collective_comm(comm).allreduce(
+                int(np.count_nonzero(~np.isfinite(arr))), op=MPI.SUM
+            )
             if bad_nan:
                 raise ParameterError(f"parameter field {name} has {bad_nan} non-finite values")
             strict = name in ("E", "mu", "density", "nu")
             lo_bad = arr <= lo if strict else arr < lo
             hi_bad = arr >= hi if hi is not None else np.zeros_like(lo_bad)
-            count = comm.allreduce(int(np.count_nonzero(lo_bad | hi_bad)), op=MPI.SUM)
+            count = collective_comm(comm).allreduce(
+                int(np.count_nonzero(lo_bad | hi_bad)), op=MPI.SUM
+            )
             if count:
                 rng = f"({lo}, {hi if hi is not None else 'inf'})"
                 raise ParameterError(

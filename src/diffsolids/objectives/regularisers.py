@@ -16,13 +16,14 @@ from mpi4py import MPI
 from diffsolids.controls.ordering import CanonicalLayout
 from diffsolids.errors import ParameterError
 from diffsolids.objectives.functional import ObjectiveError, Regulariser
+from diffsolids.parallel import collective_comm
 
 __all__ = ["BoundarySmoothing", "MaterialSmoothing"]
 
 
 def _allgather_concat(comm: MPI.Comm, local: np.ndarray) -> np.ndarray:
     """Rows of all ranks, in rank order (identical on all ranks)."""
-    parts = comm.allgather(local)
+    parts = collective_comm(comm).allgather(local)
     return np.concatenate(parts, axis=0)
 
 

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 from mpi4py import MPI
 
+from diffsolids.parallel import collective_comm
 from diffsolids.simulation import Trajectory
 
 __all__ = ["Checkpoint", "atomic_write_bytes", "atomic_write_npz"]
@@ -66,7 +67,7 @@ class Checkpoint:
     def exists(self) -> bool:
         """Whether a checkpoint is present (same answer on all ranks)."""
         found = (self.directory / self.STATE).is_file() if self.comm.rank == 0 else None
-        return bool(self.comm.bcast(found, root=0))
+        return bool(collective_comm(self.comm).bcast(found, root=0))
 
     def mesh_directory(self, remesh_count: int) -> Path:
         """Directory for the remesher's data after remesh number ``remesh_count``."""
@@ -126,7 +127,7 @@ class Checkpoint:
         if self.comm.rank == 0:
             with np.load(self.directory / self.STATE, allow_pickle=False) as f:
                 data = {k: f[k] for k in f.files}
-        data = self.comm.bcast(data, root=0)
+        data = collective_comm(self.comm).bcast(data, root=0)
         meta = json.loads(str(data.pop("meta")))
         return meta, data
 
@@ -162,6 +163,6 @@ class Checkpoint:
                         )
                     else:
                         problem = "the dof layout differs from the checkpointed run"
-        problems = self.comm.allgather(problem)
+        problems = collective_comm(self.comm).allgather(problem)
         problem = next((p for p in problems if p is not None), None)
         return (None, problem) if problem is not None else (trajectory, None)

@@ -34,6 +34,7 @@ from diffsolids.controls.base import ControlError
 from diffsolids.controls.ordering import CanonicalLayout
 from diffsolids.controls.shape import ShapeControl, boundary_vertices
 from diffsolids.mesh import Domain, signed_cell_volumes
+from diffsolids.parallel import collective_comm
 from diffsolids.solvers.forms import compile_form
 
 __all__ = ["MeshMotion", "MeshMotionControl", "RieszMap", "ShapeInnerProduct"]
@@ -149,7 +150,9 @@ class MeshMotion(spla.LinearOperator):
         if callable(vertices):
             x = mesh.geometry.x[:, : self.dim]
             ids = mesh.geometry.input_global_indices[np.asarray(vertices(x.T), dtype=bool)]
-            return np.unique(np.concatenate(self.comm.allgather(ids))).astype(np.int64)
+            return np.unique(np.concatenate(collective_comm(self.comm).allgather(ids))).astype(
+                np.int64
+            )
         ids = np.unique(np.asarray(vertices, dtype=np.int64))
         if ids.size and (ids.min() < 0 or ids.max() >= self.num_vertices):
             raise ControlError(f"vertex indices out of range 0..{self.num_vertices - 1}")
@@ -161,7 +164,9 @@ class MeshMotion(spla.LinearOperator):
         weight = fem.Function(Q, name="extension_weight")
         vol = np.abs(signed_cell_volumes(mesh))
         num_owned = mesh.topology.index_map(mesh.topology.dim).size_local
-        total = self.comm.allreduce(np.array([vol[:num_owned].sum(), num_owned]), op=MPI.SUM)
+        total = collective_comm(self.comm).allreduce(
+            np.array([vol[:num_owned].sum(), num_owned]), op=MPI.SUM
+        )
         mean = total[0] / total[1]
         weight.x.array[Q.dofmap.list[:, 0]] = (mean / vol) ** float(chi)
         return weight
@@ -219,7 +224,7 @@ class MeshMotion(spla.LinearOperator):
         dq_local = (y_owned - self._owned_array(self._r)).reshape(-1, self.dim)
         out = np.zeros((self.design.size, self.dim))
         out[self._owned_design_slot] = dq_local[self._owned_design_nodes]
-        return self.comm.allreduce(out, op=MPI.SUM).ravel()
+        return collective_comm(self.comm).allreduce(out, op=MPI.SUM).ravel()
 
     def riesz_map(self, mass_weight: float | None = None, scale: float = 1.0) -> "RieszMap":
         """An SPD inner product of the design space (see :class:`RieszMap`)."""
@@ -295,7 +300,7 @@ class RieszMap:
         x = self._x.getArray(readonly=True).reshape(-1, dim)
         out = np.zeros((m.design.size, dim))
         out[m._owned_design_slot] = x[m._owned_design_nodes]
-        return self.scale * m.comm.allreduce(out, op=MPI.SUM).ravel()
+        return self.scale * collective_comm(m.comm).allreduce(out, op=MPI.SUM).ravel()
 
 
 class MeshMotionControl(ShapeControl):

@@ -48,6 +48,7 @@ from diffsolids.optimize.monitor import (
     log_iteration,
 )
 from diffsolids.optimize.options import LBFGSOptions, OptimizationError, OptimizationWarning
+from diffsolids.parallel import collective_comm
 
 __all__ = ["LBFGS", "OptimizationResult", "minimize"]
 
@@ -187,10 +188,10 @@ class LBFGS:
     # -- evaluation ---------------------------------------------------------------------------
     def _sync(self, J: float, g: np.ndarray | None = None):
         """Rank 0's values on all ranks: every rank takes the same decisions."""
-        J = self.comm.bcast(J, root=0)
+        J = collective_comm(self.comm).bcast(J, root=0)
         if g is None:
             return J
-        return J, self.comm.bcast(g, root=0)
+        return J, collective_comm(self.comm).bcast(g, root=0)
 
     def _set_warm_start(self) -> None:
         sim = self.rf.simulation
@@ -208,7 +209,7 @@ class LBFGS:
             J, why = np.nan, f"{type(e).__name__}: {e}"
         self.num_forward += 1
         seconds = time.perf_counter() - t0
-        valid = self.comm.allreduce(bool(np.isfinite(J)), op=MPI.LAND)
+        valid = collective_comm(self.comm).allreduce(bool(np.isfinite(J)), op=MPI.LAND)
         if not valid and not why:
             why = "failed on another rank"
         return valid, (self._sync(J) if valid else np.nan), seconds, why
@@ -391,7 +392,9 @@ class LBFGS:
 
     def _maybe_remesh(self, rec: IterationRecord) -> None:
         p = self.point
-        wanted = bool(self.comm.bcast(bool(self.remesher.needs_remesh(self.rf, p.q)), root=0))
+        wanted = bool(
+            collective_comm(self.comm).bcast(bool(self.remesher.needs_remesh(self.rf, p.q)), root=0)
+        )
         if not wanted:
             return
         J_before = p.J
@@ -480,7 +483,7 @@ class LBFGS:
     def _stop_reason(self, rec: IterationRecord, previous: IterationRecord | None) -> str | None:
         opts = self.options
         for cond in self.stop_conditions:
-            verdict = self.comm.bcast(cond(rec, self), root=0)
+            verdict = collective_comm(self.comm).bcast(cond(rec, self), root=0)
             if verdict:
                 name = verdict if isinstance(verdict, str) else getattr(cond, "__name__", "stop")
                 return f"user: {name}"

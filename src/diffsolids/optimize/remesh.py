@@ -40,6 +40,8 @@ from mpi4py import MPI
 from diffsolids.controls import InitialCondition, ParameterControl, ShapeControl
 from diffsolids.errors import MeshError
 from diffsolids.mesh import Domain, gmsh_session, min_scaled_jacobian
+from diffsolids.parallel import collective_comm
+from diffsolids.portability import ensure_ipctk_runs
 
 __all__ = [
     "MeshArrays",
@@ -82,8 +84,8 @@ class MeshArrays:
 
 def _gather_rows(comm: MPI.Comm, keys: np.ndarray, rows: np.ndarray, root: int = 0):
     """Rows from all ranks on ``root``, ordered by their (global) keys."""
-    keys = comm.gather(keys, root=root)
-    rows = comm.gather(rows, root=root)
+    keys = collective_comm(comm).gather(keys, root=root)
+    rows = collective_comm(comm).gather(rows, root=root)
     if comm.rank != root:
         return None
     keys, rows = np.concatenate(keys), np.concatenate(rows)
@@ -122,8 +124,8 @@ def gather_mesh(domain: Domain, coordinates: np.ndarray | None = None) -> MeshAr
     fnodes = dolfinx.mesh.entities_to_geometry(mesh, tdim - 1, ft.indices.astype(np.int32))
     fverts = np.sort(inputs[fnodes].reshape(-1, dim), axis=1) if len(ft.indices) else None
     fverts = np.zeros((0, dim), np.int64) if fverts is None else fverts
-    all_facets = comm.gather(fverts, root=0)
-    all_values = comm.gather(ft.values.astype(np.int32), root=0)
+    all_facets = collective_comm(comm).gather(fverts, root=0)
+    all_values = collective_comm(comm).gather(ft.values.astype(np.int32), root=0)
     if comm.rank != 0:
         return None
     facets, idx = np.unique(np.concatenate(all_facets), axis=0, return_index=True)
@@ -137,8 +139,8 @@ def domain_from_arrays(arrays: MeshArrays | None, comm: MPI.Comm, dim: int | Non
     The vertex input order is the row order of ``points`` and the original cell order the
     row order of ``cells``, so canonical parameter orders are reproduced exactly.
     """
-    dim = comm.bcast(arrays.points.shape[1] if comm.rank == 0 else dim, root=0)
-    names = comm.bcast(arrays.names if comm.rank == 0 else None, root=0)
+    dim = collective_comm(comm).bcast(arrays.points.shape[1] if comm.rank == 0 else dim, root=0)
+    names = collective_comm(comm).bcast(arrays.names if comm.rank == 0 else None, root=0)
     element = basix.ufl.element("Lagrange", _CELL_NAMES[dim], 1, shape=(dim,))
     if comm.rank == 0:
         x = np.ascontiguousarray(arrays.points, dtype=float)
@@ -218,10 +220,10 @@ def load_domain(path: str | os.PathLike, comm: MPI.Comm = MPI.COMM_WORLD):
                 info = json.loads(str(data["info"]))
     else:
         raise_later = None
-    raise_later = comm.bcast(raise_later, root=0)
+    raise_later = collective_comm(comm).bcast(raise_later, root=0)
     if raise_later:
         raise MeshError(raise_later)
-    return domain_from_arrays(arrays, comm), comm.bcast(info, root=0)
+    return domain_from_arrays(arrays, comm), collective_comm(comm).bcast(info, root=0)
 
 
 # -- boundary extraction (rank 0, numpy) -------------------------------------------------------
@@ -501,6 +503,8 @@ def _check_boundary_free(points: np.ndarray, boundaries: dict) -> None:
     """Refuse a boundary that intersects itself (gmsh does not return on such input)."""
     import ipctk
 
+    ensure_ipctk_runs()
+
     facets = np.unique(np.sort(np.concatenate(list(boundaries.values())), axis=1), axis=0)
     used, local = np.unique(facets, return_inverse=True)
     local = local.reshape(facets.shape).astype(np.int32)
@@ -579,7 +583,7 @@ def remesh_domain(
             new = _remesh_arrays(arrays, mesh_size, gmsh_options)
         except Exception as exc:  # re-raised on every rank below
             error = f"{type(exc).__name__}: {exc}"
-    error = comm.bcast(error, root=0)
+    error = collective_comm(comm).bcast(error, root=0)
     if error:
         raise MeshError(f"remeshing failed: {error}")
     return domain_from_arrays(new, comm, domain.dim)
@@ -798,7 +802,7 @@ def _interpolate(src: fem.Function, dst: fem.Function) -> None:
     x = mesh.geometry.x
     extent = np.ptp(x, axis=0) if len(x) else np.zeros(3)
     # new boundary vertices may lie up to 2^-32 of the extent outside (snapped coordinates)
-    padding = 1e-8 * mesh.comm.allreduce(float(np.linalg.norm(extent)), op=MPI.MAX)
+    padding = 1e-8 * collective_comm(mesh.comm).allreduce(float(np.linalg.norm(extent)), op=MPI.MAX)
     data = fem.create_interpolation_data(V, src.function_space, cells, padding)
     dst.interpolate_nonmatching(src, cells, data)
     dst.x.scatter_forward()

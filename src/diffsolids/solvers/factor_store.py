@@ -8,6 +8,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from diffsolids.errors import ParameterError
+from diffsolids.parallel import collective_comm
 
 __all__ = ["FactorStore", "factor_memory_mb", "node_memory_mb"]
 
@@ -155,7 +156,7 @@ class FactorStore:
         if FactorStore._live >= FactorStore.max_live:
             gc.collect()  # stores of unreachable solvers free their factors
         full = len(self.factors) >= self.max_factors or FactorStore._live >= FactorStore.max_live
-        if comm.allreduce(full, op=MPI.LOR):
+        if collective_comm(comm).allreduce(full, op=MPI.LOR):
             if not self.factors:
                 return False
             self._thin()
@@ -171,7 +172,7 @@ class FactorStore:
             node.Free()
         available, total = node_memory_mb()
         fits = available - size_mb * self._ranks_on_node >= self.reserve * total
-        return comm.allreduce(fits, op=MPI.LAND)
+        return collective_comm(comm).allreduce(fits, op=MPI.LAND)
 
     def keep(self, step: int, snes: PETSc.SNES) -> None:
         """Store the current KSP of ``snes`` for ``step`` if it fits; give SNES a new KSP."""
@@ -184,7 +185,9 @@ class FactorStore:
         comm = old.comm.tompi4py()
         if not self._room(comm) or step % self.stride:  # thinning may have doubled the stride
             return
-        size_mb = comm.allreduce(factor_memory_mb(pc.getFactorMatrix()), op=MPI.MAX)
+        size_mb = collective_comm(comm).allreduce(
+            factor_memory_mb(pc.getFactorMatrix()), op=MPI.MAX
+        )
         if not self._fits(size_mb, comm):
             return
         pc.setReusePreconditioner(True)

@@ -8,6 +8,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from diffsolids.errors import ParameterError
+from diffsolids.parallel import collective_comm
 from diffsolids.solvers.forms import compile_expression
 
 __all__ = ["InversionGuard"]
@@ -81,7 +82,7 @@ class InversionGuard:
                 neg = real & (mu.real < 0)
                 if neg.any():
                     local = float(np.min(-1.0 / mu.real[neg]))
-        bound = self.comm.allreduce(local, op=MPI.MIN)
+        bound = collective_comm(self.comm).allreduce(local, op=MPI.MIN)
         return bound if bound < self.limit else np.inf
 
 

@@ -16,6 +16,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from diffsolids.errors import NewtonConvergenceError
+from diffsolids.parallel import collective_comm
 from diffsolids.solvers.callbacks import weak_callback
 from diffsolids.solvers.factor_store import FactorStore
 from diffsolids.solvers.forms import compile_form
@@ -150,7 +151,7 @@ class NewtonSolver:
 
     def energy(self) -> float:
         """Incremental potential at the current ``u`` (all ranks)."""
-        e = self.comm.allreduce(fem.assemble_scalar(self.energy_form), op=MPI.SUM)
+        e = collective_comm(self.comm).allreduce(fem.assemble_scalar(self.energy_form), op=MPI.SUM)
         return e + sum(t.energy(self.u) for t in self.numeric_terms)
 
     def assemble_residual(self, b: PETSc.Vec) -> None:
@@ -437,7 +438,9 @@ class NewtonSolver:
         self.fallbacks = 0
         self.bounded_steps = 0
         self._magnitude = abs(
-            self.comm.allreduce(fem.assemble_scalar(self.magnitude_form), op=MPI.SUM)
+            collective_comm(self.comm).allreduce(
+                fem.assemble_scalar(self.magnitude_form), op=MPI.SUM
+            )
         )
         self.u.x.scatter_forward()
         self.x.array_w[:] = self.u.x.petsc_vec.array_r

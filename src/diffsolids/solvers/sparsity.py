@@ -16,6 +16,8 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from diffsolids.parallel import collective_comm
+
 __all__ = ["GrowingPattern", "matrix_with_pattern"]
 
 
@@ -138,7 +140,7 @@ class GrowingPattern:
                 pos = np.minimum(np.searchsorted(present, needed), max(len(present) - 1, 0))
                 lacking |= bool(len(needed)) and not np.all(present[pos] == needed)
         self.seconds += time.perf_counter() - t0 - (self._term_seconds - inner)
-        lacking = A.getComm().tompi4py().allreduce(lacking, op=MPI.LOR)
+        lacking = collective_comm(A.getComm().tompi4py()).allreduce(lacking, op=MPI.LOR)
         self._verified = None if lacking else (A.handle, len(present))
         return lacking
 
