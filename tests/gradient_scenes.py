@@ -54,6 +54,7 @@ class Scene:
     lame: bool = False  # (lmbda, mu) instead of (E, nu)
     young_cg1: bool = False  # E as a CG1 field (E/nu scenes)
     plane_stress: bool = False
+    ramped_load: bool = False  # a traction growing with t on the top (load steps differ)
 
 
 SCENES = {
@@ -77,6 +78,8 @@ SCENES = {
     "2d-p2-nh-damped-lame-ps": Scene(2, 2, "neo_hookean", True, lame=True, plane_stress=True),
     "3d-p1-lin-damped": Scene(3, 1, "linear", True),
     "3d-p1-nh-lame": Scene(3, 1, "neo_hookean", False, lame=True),
+    # history-field objectives in load steps
+    "2d-p1-nh-damped-ramp": Scene(2, 1, "neo_hookean", True, ramped_load=True),
 }
 
 INTEGRATORS = {
@@ -138,6 +141,8 @@ def build_model(scene: Scene, comm=MPI.COMM_SELF) -> ds.Model:
     traction = np.zeros(scene.dim)
     traction[-1], traction[0] = -6.0, 2.0
     model.add_traction(2, traction)
+    if scene.ramped_load:
+        model.add_traction(3, lambda t: np.eye(scene.dim)[-1] * -3.0 * t, name="ramp")
     model.add_dirichlet(1, 0.0)
     return model
 
@@ -241,8 +246,30 @@ def _kinetic(model) -> Integral:
     return Integral(lambda f: 0.5 * rho * ufl.dot(f.v, f.v) * f.dx, "kinetic")
 
 
+def _history_integral(kind: str, model) -> Integral:
+    """Integrals reading a history field of the step: u^{i-1} or the BDF predictor."""
+    rho = model.coefficients["density"]
+    integrands = {
+        "u_prev": lambda f: (ufl.dot(f.u_prev, f.u_prev) + 0.1 * f.u_prev[1]) * f.dx,
+        "u_tilde": lambda f: ufl.dot(f.u_tilde, f.u_tilde + f.u) * f.dx,
+        # a user-written velocity next to the integrator's
+        "rate": lambda f: rho * ufl.dot((f.u - f.u_prev) / f.dt, f.v + f.u) * f.dx,
+    }
+    return Integral(integrands[kind], kind)
+
+
+HISTORY_OBJECTIVES = ("u_prev", "u_tilde", "rate")
+
+
 def objective(kind: str, model, dynamic: bool):
-    """Representative objectives (products, quotients and powers included)."""
+    """Representative objectives (products, quotients and powers included).
+
+    The kinds of HISTORY_OBJECTIVES read u_prev or u_tilde (all steps but step 0, which has no
+    history, and the last one squared).
+    """
+    if kind in HISTORY_OBJECTIVES:
+        leaf = _history_integral(kind, model)
+        return time_integral(leaf, "uniform") + final_value(leaf) ** 2
     dim = model.dim
     down = np.zeros(dim)
     down[-1] = -0.05
@@ -437,6 +464,17 @@ DYNAMIC_CASES = (
         ],
     )
 )
+
+
+# Objectives reading the history fields (u_prev in static and BDF runs, u_tilde in BDF runs),
+# not part of the covering design above.
+HISTORY_CASES = [
+    Case("2d-p1-nh-damped", "bdf2", ("young-field-log", "initial-v0", "initial-u0"), "u_prev"),
+    Case("2d-p1-nh-damped", "bdf3", ("young-field-log", "initial-v0", "initial-u0"), "u_tilde"),
+    Case("2d-p1-nh-damped", "bdf2", ("psi-bodies", "initial-v0"), "rate"),
+    Case("2d-p1-nh-damped-ramp", "static2", ("young-field-log", "initial-u0"), "u_prev"),
+    Case("2d-p1-nh-damped-ramp", "static2", ("young-bodies", "traction-scale"), "rate"),
+]
 
 
 def check_case(case: Case) -> CaseResult:

@@ -5,16 +5,36 @@ G_i the residual of the step's incremental potential (``ufl.derivative(Pi, u, la
 J_i = sum_l c_l^i J_l the objective integrals weighted by their chain-rule weights c_l^i. Every
 partial derivative the backward sweep needs is ``ufl.derivative`` of it; shape derivatives are
 coordinate derivatives of its two parts (paper eqs. 20, 25, 28 come out of UFL).
+
+An objective integral may read every state field of :class:`~diffsolids.model.StepFields`:
+u^i, v^i, the previous displacement u^{i-1} (``u_prev``) and the BDF predictor u_tilde^i
+(``u_tilde``, a combination of earlier displacements and velocities). J_i is differentiated
+with respect to each of them and the backward sweep pushes the partials of the history fields
+into the earlier steps the way it pushes those of the residual. :func:`check_objective_fields`
+refuses the objectives whose history fields are undefined (at step 0, or u_tilde of a static
+run).
 """
+
+from typing import TYPE_CHECKING
 
 import ufl
 from dolfinx import default_scalar_type, fem
-from ufl.algorithms import expand_derivatives
+from ufl.algorithms import expand_derivatives, extract_coefficients
 
 from diffsolids.adjoint.sensitivities import Targets
+from diffsolids.errors import ParameterError
 from diffsolids.solvers.forms import compile_form
 
-__all__ = ["AdjointForms"]
+if TYPE_CHECKING:
+    from diffsolids.model.terms import StepFields
+    from diffsolids.objectives.functional import Objective, TimeGrid
+
+__all__ = ["STATE_FIELDS", "AdjointForms", "check_objective_fields", "state_fields_read"]
+
+#: The state fields of a step (attributes of StepFields) that objectives may read; the adjoint
+#: differentiates J_i with respect to each. u_prev and u_tilde are the history fields: functions
+#: of earlier steps (u^{i-1}; the predictor -sum_j alpha_j (u^{i-j} + beta dt v^{i-j})).
+STATE_FIELDS = ("u", "v", "u_prev", "u_tilde")
 
 
 def _nonempty(form):
@@ -23,6 +43,57 @@ def _nonempty(form):
         return None
     expanded = expand_derivatives(form)
     return None if expanded.empty() else form
+
+
+def state_fields_read(form: ufl.Form, fields: "StepFields") -> list[str]:
+    """Names of the state fields (:data:`STATE_FIELDS`) a form depends on.
+
+    Args:
+        form: A UFL form.
+        fields: The model's StepFields.
+
+    Returns:
+        The names, in the order of :data:`STATE_FIELDS`.
+    """
+    coefficients = set(extract_coefficients(form))
+    return [name for name in STATE_FIELDS if getattr(fields, name) in coefficients]
+
+
+def check_objective_fields(objective: "Objective", fields: "StepFields", grid: "TimeGrid") -> None:
+    """Refuse objective integrals that read a history field where it is not defined.
+
+    ``u_prev`` and ``u_tilde`` of step i are set from steps before i, so step 0 has neither;
+    a static run has no predictor (``u_tilde``) at any step. An integral reading them there
+    would be evaluated, and differentiated, from whatever the fields last held.
+
+    Args:
+        objective: The scalar Objective.
+        fields: The model's StepFields.
+        grid: The simulation's TimeGrid.
+
+    Raises:
+        ParameterError: A leaf reads ``u_tilde`` in a static run, or a history field at step 0.
+    """
+    steps = None
+    for leaf in dict.fromkeys(objective.leaves()):
+        read = state_fields_read(leaf.form(fields), fields)
+        if "u_tilde" in read and not grid.dynamic:
+            raise ParameterError(
+                f"objective integral {leaf.name!r} reads the field u_tilde, the BDF predictor, "
+                "which a static simulation does not have; use u_prev (the previous step's "
+                "displacement) or v instead"
+            )
+        history = [name for name in read if name in ("u_prev", "u_tilde")]
+        if not history:
+            continue
+        if steps is None:  # only objectives reading history fields have their steps checked
+            steps = objective.requirements(grid)
+        if 0 in steps.get(leaf, ()):
+            raise ParameterError(
+                f"objective integral {leaf.name!r} reads the field {history[0]} at step 0, "
+                "which has no previous step: give step 0 zero weight (e.g. "
+                "time_integral(..., 'uniform') or the steps 1..N)"
+            )
 
 
 class AdjointForms:
@@ -47,6 +118,12 @@ class AdjointForms:
         J = _nonempty(sum(parts[1:], parts[0])) if parts else None
         self.objective_u = compile_form(_nonempty(ufl.derivative(J, f.u, w)) if J else None)
         self.objective_v = compile_form(_nonempty(ufl.derivative(J, f.v, w)) if J else None)
+        # the history fields the objective reads, pushed into earlier steps like the residual's
+        # (a static step sets no predictor: u_tilde is constant there)
+        self.objective_prev = compile_form(_nonempty(ufl.derivative(J, f.u_prev, w)) if J else None)
+        self.objective_tilde = compile_form(
+            _nonempty(ufl.derivative(J, f.u_tilde, w)) if J and dynamic else None
+        )
         self.history_tilde = compile_form(_nonempty(ufl.derivative(L, f.u_tilde, w)))
         self.history_prev = compile_form(_nonempty(ufl.derivative(L, f.u_prev, w)))
         self.jacobian_action = (

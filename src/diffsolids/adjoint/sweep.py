@@ -9,6 +9,8 @@ ubar^i, vbar^i (seeded with dJ/du^i, dJ/dv^i):
   2. solve K_i lambda_i = -ubar^i (K_i = dG_i/du^i, symmetric; zero on Dirichlet rows);
   3. push lambda_i into the inputs of G_i: ubar^{i-j} and vbar^{i-j} through u_tilde, ubar^{i-1}
      through damping (and contact through lagged friction and the BDF velocity), and X, q.
+The objective's partials with respect to u_prev and u_tilde of step i (integrals reading the
+history fields) take the same paths into ubar^{i-1} and ubar^{i-j}, vbar^{i-j}.
 At i = 0, ubar^0 and vbar^0 are dJ/du^0 and dJ/dv^0. This is the recurrence of paper eqs. 12-15
 and appendix A.2 written with the eliminated velocity: lambda_i plays the role of p_i (scaled by
 beta dt), the pushes of step 1 and 3 are the mu/nu recurrences, the start-up steps use their own
@@ -114,6 +116,10 @@ class BackwardSweep:
                 with self._phase("objective_state"):
                     self._add(ubar[i], forms.objective_u)
                     self._add(vbar[i], forms.objective_v)
+                    self._add(ubar[i - 1], forms.objective_prev)
+                    if forms.objective_tilde is not None:
+                        g = self._assemble(forms.objective_tilde)
+                        self._push_predictor(ubar, vbar, i, c, g)
             # 1. v^i = (u^i + sum_j alpha_j u^{i-j}) / (beta dt)
             ubar[i] += vbar[i] / c.beta_dt
             for j, a in enumerate(c.alpha, start=1):
@@ -174,12 +180,15 @@ class BackwardSweep:
         """lambda_i . G_i pushed into u^{i-j}, v^{i-j} (through u_tilde) and u^{i-1}."""
         forms = self.forms
         if forms.history_tilde is not None:
-            g = self._assemble(forms.history_tilde)
-            for j, a in enumerate(c.alpha, start=1):
-                ubar[i - j][: self.owned] -= a * g
-                vbar[i - j][: self.owned] -= a * c.beta_dt * g
+            self._push_predictor(ubar, vbar, i, c, self._assemble(forms.history_tilde))
         self._add(ubar[i - 1], forms.history_prev)
         self._numeric_history(ubar, i)
+
+    def _push_predictor(self, ubar, vbar, i: int, c, g: np.ndarray) -> None:
+        """A partial g w.r.t. u_tilde^i = -sum_j alpha_j (u^{i-j} + beta dt v^{i-j}), pushed."""
+        for j, a in enumerate(c.alpha, start=1):
+            ubar[i - j][: self.owned] -= a * g
+            vbar[i - j][: self.owned] -= a * c.beta_dt * g
 
     def _numeric_history(self, ubar, i: int) -> None:
         lam = self.forms.lam.x.array
