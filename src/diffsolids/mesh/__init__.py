@@ -8,7 +8,7 @@ from diffsolids.mesh.quality import (
     min_scaled_jacobian,
     signed_cell_volumes,
 )
-from diffsolids.mesh.readers import from_geo, from_gmsh_model, read_mesh
+from diffsolids.mesh.readers import from_geo, from_gmsh_model, read_mesh, transform_domain
 
 __all__ = [
     "Domain",
@@ -23,4 +23,5 @@ __all__ = [
     "read_mesh",
     "signed_cell_volumes",
     "tag_facets",
+    "transform_domain",
 ]

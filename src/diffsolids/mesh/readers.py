@@ -1,8 +1,9 @@
 """Meshes from gmsh ``.geo`` sources (meshed at run time), ``.msh`` files and meshio formats."""
 
 import os
+import shutil
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import dolfinx.io.gmsh
@@ -14,7 +15,7 @@ from diffsolids.mesh.domain import Domain
 from diffsolids.mesh.gmsh_session import gmsh_session
 from diffsolids.parallel import collective_comm
 
-__all__ = ["from_geo", "from_gmsh_model", "read_mesh"]
+__all__ = ["from_geo", "from_gmsh_model", "read_mesh", "transform_domain"]
 
 
 def from_gmsh_model(model, comm: MPI.Comm, dim: int, rank: int = 0) -> Domain:
@@ -94,66 +95,227 @@ def _mesh_geo(gmsh, path, dim, mesh_size, numbers) -> int:
     return dim
 
 
-def read_mesh(path: str | os.PathLike, comm: MPI.Comm = MPI.COMM_WORLD, dim: int | None = None):
-    """Read a ``.msh`` (gmsh) or any meshio-readable mesh file into a Domain.
+def read_mesh(
+    path: str | os.PathLike,
+    comm: MPI.Comm = MPI.COMM_WORLD,
+    dim: int | None = None,
+    *,
+    scale: float | Sequence[float] = 1.0,
+    rotation: float | Sequence[float] | None = None,
+    translation: Sequence[float] | None = None,
+) -> Domain:
+    """Read a ``.msh`` (gmsh 2.2/4.1, ASCII or binary) or any meshio-readable mesh into a Domain.
 
-    Tags come from gmsh physical groups or from the first integer cell-data array of meshio.
+    Tags: gmsh physical groups when the file has them, else the first integer cell-data array
+    of meshio whose values on the volume cells are all positive. A file without either (most
+    meshes of the paper's data, ``.obj`` files) is read untagged: every element block of the
+    top dimension is one body (cell tags 1, 2, ... in file order) and every boundary facet gets
+    tag 1. A file that tags its cells but no facets gets tag 1 on every boundary facet too.
+    Points not used by any cell are dropped.
+
+    The geometry is then transformed as PolyFEM's ``transformation`` does: scaled, rotated
+    about the origin, translated (x' = R (s * x) + t).
+
+    Args:
+        path: The mesh file (``.geo`` sources are meshed with :func:`from_geo`).
+        comm: Communicator of the distributed mesh.
+        dim: Cell dimension to read (default: the highest present).
+        scale: Scale factor, or one per axis (> 0).
+        rotation: Rotation in degrees: an angle in 2D, Euler angles about x, y, z (applied in
+            that order) in 3D.
+        translation: Translation vector.
+
+    Raises:
+        MeshError: A missing or unreadable file, no volume cells, a surface mesh in 3D space,
+            or a bad transformation.
     """
     path = Path(path)
     if not path.exists():
         raise MeshError(f"mesh file {path} does not exist")
     if path.suffix == ".geo":
-        return from_geo(path, comm, dim)
-    if path.suffix == ".msh":
+        domain = from_geo(path, comm, dim)
+    elif path.suffix == ".msh" and _on_rank0(comm, lambda: _has_physical_groups(path, dim)):
 
         def open_msh(gmsh) -> int:
             gmsh.open(str(path))
             return dim or gmsh.model.getDimension()
 
-        return _on_root(comm, open_msh)
+        domain = _on_root(comm, open_msh)
+    else:
+        domain = _read_with_meshio(path, comm, dim)
+    transform_domain(domain, scale, rotation, translation)
+    return domain
+
+
+def _on_rank0(comm: MPI.Comm, task):
+    """``task()`` on rank 0, its result (or its MeshError) on every rank."""
+    result = None
+    if comm.rank == 0:
+        try:
+            result = ("ok", task())
+        except MeshError as error:
+            result = ("error", str(error))
+    kind, value = collective_comm(comm).bcast(result)
+    if kind == "error":
+        raise MeshError(value)
+    return value
+
+
+def _read_with_meshio(path: Path, comm: MPI.Comm, dim: int | None) -> Domain:
     tmp = None
     if comm.rank == 0:
         tmp = tempfile.mkdtemp(prefix="diffsolids-mesh-")
-        _meshio_to_msh(path, Path(tmp) / "mesh.msh", dim)
-    tmp = collective_comm(comm).bcast(tmp)
+    tmp = Path(collective_comm(comm).bcast(tmp))
     try:
-        return read_mesh(Path(tmp) / "mesh.msh", comm, dim)
+        _on_rank0(comm, lambda: _meshio_to_msh(path, tmp / "mesh.msh", dim))
+        return read_mesh(tmp / "mesh.msh", comm, dim)
     finally:
         comm.barrier()
         if comm.rank == 0:
-            os.remove(Path(tmp) / "mesh.msh")
-            os.rmdir(tmp)
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def transform_domain(
+    domain: Domain,
+    scale: float | Sequence[float] = 1.0,
+    rotation: float | Sequence[float] | None = None,
+    translation: Sequence[float] | None = None,
+) -> None:
+    """Scale, rotate (degrees, about the origin) and translate a Domain's geometry in place.
+
+    Args:
+        domain: The Domain (before any Model is made on it).
+        scale: Scale factor, or one per axis (> 0).
+        rotation: An angle in 2D; Euler angles about x, y, z (applied in that order) in 3D.
+        translation: Translation vector.
+
+    Raises:
+        MeshError: A non-positive or non-finite scale, or arguments of the wrong length.
+    """
+    d = domain.dim
+    s = np.broadcast_to(np.asarray(scale, dtype=float), (d,)) if np.ndim(scale) == 0 else None
+    if s is None:
+        s = np.asarray(scale, dtype=float)
+        if s.shape != (d,):
+            raise MeshError(f"scale {scale} needs 1 or {d} values")
+    if not np.all(np.isfinite(s)) or np.any(s <= 0):
+        raise MeshError(f"scale {scale} must be finite and positive")
+    R = _rotation_matrix(d, rotation)
+    t = np.zeros(d) if translation is None else np.asarray(translation, dtype=float)
+    if t.shape != (d,) or not np.all(np.isfinite(t)):
+        raise MeshError(f"translation {translation} needs {d} finite values")
+    x = domain.mesh.geometry.x
+    x[:, :d] = (x[:, :d] * s) @ R.T + t
+
+
+def _rotation_matrix(d: int, rotation) -> np.ndarray:
+    if rotation is None:
+        return np.eye(d)
+    angles = np.radians(np.atleast_1d(np.asarray(rotation, dtype=float)))
+    if angles.shape != ((1,) if d == 2 else (3,)) or not np.all(np.isfinite(angles)):
+        raise MeshError(f"rotation {rotation} needs {1 if d == 2 else 3} finite angles (degrees)")
+    if d == 2:
+        c, s = np.cos(angles[0]), np.sin(angles[0])
+        return np.array([[c, -s], [s, c]])
+    out = np.eye(3)
+    for axis, angle in enumerate(angles):  # x first, then y, then z: R = Rz Ry Rx
+        i, j = [k for k in range(3) if k != axis]
+        c, s = np.cos(angle), np.sin(angle)
+        step = np.eye(3)
+        step[i, i], step[i, j], step[j, i], step[j, j] = c, -s, s, c
+        out = step @ out
+    return out
+
+
+_KINDS = {"line": 1, "triangle": 2, "tetra": 3}
+_FACETS_OF = {  # local facets of a simplex, by cell type
+    "triangle": np.array([[0, 1], [1, 2], [2, 0]]),
+    "tetra": np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]),
+}
+
+
+def _read_meshio(src: Path):
+    import meshio
+
+    try:
+        return meshio.read(src)
+    except (Exception, SystemExit) as error:  # meshio raises ReadError, ..., or exits
+        raise MeshError(f"{src}: cannot read the file ({type(error).__name__}: {error})") from None
+
+
+def _has_physical_groups(path: Path, dim: int | None) -> bool:
+    """Whether a gmsh file tags its volume cells with physical groups."""
+    m = _read_meshio(path)
+    tdim = dim or max((_KINDS[b.type] for b in m.cells if b.type in _KINDS), default=0)
+    return any(
+        b.type in _KINDS and _KINDS[b.type] == tdim and np.all(tags > 0)
+        for b, tags in zip(m.cells, m.cell_data.get("gmsh:physical", []), strict=False)
+    )
 
 
 def _meshio_to_msh(src: Path, dst: Path, dim: int | None) -> None:
     import meshio
 
-    m = meshio.read(src)
-    kinds = {"triangle": 2, "tetra": 3, "line": 1}
-    present = {b.type: b for b in m.cells if b.type in kinds}
-    tdim = dim or max((kinds[k] for k in present if k != "line"), default=0)
+    m = _read_meshio(src)
+    present = {b.type for b in m.cells if b.type in _KINDS}
+    tdim = dim or max((_KINDS[k] for k in present if k != "line"), default=0)
     cell_type = {2: "triangle", 3: "tetra"}.get(tdim)
     if cell_type not in present:
         raise MeshError(f"{src}: no {cell_type or 'triangle/tetra'} cells found")
     facet_type = {2: "line", 3: "triangle"}[tdim]
+    volume = [i for i, b in enumerate(m.cells) if b.type == cell_type]
     tag_key = next(
-        (k for k, v in m.cell_data.items() if all(np.issubdtype(a.dtype, np.integer) for a in v)),
+        (
+            k
+            for k, v in m.cell_data.items()
+            if all(np.issubdtype(a.dtype, np.integer) for a in v)
+            and all(np.all(v[i] > 0) for i in volume)
+        ),
         None,
     )
     cells, phys = [], []
     for i, block in enumerate(m.cells):
-        if block.type not in (cell_type, facet_type):
-            continue
-        tags = m.cell_data[tag_key][i] if tag_key else None
-        if block.type == facet_type and tags is None:
-            continue
-        cells.append((block.type, block.data))
-        phys.append(tags if tags is not None else np.ones(len(block.data), dtype=int))
-    points = m.points[:, :tdim] if m.points.shape[1] > tdim else m.points
-    points = np.hstack([points, np.zeros((len(points), 3 - points.shape[1]))])
+        if block.type == cell_type:
+            cells.append(block.data)
+            phys.append(m.cell_data[tag_key][i] if tag_key else np.full(len(block.data), i + 1))
+    facets, facet_phys = [], []
+    if tag_key:
+        for i, block in enumerate(m.cells):
+            if block.type == facet_type and np.all(m.cell_data[tag_key][i] > 0):
+                facets.append(block.data)
+                facet_phys.append(m.cell_data[tag_key][i])
+    if not facets:  # no facet tags in the file: every boundary facet gets tag 1
+        boundary = _boundary_facets(np.concatenate(cells), cell_type)
+        facets, facet_phys = [boundary], [np.ones(len(boundary), dtype=int)]
+    points = _planar_points(src, m.points, tdim)
+    used = np.unique(np.concatenate([c.ravel() for c in cells]))
+    renumber = np.full(len(points), -1)
+    renumber[used] = np.arange(len(used))
+    blocks = [(cell_type, renumber[c]) for c in cells] + [(facet_type, renumber[f]) for f in facets]
+    tags = [np.asarray(t, dtype=int) for t in phys + facet_phys]
     out = meshio.Mesh(
-        points,
-        cells,
-        cell_data={"gmsh:physical": phys, "gmsh:geometrical": phys},
+        np.hstack([points[used], np.zeros((len(used), 3 - tdim))]),
+        blocks,
+        cell_data={"gmsh:physical": tags, "gmsh:geometrical": tags},
     )
     meshio.write(dst, out, file_format="gmsh22", binary=False)
+
+
+def _boundary_facets(cells: np.ndarray, cell_type: str) -> np.ndarray:
+    """Facets that belong to exactly one cell."""
+    local = cells[:, _FACETS_OF[cell_type]].reshape(-1, _FACETS_OF[cell_type].shape[1])
+    key = np.sort(local, axis=1)
+    _, first, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
+    return local[np.sort(first[counts == 1])]
+
+
+def _planar_points(src: Path, points: np.ndarray, tdim: int) -> np.ndarray:
+    """The first tdim coordinates; a 2D mesh must lie in a plane z = const."""
+    if points.shape[1] > tdim:
+        extra = points[:, tdim:]
+        if np.ptp(extra, axis=0).max() > 1e-12 * max(np.ptp(points, axis=0).max(), 1.0):
+            raise MeshError(
+                f"{src}: {tdim}D cells in {points.shape[1]}D space are a surface, not a volume "
+                "mesh (contact obstacles given as surfaces are not supported yet)"
+            )
+    return points[:, :tdim]

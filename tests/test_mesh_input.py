@@ -1,0 +1,148 @@
+"""Reading other people's meshes: the paper's files (no physical groups), transforms, bad files."""
+
+import os
+from pathlib import Path
+
+import meshio
+import numpy as np
+import pytest
+import ufl
+from dolfinx import fem
+from mpi4py import MPI
+
+import diffsolids as ds
+from diffsolids.mesh import read_mesh, transform_domain
+
+COMM = MPI.COMM_WORLD
+DATA = Path(os.environ.get("DIFFSOLIDS_DATA", Path(__file__).parents[2] / "shared" / "data"))
+DIFFIPC = DATA / "diffipc"
+
+# file, format, dimension, cells
+PAPER_MESHES = [
+    ("fig14_puzzle_piece/puzzle.msh", "gmsh 2.2 ASCII", 2, 424),
+    ("fig14_puzzle_piece/wave.msh", "gmsh 2.2 ASCII", 2, 66),
+    ("fig20_kangaroo/kangaroo-coarse.msh", "gmsh 2.2 binary", 2, 276),
+    ("fig20_kangaroo/square.obj", "Wavefront OBJ, 2D vertices", 2, 2),
+    ("fig1_bunnies/flat-pool.msh", "gmsh 4.1 ASCII", 3, 486),
+    ("fig1_bunnies/stanford-bunny.obj_.msh", "gmsh 2.2 binary", 3, 3538),
+]
+
+
+def _paper_file(name: str) -> Path:
+    path = DIFFIPC / name
+    if not path.exists():
+        pytest.skip(f"the paper's data is not at {DIFFIPC} (set DIFFSOLIDS_DATA)")
+    return path
+
+
+def _integrate(domain, integrand, measure="dx", tag=None) -> float:
+    if measure == "dx":
+        dm = ufl.dx(domain=domain.mesh)
+    else:
+        dm = ufl.ds(domain=domain.mesh, subdomain_data=domain.facet_tags, subdomain_id=tag)
+    return COMM.allreduce(fem.assemble_scalar(fem.form(integrand * dm)), op=MPI.SUM)
+
+
+def _numpy_volume(path: Path, dim: int) -> float:
+    """|Omega| from the file itself (meshio + numpy), independent of the reader."""
+    m = meshio.read(path)
+    kind = {2: "triangle", 3: "tetra"}[dim]
+    cells = np.concatenate([b.data for b in m.cells if b.type == kind])
+    x = m.points[:, :dim][cells]
+    edges = x[:, 1:] - x[:, :1]
+    return float(np.abs(np.linalg.det(edges)).sum()) / (2 if dim == 2 else 6)
+
+
+@pytest.mark.parametrize(("name", "fmt", "dim", "num_cells"), PAPER_MESHES)
+def test_paper_meshes_without_physical_groups(name, fmt, dim, num_cells):
+    path = _paper_file(name)
+    domain = read_mesh(path, COMM)
+    assert domain.dim == dim, fmt
+    assert domain.mesh.topology.index_map(dim).size_global == num_cells
+    assert domain.body_ids == [1]
+    volume = _integrate(domain, 1.0)
+    assert volume == pytest.approx(_numpy_volume(path, dim), rel=1e-12)
+    # the tagged facets are the whole boundary: int n ds = 0 and int x.n ds = dim |Omega|
+    n, x = ufl.FacetNormal(domain.mesh), ufl.SpatialCoordinate(domain.mesh)
+    tags = domain.facet_ids
+    flux = sum(_integrate(domain, ufl.dot(x, n), "ds", t) for t in tags)
+    assert flux == pytest.approx(dim * volume, rel=1e-10)
+    for k in range(dim):
+        assert abs(sum(_integrate(domain, n[k], "ds", t) for t in tags)) < 1e-10 * volume ** (
+            (dim - 1) / dim
+        )
+    ds.Model(domain, ds.NeoHookean(E=1e5, nu=0.3))  # orientation and quality checks pass
+
+
+def test_untagged_msh_facets_are_tagged_one_and_blocks_are_bodies(tmp_path):
+    """Two blocks (entities 1, 2), no physical group, no facets: bodies 1, 2, boundary tag 1."""
+    points = np.array([[0, 0], [1, 0], [1, 1], [0, 1], [2, 0], [2, 1]], float)
+    blocks = [("triangle", np.array([[0, 1, 2], [0, 2, 3]])), ("triangle", np.array([[1, 4, 5]]))]
+    path = tmp_path / "two_blocks.msh"
+    if COMM.rank == 0:
+        zeros = [np.zeros(2, int), np.zeros(1, int)]  # physical 0: no physical group
+        entities = [np.ones(2, int), np.full(1, 2)]
+        cell_data = {"gmsh:physical": zeros, "gmsh:geometrical": entities}
+        mesh = meshio.Mesh(points, blocks, cell_data=cell_data)
+        meshio.write(path, mesh, file_format="gmsh22", binary=True)
+    COMM.barrier()
+    path = Path(COMM.bcast(str(path)))
+    domain = read_mesh(path, COMM)
+    assert domain.body_ids == [1, 2] and domain.facet_ids == [1]
+    assert _integrate(domain, 1.0) == pytest.approx(1.5)
+    # the bodies share vertex (1, 0) only: the square's 4 edges and the triangle's 3
+    assert _integrate(domain, 1.0, "ds", 1) == pytest.approx(4.0 + 2.0 + np.sqrt(2.0))
+
+
+def test_transform_on_loading_is_scale_then_rotation_then_translation():
+    path = _paper_file("fig14_puzzle_piece/puzzle.msh")
+    plain = read_mesh(path, COMM)
+    moved = read_mesh(path, COMM, scale=0.001, rotation=90.0, translation=[-1.0, 0.2])
+    assert _integrate(moved, 1.0) == pytest.approx(1e-6 * _integrate(plain, 1.0), rel=1e-12)
+    x0 = plain.mesh.geometry.x[:, :2]
+    expected = 0.001 * np.stack([-x0[:, 1], x0[:, 0]], axis=1) + [-1.0, 0.2]
+    assert np.allclose(moved.mesh.geometry.x[:, :2], expected, rtol=0, atol=1e-12)
+    ds.Model(moved, ds.NeoHookean(E=1e5, nu=0.3))
+
+
+def test_3d_rotation_order_and_per_axis_scale():
+    domain = ds.mesh.create_box(COMM, [[0, 0, 0], [1, 2, 3]], [1, 1, 1])
+    x0 = domain.mesh.geometry.x.copy()
+    transform_domain(domain, scale=[2, 1, 1], rotation=[90, 0, 90])
+    # x scaled by 2, then Rx(90): (x, y, z) -> (x, -z, y), then Rz(90): (x, y, z) -> (-y, x, z)
+    sx = x0 * [2, 1, 1]
+    after_x = np.stack([sx[:, 0], -sx[:, 2], sx[:, 1]], axis=1)
+    expected = np.stack([-after_x[:, 1], after_x[:, 0], after_x[:, 2]], axis=1)
+    assert np.allclose(domain.mesh.geometry.x, expected, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"scale": 0.0}, "must be finite and positive"),
+        ({"scale": [1.0, -1.0]}, "must be finite and positive"),
+        ({"scale": [1.0, 1.0, 1.0]}, "needs 1 or 2 values"),
+        ({"rotation": [0.0, 1.0, 2.0]}, "needs 1 finite angles"),
+        ({"translation": [0.0]}, "needs 2 finite values"),
+    ],
+)
+def test_bad_transforms_are_refused(kwargs, message):
+    domain = ds.mesh.create_rectangle(COMM, [[0, 0], [1, 1]], [2, 2])
+    with pytest.raises(ds.MeshError, match=message):
+        transform_domain(domain, **kwargs)
+
+
+def test_unreadable_and_surface_files_name_the_file_and_the_problem(tmp_path):
+    garbage = tmp_path / "garbage.msh"
+    surface = tmp_path / "surface.obj"
+    if COMM.rank == 0:
+        garbage.write_text("$MeshFormat\nthis is not gmsh\n")
+        tri = np.array([[0, 1, 2], [0, 2, 3]])
+        pts = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0.5], [0, 1, 0]], float)
+        meshio.write(surface, meshio.Mesh(pts, [("triangle", tri)]))
+    COMM.barrier()
+    garbage, surface = (Path(COMM.bcast(str(p))) for p in (garbage, surface))
+    with pytest.raises(ds.MeshError, match=r"garbage\.msh: cannot read the file"):
+        read_mesh(garbage, COMM)
+    with pytest.raises(ds.MeshError, match=r"surface\.obj: 2D cells in 3D space are a surface"):
+        read_mesh(surface, COMM)
