@@ -11,7 +11,7 @@ from dolfinx import fem
 from mpi4py import MPI
 
 import diffsolids as ds
-from diffsolids.mesh import read_mesh, transform_domain
+from diffsolids.mesh import create_domain, read_mesh, transform_domain
 
 COMM = MPI.COMM_WORLD
 DATA = Path(os.environ.get("DIFFSOLIDS_DATA", Path(__file__).parents[2] / "shared" / "data"))
@@ -146,3 +146,49 @@ def test_unreadable_and_surface_files_name_the_file_and_the_problem(tmp_path):
         read_mesh(garbage, COMM)
     with pytest.raises(ds.MeshError, match=r"surface\.obj: 2D cells in 3D space are a surface"):
         read_mesh(surface, COMM)
+
+
+# -- Domains from arrays --------------------------------------------------------------------------
+def test_create_domain_from_arrays_tags_the_boundary_by_default():
+    points = [[0, 0], [1, 0], [1, 1], [0, 1], [2, 0], [2, 1]]
+    cells = [[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2]]
+    domain = create_domain(points, cells, COMM)
+    assert domain.body_ids == [1] and domain.facet_ids == [1]
+    assert _integrate(domain, 1.0) == pytest.approx(2.0)
+    assert _integrate(domain, 1.0, "ds", 1) == pytest.approx(6.0)  # the shared edge is inside
+    tagged = create_domain(
+        points,
+        cells,
+        COMM,
+        cell_tags=[1, 1, 2, 2],
+        facets=[[0, 3]],
+        facet_tags=[7],
+        names={"left": 1, "right": 2, "wall": 7},
+    )
+    assert tagged.body_ids == [1, 2] and tagged.facet_ids == [7]
+    assert tagged.body_id("right") == 2 and tagged.facet_id("wall") == 7
+    assert _integrate(tagged, 1.0, "ds", 7) == pytest.approx(1.0)
+
+
+def test_create_domain_3d_matches_a_dolfinx_box():
+    box = ds.mesh.create_box(MPI.COMM_SELF, [[0, 0, 0], [1, 2, 3]], [2, 2, 2])
+    points, cells = box.mesh.geometry.x, box.mesh.geometry.dofmaps[0]
+    domain = create_domain(points, cells, COMM)
+    assert _integrate(domain, 1.0) == pytest.approx(6.0)
+    assert _integrate(domain, 1.0, "ds", 1) == pytest.approx(2 * (2 + 3 + 6))
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (([[0, 0, 0, 0]], [[0, 1, 2]]), r"points must have shape \(n, 2\) or \(n, 3\)"),
+        (([[0, 0], [1, 0], [0, 1]], [[0, 1]]), r"2D cells must have shape \(m, 3\)"),
+        (([[0, 0], [1, 0], [0, 1]], [[0, 1, 3]]), r"cells index vertices outside 0..2"),
+        (([[0, 0], [1, 0], [0, float("nan")]], [[0, 1, 2]]), "non-finite"),
+    ],
+)
+def test_create_domain_refuses_bad_arrays(args, message):
+    with pytest.raises(ds.MeshError, match=message):
+        create_domain(*args, COMM)
+    with pytest.raises(ds.MeshError, match="cell_tags must be 1 positive integers"):
+        create_domain([[0, 0], [1, 0], [0, 1]], [[0, 1, 2]], COMM, cell_tags=[0])

@@ -1,5 +1,6 @@
 """Meshes with body (cell) and boundary (facet) tags: built-in boxes, gmsh and meshio files."""
 
+from diffsolids.mesh.arrays import MeshArrays, boundary_facets, create_domain
 from diffsolids.mesh.domain import Domain, create_box, create_rectangle, tag_facets
 from diffsolids.mesh.gmsh_session import gmsh_session
 from diffsolids.mesh.quality import (
@@ -12,8 +13,11 @@ from diffsolids.mesh.readers import from_geo, from_gmsh_model, read_mesh, transf
 
 __all__ = [
     "Domain",
+    "MeshArrays",
+    "boundary_facets",
     "check_orientation",
     "create_box",
+    "create_domain",
     "create_rectangle",
     "from_geo",
     "from_gmsh_model",

@@ -1,8 +1,6 @@
 """Meshes from gmsh ``.geo`` sources (meshed at run time), ``.msh`` files and meshio formats."""
 
 import os
-import shutil
-import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -11,6 +9,7 @@ import numpy as np
 from mpi4py import MPI
 
 from diffsolids.errors import MeshError
+from diffsolids.mesh.arrays import MeshArrays, boundary_facets, domain_from_arrays
 from diffsolids.mesh.domain import Domain
 from diffsolids.mesh.gmsh_session import gmsh_session
 from diffsolids.parallel import collective_comm
@@ -147,32 +146,22 @@ def read_mesh(
     return domain
 
 
-def _on_rank0(comm: MPI.Comm, task):
-    """``task()`` on rank 0, its result (or its MeshError) on every rank."""
-    result = None
+def _on_rank0(comm: MPI.Comm, task, share: bool = True):
+    """``task()`` on rank 0; its MeshError on every rank, its result on every rank if shared."""
+    value, problem = None, None
     if comm.rank == 0:
         try:
-            result = ("ok", task())
+            value = task()
         except MeshError as error:
-            result = ("error", str(error))
-    kind, value = collective_comm(comm).bcast(result)
-    if kind == "error":
-        raise MeshError(value)
-    return value
+            problem = str(error)
+    problem = collective_comm(comm).bcast(problem)
+    if problem is not None:
+        raise MeshError(problem)
+    return collective_comm(comm).bcast(value) if share else value
 
 
 def _read_with_meshio(path: Path, comm: MPI.Comm, dim: int | None) -> Domain:
-    tmp = None
-    if comm.rank == 0:
-        tmp = tempfile.mkdtemp(prefix="diffsolids-mesh-")
-    tmp = Path(collective_comm(comm).bcast(tmp))
-    try:
-        _on_rank0(comm, lambda: _meshio_to_msh(path, tmp / "mesh.msh", dim))
-        return read_mesh(tmp / "mesh.msh", comm, dim)
-    finally:
-        comm.barrier()
-        if comm.rank == 0:
-            shutil.rmtree(tmp, ignore_errors=True)
+    return domain_from_arrays(_on_rank0(comm, lambda: _meshio_arrays(path, dim), False), comm)
 
 
 def transform_domain(
@@ -228,10 +217,6 @@ def _rotation_matrix(d: int, rotation) -> np.ndarray:
 
 
 _KINDS = {"line": 1, "triangle": 2, "tetra": 3}
-_FACETS_OF = {  # local facets of a simplex, by cell type
-    "triangle": np.array([[0, 1], [1, 2], [2, 0]]),
-    "tetra": np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]),
-}
 
 
 def _read_meshio(src: Path):
@@ -253,9 +238,7 @@ def _has_physical_groups(path: Path, dim: int | None) -> bool:
     )
 
 
-def _meshio_to_msh(src: Path, dst: Path, dim: int | None) -> None:
-    import meshio
-
+def _meshio_arrays(src: Path, dim: int | None) -> MeshArrays:
     m = _read_meshio(src)
     present = {b.type for b in m.cells if b.type in _KINDS}
     tdim = dim or max((_KINDS[k] for k in present if k != "line"), default=0)
@@ -273,40 +256,33 @@ def _meshio_to_msh(src: Path, dst: Path, dim: int | None) -> None:
         ),
         None,
     )
-    cells, phys = [], []
-    for i, block in enumerate(m.cells):
-        if block.type == cell_type:
-            cells.append(block.data)
-            phys.append(m.cell_data[tag_key][i] if tag_key else np.full(len(block.data), i + 1))
-    facets, facet_phys = [], []
-    if tag_key:
-        for i, block in enumerate(m.cells):
-            if block.type == facet_type and np.all(m.cell_data[tag_key][i] > 0):
-                facets.append(block.data)
-                facet_phys.append(m.cell_data[tag_key][i])
+    cells = [m.cells[i].data for i in volume]
+    phys = [
+        m.cell_data[tag_key][i] if tag_key else np.full(len(cells[k]), k + 1)
+        for k, i in enumerate(volume)
+    ]
+    facet_blocks = [
+        i
+        for i, b in enumerate(m.cells)
+        if tag_key and b.type == facet_type and np.all(m.cell_data[tag_key][i] > 0)
+    ]
+    facets = [m.cells[i].data for i in facet_blocks]
+    facet_phys = [m.cell_data[tag_key][i] for i in facet_blocks]
     if not facets:  # no facet tags in the file: every boundary facet gets tag 1
-        boundary = _boundary_facets(np.concatenate(cells), cell_type)
-        facets, facet_phys = [boundary], [np.ones(len(boundary), dtype=int)]
+        facets = [boundary_facets(np.concatenate(cells))]
+        facet_phys = [np.ones(len(facets[0]), dtype=np.int32)]
     points = _planar_points(src, m.points, tdim)
-    used = np.unique(np.concatenate([c.ravel() for c in cells]))
+    all_cells = np.concatenate(cells)
+    used = np.unique(all_cells)
     renumber = np.full(len(points), -1)
     renumber[used] = np.arange(len(used))
-    blocks = [(cell_type, renumber[c]) for c in cells] + [(facet_type, renumber[f]) for f in facets]
-    tags = [np.asarray(t, dtype=int) for t in phys + facet_phys]
-    out = meshio.Mesh(
-        np.hstack([points[used], np.zeros((len(used), 3 - tdim))]),
-        blocks,
-        cell_data={"gmsh:physical": tags, "gmsh:geometrical": tags},
+    return MeshArrays(
+        points[used],
+        renumber[all_cells],
+        np.concatenate(phys).astype(np.int32),
+        renumber[np.concatenate(facets)],
+        np.concatenate(facet_phys).astype(np.int32),
     )
-    meshio.write(dst, out, file_format="gmsh22", binary=False)
-
-
-def _boundary_facets(cells: np.ndarray, cell_type: str) -> np.ndarray:
-    """Facets that belong to exactly one cell."""
-    local = cells[:, _FACETS_OF[cell_type]].reshape(-1, _FACETS_OF[cell_type].shape[1])
-    key = np.sort(local, axis=1)
-    _, first, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
-    return local[np.sort(first[counts == 1])]
 
 
 def _planar_points(src: Path, points: np.ndarray, tdim: int) -> np.ndarray:

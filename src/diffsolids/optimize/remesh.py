@@ -25,21 +25,19 @@ import logging
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
-import basix.ufl
 import dolfinx
 import numpy as np
 import scipy.sparse as sp
-import ufl
 from dolfinx import fem
-from dolfinx.io.utils import distribute_entity_data
 from mpi4py import MPI
 
 from diffsolids.controls import InitialCondition, ParameterControl, ShapeControl
 from diffsolids.errors import MeshError
 from diffsolids.mesh import Domain, gmsh_session, min_scaled_jacobian
+from diffsolids.mesh.arrays import MeshArrays, domain_from_arrays
 from diffsolids.parallel import collective_comm
 from diffsolids.portability import ensure_ipctk_runs
 
@@ -61,27 +59,6 @@ _GMSH_CELL = {2: 2, 3: 4}  # gmsh element types: 3-node triangle, 4-node tetrahe
 
 
 # -- canonical mesh arrays -------------------------------------------------------------------
-@dataclass
-class MeshArrays:
-    """A whole mesh in canonical order (vertex input order, original cell order).
-
-    Attributes:
-        points: Vertex coordinates (num_vertices, dim).
-        cells: Vertex indices of every cell (num_cells, dim + 1).
-        cell_values: Body tag of every cell.
-        facets: Vertex indices of the tagged facets (num_tagged, dim).
-        facet_values: Their tags.
-        names: Tag names of the Domain.
-    """
-
-    points: np.ndarray
-    cells: np.ndarray
-    cell_values: np.ndarray
-    facets: np.ndarray
-    facet_values: np.ndarray
-    names: dict[str, int] = field(default_factory=dict)
-
-
 def _gather_rows(comm: MPI.Comm, keys: np.ndarray, rows: np.ndarray, root: int = 0):
     """Rows from all ranks on ``root``, ordered by their (global) keys."""
     keys = collective_comm(comm).gather(keys, root=root)
@@ -131,41 +108,6 @@ def gather_mesh(domain: Domain, coordinates: np.ndarray | None = None) -> MeshAr
     facets, idx = np.unique(np.concatenate(all_facets), axis=0, return_index=True)
     facet_values = np.concatenate(all_values)[idx]
     return MeshArrays(points, cells, cell_values, facets, facet_values, dict(domain.names))
-
-
-def domain_from_arrays(arrays: MeshArrays | None, comm: MPI.Comm, dim: int | None = None):
-    """Create a distributed Domain from canonical arrays given on rank 0 (collective).
-
-    The vertex input order is the row order of ``points`` and the original cell order the
-    row order of ``cells``, so canonical parameter orders are reproduced exactly.
-    """
-    dim = collective_comm(comm).bcast(arrays.points.shape[1] if comm.rank == 0 else dim, root=0)
-    names = collective_comm(comm).bcast(arrays.names if comm.rank == 0 else None, root=0)
-    element = basix.ufl.element("Lagrange", _CELL_NAMES[dim], 1, shape=(dim,))
-    if comm.rank == 0:
-        x = np.ascontiguousarray(arrays.points, dtype=float)
-        cells = np.ascontiguousarray(arrays.cells, dtype=np.int64)
-        cell_values = arrays.cell_values.astype(np.int32)
-        facets = np.ascontiguousarray(arrays.facets, dtype=np.int64).reshape(-1, dim)
-        facet_values = arrays.facet_values.astype(np.int32)
-    else:
-        x = np.zeros((0, dim))
-        cells = np.zeros((0, dim + 1), np.int64)
-        cell_values = np.zeros(0, np.int32)
-        facets = np.zeros((0, dim), np.int64)
-        facet_values = np.zeros(0, np.int32)
-    mesh = dolfinx.mesh.create_mesh(comm, cells, ufl.Mesh(element), x)
-    tags = []
-    for edim, entities, values in ((dim, cells, cell_values), (dim - 1, facets, facet_values)):
-        mesh.topology.create_connectivity(edim, dim)
-        local, local_values = distribute_entity_data(mesh, edim, entities, values)
-        adj = dolfinx.graph.adjacencylist(local)
-        tags.append(
-            dolfinx.mesh.meshtags_from_entities(
-                mesh, edim, adj, local_values.astype(np.int32, copy=False)
-            )
-        )
-    return Domain.from_mesh(mesh, tags[0], tags[1], names)
 
 
 def save_domain(
