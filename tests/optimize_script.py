@@ -130,7 +130,7 @@ def contact_problem(comm=MPI.COMM_WORLD, gap: float = 0.1):
     import scipy.sparse as sp
 
     from diffsolids.contact import ContactTerm
-    from diffsolids.contact.scenes import combine_meshes, simplex_box
+    from diffsolids.mesh.scene import combine_meshes, simplex_box
 
     slab = simplex_box([[0.0, -0.7], [1.0, 0.3]], [4, 4])
     block = simplex_box([[0.3137, 0.3 + gap], [0.7137, 0.6 + gap]], [2, 2])

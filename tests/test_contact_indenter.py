@@ -18,9 +18,9 @@ from test_gradients_contact import _direction, check_gradient
 
 import diffsolids as ds
 from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
-from diffsolids.contact.scenes import combine_meshes, simplex_box
 from diffsolids.controls import ParameterControl, ShapeControl
 from diffsolids.errors import NewtonConvergenceError
+from diffsolids.mesh.scene import combine_meshes, simplex_box
 from diffsolids.objectives import Integral, final_value, time_integral
 from diffsolids.reduced_functional import ReducedFunctional
 

@@ -16,9 +16,9 @@ from mpi4py import MPI
 
 import diffsolids as ds
 from diffsolids.contact import ContactTerm
-from diffsolids.contact.scenes import combine_meshes, simplex_box
 from diffsolids.contact.shape import _mollified_pairs
 from diffsolids.contact.surface import _vertex_blocks
+from diffsolids.mesh.scene import combine_meshes, simplex_box
 from diffsolids.simulation import Trajectory
 from diffsolids.solvers.sparsity import matrix_with_pattern
 

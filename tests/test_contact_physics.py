@@ -9,9 +9,9 @@ from mpi4py import MPI
 
 import diffsolids as ds
 from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
-from diffsolids.contact.scenes import combine_meshes, simplex_ball, simplex_box
 from diffsolids.errors import IntersectionError, ParameterError
 from diffsolids.mesh import Domain, gmsh_session, tag_facets
+from diffsolids.mesh.scene import combine_meshes, simplex_ball, simplex_box
 from diffsolids.simulation import Trajectory
 
 COMM = MPI.COMM_WORLD

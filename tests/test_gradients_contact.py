@@ -32,7 +32,6 @@ from mpi4py import MPI
 import diffsolids as ds
 import diffsolids.contact.shape as contact_shape
 from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
-from diffsolids.contact.scenes import combine_meshes, simplex_box
 from diffsolids.contact.shape import _mollified_pairs
 from diffsolids.controls import (
     FrictionControl,
@@ -40,6 +39,7 @@ from diffsolids.controls import (
     ParameterControl,
     ShapeControl,
 )
+from diffsolids.mesh.scene import combine_meshes, simplex_box
 from diffsolids.objectives import Integral, final_value, time_integral
 from diffsolids.reduced_functional import ReducedFunctional
 from diffsolids.verification import finite_difference_check, taylor_test

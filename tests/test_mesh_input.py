@@ -192,3 +192,74 @@ def test_create_domain_refuses_bad_arrays(args, message):
         create_domain(*args, COMM)
     with pytest.raises(ds.MeshError, match="cell_tags must be 1 positive integers"):
         create_domain([[0, 0], [1, 0], [0, 1]], [[0, 1, 2]], COMM, cell_tags=[0])
+
+
+# -- boundary selections (PolyFEM rule: the facet's barycentre) ----------------------------------
+def _strip():
+    return ds.mesh.create_rectangle(COMM, [[0, 0], [2, 1]], [2, 1])
+
+
+def test_a_box_selects_facets_by_barycentre_where_vertex_markers_do_not():
+    sel = ds.mesh.BoxSelection([0.4, -0.1], [2.1, 0.1])
+    by_centre = ds.mesh.select_facets(_strip(), {5: sel}, names={"floor": 5})
+    assert by_centre.facet_ids == [5] and by_centre.facet_id("floor") == 5
+    assert _integrate(by_centre, 1.0, "ds", 5) == pytest.approx(2.0)  # both bottom edges
+    mesh = _strip().mesh
+    by_vertex = ds.Domain.from_mesh(
+        mesh,
+        facet_tags=ds.mesh.tag_facets(
+            mesh, {5: lambda x: sel.inside(x[:2].T, (np.zeros(2), np.ones(2)))}
+        ),
+    )
+    assert _integrate(by_vertex, 1.0, "ds", 5) == pytest.approx(1.0)  # (0, 0) is outside
+
+
+@pytest.mark.parametrize(
+    ("selection", "length"),
+    [
+        (ds.mesh.AxisPlaneSelection("-x", 0.0), 1.0),
+        (ds.mesh.AxisPlaneSelection(2, 1.0), 2.0),
+        (ds.mesh.AxisPlaneSelection(1, 0.99, relative=True), 1.0),
+        (ds.mesh.PlaneSelection([0, -1], [0, 0.01]), 2.0),
+        (ds.mesh.SphereSelection([2, 1], 0.8), 2.0),  # centres (2, 0.5) and (1.5, 1)
+        (ds.mesh.SphereSelection([2, 1], 0.45), 0.0),
+        (ds.mesh.BoxSelection([0.7, 0.4], [1.1, 1.1], relative=True), 2.0),
+    ],
+)
+def test_selections_follow_polyfem(selection, length):
+    domain = ds.mesh.select_facets(_strip(), {3: selection})
+    assert _integrate(domain, 1.0, "ds", 3) == pytest.approx(length)
+
+
+def test_later_selections_win_and_bad_tags_are_refused():
+    domain = ds.mesh.select_facets(
+        _strip(),
+        {1: ds.mesh.AxisPlaneSelection(2, -1.0), 2: ds.mesh.AxisPlaneSelection(-2, 0.0)},
+    )
+    assert _integrate(domain, 1.0, "ds", 1) == pytest.approx(4.0)  # all but the bottom
+    assert _integrate(domain, 1.0, "ds", 2) == pytest.approx(2.0)
+    with pytest.raises(ds.ParameterError, match="facet tag 0 must be a positive integer"):
+        ds.mesh.select_facets(_strip(), {0: ds.mesh.AxisPlaneSelection(1, 0.0)})
+    with pytest.raises(ds.ParameterError, match="axis 4 must be"):
+        ds.mesh.select_facets(_strip(), {1: ds.mesh.AxisPlaneSelection(4, 0.0)})
+
+
+def test_a_paper_scene_assembled_from_its_files():
+    """fig20: the ground square.obj and the kangaroo, placed as the scene JSON places them."""
+    ground = read_mesh(_paper_file("fig20_kangaroo/square.obj"), MPI.COMM_SELF, scale=[3, 0.02])
+    kangaroo = read_mesh(
+        _paper_file("fig20_kangaroo/kangaroo-coarse.msh"),
+        MPI.COMM_SELF,
+        scale=0.25,
+        translation=[-1.5, 0.1],
+    )
+    domain = ds.mesh.combine_meshes(COMM, [ground, kangaroo], names={"ground": 1, "kangaroo": 2})
+    assert domain.body_ids == [1, 2] and domain.body_id("kangaroo") == 2
+    dx = ufl.Measure("dx", domain=domain.mesh, subdomain_data=domain.cell_tags)
+    area = [COMM.allreduce(fem.assemble_scalar(fem.form(1.0 * dx(b))), op=MPI.SUM) for b in (1, 2)]
+    assert area[0] == pytest.approx(3 * 0.02)
+    assert area[1] == pytest.approx(0.25**2 * _integrate(read_mesh(kangaroo_path(), COMM), 1.0))
+
+
+def kangaroo_path() -> Path:
+    return _paper_file("fig20_kangaroo/kangaroo-coarse.msh")

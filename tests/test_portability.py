@@ -170,7 +170,7 @@ _SCENARIOS = {
     ),
     "intersecting_bodies": (
         "from diffsolids.contact import ContactTerm\n"
-        "from diffsolids.contact.scenes import combine_meshes, simplex_box\n"
+        "from diffsolids.mesh.scene import combine_meshes, simplex_box\n"
         "def solve():\n"
         "    lower = simplex_box([[0, 0], [1, 0.2]], [4, 1])\n"
         "    upper = simplex_box([[0.3, 0.15], [0.6, 0.45]], [2, 2])\n"

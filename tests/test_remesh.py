@@ -7,7 +7,6 @@ from dolfinx import fem
 from mpi4py import MPI
 
 import diffsolids as ds
-from diffsolids.contact.scenes import simplex_ball
 from diffsolids.controls import InitialCondition, ParameterControl
 from diffsolids.errors import MeshError
 from diffsolids.mesh import (
@@ -19,6 +18,7 @@ from diffsolids.mesh import (
     gmsh_session,
     min_scaled_jacobian,
 )
+from diffsolids.mesh.scene import simplex_ball
 from diffsolids.objectives import Integral, final_value
 from diffsolids.optimize.mesh_motion import MeshMotionControl, ShapeInnerProduct
 from diffsolids.optimize.remesh import (

@@ -46,8 +46,8 @@ def main(argv=None) -> dict:
 
     import diffsolids as ds
     from diffsolids.contact import ContactTerm
-    from diffsolids.contact.scenes import combine_meshes, simplex_box
     from diffsolids.controls import FrictionControl, ParameterControl, ShapeControl
+    from diffsolids.mesh.scene import combine_meshes, simplex_box
     from diffsolids.objectives import Integral, final_value, time_integral
     from diffsolids.reduced_functional import ReducedFunctional
     from diffsolids.solvers.sparsity import matrix_with_pattern

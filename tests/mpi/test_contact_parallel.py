@@ -11,7 +11,7 @@ from mpi4py import MPI
 
 import diffsolids as ds
 from diffsolids.contact import ContactTerm
-from diffsolids.contact.scenes import combine_meshes, simplex_box
+from diffsolids.mesh.scene import combine_meshes, simplex_box
 
 DHAT = 1e-3
 

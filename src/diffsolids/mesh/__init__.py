@@ -10,12 +10,27 @@ from diffsolids.mesh.quality import (
     signed_cell_volumes,
 )
 from diffsolids.mesh.readers import from_geo, from_gmsh_model, read_mesh, transform_domain
+from diffsolids.mesh.scene import combine_meshes, simplex_ball, simplex_box
+from diffsolids.mesh.selections import (
+    AxisPlaneSelection,
+    BoxSelection,
+    PlaneSelection,
+    Selection,
+    SphereSelection,
+    select_facets,
+)
 
 __all__ = [
+    "AxisPlaneSelection",
+    "BoxSelection",
     "Domain",
     "MeshArrays",
+    "PlaneSelection",
+    "Selection",
+    "SphereSelection",
     "boundary_facets",
     "check_orientation",
+    "combine_meshes",
     "create_box",
     "create_domain",
     "create_rectangle",
@@ -25,7 +40,10 @@ __all__ = [
     "inverted_cells",
     "min_scaled_jacobian",
     "read_mesh",
+    "select_facets",
     "signed_cell_volumes",
+    "simplex_ball",
+    "simplex_box",
     "tag_facets",
     "transform_domain",
 ]

@@ -1,4 +1,4 @@
-"""Multi-body domains for contact: several meshes combined into one, each a body (cell tag)."""
+"""Scene assembly: several meshes combined into one Domain, each a body (cell tag)."""
 
 from collections.abc import Callable, Mapping, Sequence
 
@@ -9,7 +9,8 @@ import ufl
 from mpi4py import MPI
 
 from diffsolids.errors import MeshError
-from diffsolids.mesh import Domain, gmsh_session, tag_facets
+from diffsolids.mesh.domain import Domain, tag_facets
+from diffsolids.mesh.gmsh_session import gmsh_session
 
 __all__ = ["combine_meshes", "simplex_ball", "simplex_box"]
 
@@ -33,7 +34,7 @@ def simplex_box(corners, n) -> dolfinx.mesh.Mesh:
 
 def combine_meshes(
     comm: MPI.Comm,
-    meshes: Sequence[dolfinx.mesh.Mesh],
+    meshes: Sequence[dolfinx.mesh.Mesh | Domain],
     bodies: Sequence[int] | None = None,
     names: Mapping[str, int] | None = None,
     facets: Mapping[int, Callable] | None = None,
@@ -42,8 +43,9 @@ def combine_meshes(
 
     Args:
         comm: Communicator of the result (it is partitioned over ``comm``).
-        meshes: Serial meshes (e.g. :func:`simplex_box`, or meshes read on COMM_SELF) of the same
-            cell type and dimension, already placed; they must not overlap.
+        meshes: Serial meshes or Domains (e.g. :func:`simplex_box`, or
+            ``read_mesh(path, MPI.COMM_SELF, scale=..., translation=...)``) of the same cell type
+            and dimension, already placed; they must not overlap. Their own tags are dropped.
         bodies: Body id of each mesh (default 1, 2, ...).
         names: Optional tag names.
         facets: Optional ``{tag: marker(x)}`` boundary markers (as in ``create_box``).
@@ -56,6 +58,7 @@ def combine_meshes(
     bodies = list(bodies) if bodies is not None else list(range(1, len(meshes) + 1))
     if len(bodies) != len(meshes):
         raise MeshError(f"{len(bodies)} body ids for {len(meshes)} meshes")
+    meshes = [m.mesh if isinstance(m, Domain) else m for m in meshes]
     cell_type = meshes[0].topology.cell_type
     gdim = meshes[0].geometry.dim
     xs, cells, tags = [], [], []
