@@ -152,6 +152,78 @@ def contact_problem(comm=MPI.COMM_WORLD, gap: float = 0.1):
     return rf, contact
 
 
+def observed_run(rf, options, fail_above: float | None = None, **kwargs):
+    """An L-BFGS run recording every forward trial and every ``on_accept`` call (collective).
+
+    Two observers run per accepted iterate: ``first`` records the record, the optimiser's
+    accepted q, the controls' q (what the model holds) and a collective (``allreduce`` of 1, so
+    a call missing on one rank hangs), ``second`` its iteration; a stop condition records the
+    observer calls it sees. With ``fail_above``, forward solves with a Young's modulus above
+    it raise NewtonConvergenceError (invalid trials). Returns (result, trials, calls).
+    """
+    from diffsolids.errors import NewtonConvergenceError
+    from diffsolids.optimize import minimize
+
+    comm = rf.comm
+    trials, calls = [], []
+
+    def forward(q):
+        trials.append(np.array(q, dtype=float))
+        if fail_above is not None and np.exp(np.max(q)) > fail_above:
+            rf.controls.assign(q)
+            raise NewtonConvergenceError(1, 50, 1.0, 1e-9, "DIVERGED_MAX_IT (test)")
+        return type(rf).forward(rf, q)
+
+    def first(rec, opt):
+        everywhere = comm.allreduce(1, op=MPI.SUM) == comm.size
+        calls.append(("first", rec, opt.point.q.copy(), rf.controls.value().copy(), everywhere))
+
+    def second(rec, opt):
+        calls.append(("second", rec.iteration))
+
+    def stop(rec, opt):
+        calls.append(("stop", rec.iteration))
+        return False
+
+    rf.forward = forward
+    try:
+        result = minimize(
+            rf,
+            rf.initial_parameters(),
+            options,
+            on_accept=[first, second],
+            stop_conditions=[stop],
+            write_parameters=True,
+            plot_every=0,
+            **kwargs,
+        )
+    finally:
+        del rf.forward
+    return result, trials, calls
+
+
+def check_observed_run(result, trials, calls) -> None:
+    """The observers of :func:`observed_run` ran once per accepted iterate, in order."""
+    history = result.history
+    n = len(history)
+    # per accepted iterate: first, second (in the order given), then the stop condition
+    kinds = [c[0] for c in calls]
+    assert kinds == ["first", "second", "stop"] * n, kinds
+    firsts = calls[0::3]
+    assert all(c[1] is rec for c, rec in zip(firsts, history, strict=True))
+    assert [c[1].iteration for c in firsts] == list(range(n))
+    assert [c[1] for c in calls[1::3]] == list(range(n))
+    for _, rec, q, held, everywhere in firsts:
+        assert np.array_equal(q, rec.q) and np.array_equal(held, q)  # the model holds it
+        assert everywhere  # called on every rank
+    # rejected (Armijo or invalid) trials happened and none of them was observed
+    assert len(trials) == sum(r.trials for r in history) + 1  # and the initial point
+    accepted = {tuple(rec.q) for rec in history}
+    rejected = {tuple(q) for q in trials} - accepted
+    assert rejected, "the run should have rejected some trials"
+    assert not rejected & {tuple(c[2]) for c in firsts}
+
+
 def main(argv=None) -> int:
     """Run the dynamic problem with checkpoints (resuming if the directory has one)."""
     from diffsolids.optimize import LBFGSOptions, minimize

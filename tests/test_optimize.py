@@ -7,7 +7,15 @@ import logging
 import numpy as np
 import pytest
 from mpi4py import MPI
-from optimize_script import E_TRUE, bar_problem, contact_problem, dynamic_problem, shape_problem
+from optimize_script import (
+    E_TRUE,
+    bar_problem,
+    check_observed_run,
+    contact_problem,
+    dynamic_problem,
+    observed_run,
+    shape_problem,
+)
 
 from diffsolids.errors import NewtonConvergenceError
 from diffsolids.mesh import signed_cell_volumes
@@ -279,6 +287,39 @@ def test_stopping_criteria_and_reasons(bar2):
     assert r.reason == "user: small J" and r.converged
     assert r.history[-1].objective < 1e-4 <= r.history[-2].objective
     rf.controls.assign(q0)
+
+
+# -- observers ----------------------------------------------------------------------------------
+def test_on_accept_is_called_once_per_accepted_iterate_in_order(bar1):
+    rf, _ = bar1
+    q0 = rf.initial_parameters()
+    # long first steps: E above 2200 fails (invalid trials), others overshoot (Armijo)
+    options = LBFGSOptions(initial_step=3.0, gradient_rtol=1e-8)
+    result, trials, calls = observed_run(rf, options, fail_above=2200.0)
+    assert result.num_invalid_trials >= 2 and result.converged
+    check_observed_run(result, trials, calls)
+    rf.controls.assign(q0)
+
+
+def test_on_accept_sees_the_remeshed_iterate_and_takes_a_single_callable():
+    rf, _ = bar_problem(MPI.COMM_WORLD, bodies=2)
+    seen = []
+
+    def observer(rec, opt):
+        cells = opt.rf.model.domain.mesh.topology.index_map(2).size_global
+        seen.append((rec.iteration, rec.remeshed, cells, opt.point.trajectory is opt.rf.trajectory))
+
+    result = minimize(
+        rf,
+        options=LBFGSOptions(max_iterations=4, gradient_rtol=0.0),
+        remesher=_RefiningRemesher(),
+        on_accept=observer,
+    )
+    assert [s[0] for s in seen] == list(range(result.iterations + 1))
+    assert [s[1] for s in seen] == [r.remeshed for r in result.history]
+    k = next(i for i, s in enumerate(seen) if s[1])  # the remeshed iterate, on the new mesh
+    assert {s[2] for s in seen[:k]} == {32} and {s[2] for s in seen[k:]} == {128}
+    assert all(s[3] for s in seen)
 
 
 # -- errors -------------------------------------------------------------------------------------

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from mpi4py import MPI
-from optimize_script import E_TRUE, bar_problem, dynamic_problem
+from optimize_script import E_TRUE, bar_problem, check_observed_run, dynamic_problem, observed_run
 from petsc4py import PETSc
 
 from diffsolids.optimize import LBFGS, LBFGSOptions
@@ -71,6 +71,19 @@ def test_resume_from_per_rank_checkpoint(shared_dir):
     _compare(resumed, reference, 1e-10)
     lines = (shared_dir / "out" / "history.jsonl").read_text().splitlines()
     assert len(lines) == 7  # rank 0 writes it once
+
+
+def test_on_accept_once_per_accepted_iterate_on_every_rank():
+    comm = MPI.COMM_WORLD
+    assert comm.size > 1, "run under mpiexec -n 2"
+    rf, _ = bar_problem(comm, bodies=1)
+    options = LBFGSOptions(initial_step=3.0, gradient_rtol=1e-8)
+    result, trials, calls = observed_run(rf, options, fail_above=2200.0)
+    assert result.num_invalid_trials >= 2 and result.converged
+    check_observed_run(result, trials, calls)
+    # the same calls on every rank
+    iterations = [c[1].iteration for c in calls[0::3]]
+    assert comm.allgather(iterations) == [iterations] * comm.size
 
 
 def test_tao_with_a_distributed_vector():

@@ -19,6 +19,12 @@ Remeshing hook: an optional ``remesher`` object with
 An ``inner_product`` (``g -> M^{-1} g`` for an SPD operator M) is the initial inverse Hessian
 of L-BFGS; if it has a method ``rebuild(rf)``, that is called after a remesh and its result
 used from then on.
+
+Observers: ``on_accept`` callables ``observer(record, optimizer)`` are called once per accepted
+iterate (the initial point included, after a remesh with the remeshed iterate), in order, on
+every rank (they may use collectives), never for rejected or invalid line-search trials; they
+keep trajectories, check invariants or log (:mod:`diffsolids.optimize.observers`). Stop
+conditions decide whether to stop; they are evaluated after the observers.
 """
 
 import logging
@@ -55,6 +61,9 @@ __all__ = ["LBFGS", "OptimizationResult", "minimize"]
 logger = logging.getLogger("diffsolids")
 
 _CONVERGED = ("gradient_atol", "gradient_rtol", "step", "objective")
+
+# an on_accept observer: observer(record, optimizer), return value ignored
+Observer = Callable[[IterationRecord, "LBFGS"], object]
 
 
 @dataclass
@@ -125,6 +134,11 @@ class LBFGS:
         stop_conditions: Callables ``condition(record, optimizer) -> bool | str`` evaluated
             after every accepted iterate; a truthy result stops the run with reason
             "user: <name>" (a returned string is used as the name).
+        on_accept: A callable ``observer(record, optimizer)``, or a sequence of them, called
+            once per accepted iterate with its IterationRecord and the optimiser (whose
+            ``point`` is the iterate: ``q``, ``J``, ``g``, ``trajectory``), on every rank, in
+            order of acceptance; never for rejected trials. Not called for the iterates of an
+            earlier run when resuming from a checkpoint.
         output_dir: Directory for ``history.jsonl``, plots and iterate trajectories.
         checkpoint_dir: Directory for checkpoints (written after every iterate).
         resume: Continue from the checkpoint in ``checkpoint_dir`` if there is one.
@@ -144,6 +158,7 @@ class LBFGS:
         inner_product: Callable[[np.ndarray], np.ndarray] | None = None,
         remesher=None,
         stop_conditions: Sequence[Callable] = (),
+        on_accept: Observer | Sequence[Observer] | None = None,
         output_dir=None,
         checkpoint_dir=None,
         resume: bool = True,
@@ -159,6 +174,8 @@ class LBFGS:
         self.inner_product = inner_product
         self.remesher = remesher
         self.stop_conditions = list(stop_conditions)
+        observers = [] if on_accept is None else on_accept
+        self.on_accept: list[Observer] = [observers] if callable(observers) else list(observers)
         self.comm: MPI.Comm = rf.comm
         self.resume = resume
         self.progress = progress
@@ -389,6 +406,8 @@ class LBFGS:
             if self.output.wants_iterate(self.iteration) and self.point.trajectory is not None:
                 self.output.write_iterate(self.iteration, self.rf.model, self.point.trajectory)
         self._save_checkpoint()
+        for observer in self.on_accept:
+            observer(rec, self)
 
     def _maybe_remesh(self, rec: IterationRecord) -> None:
         p = self.point
