@@ -87,6 +87,14 @@ class Simulation:
             order from step k + 1 = m (verification of temporal orders). Their records have
             ``order`` 0 and no Newton iterations.
 
+    Raises:
+        ParameterError: Malformed initial or start-up states.
+        InvertedElementError: The initial displacement inverts elements.
+
+    Note:
+        Once created, the Simulation freezes its model (:meth:`Model.freeze`): terms, loads,
+        contact terms and Dirichlet conditions must be added to the model before.
+
     Attributes:
         warm_start: Optional Trajectory (e.g. of the previous optimisation iterate) whose
             u^i is tried first as the initial Newton guess of step i (same dof layout; skipped
@@ -142,6 +150,9 @@ class Simulation:
         self.warm_start: Trajectory | None = None
         self.max_substeps = 50
         self.substeps: dict[int, int] = {}
+        # the solver compiled the model's forms and collected its step bounds: a term added
+        # from now on would be ignored (or miss its collision-free bound), so none may be
+        model.freeze()
 
     # -- step set-up shared with the adjoint -----------------------------------------------------
     def load_step(self, i: int, traj: Trajectory) -> StepCoefficients:

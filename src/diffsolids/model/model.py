@@ -1,7 +1,9 @@
 """The `Model`: a displacement space and the terms of its incremental potential.
 
 Every coefficient the physics depends on is registered in ``Model.coefficients`` (material
-fields, densities, damping, loads), so controls and the adjoint find them by name.
+fields, densities, damping, loads), so controls and the adjoint find them by name. A Simulation
+compiles the model's forms and collects its step bounds when it is created, so it freezes the
+model: terms, loads, contact and Dirichlet conditions are added before.
 """
 
 import functools
@@ -54,6 +56,11 @@ class Model:
         TagError: A material for a body the mesh does not have, or a body without material.
         ParameterError: Non-physical parameters for the chosen law and dimension.
         InvertedElementError: The rest mesh has degenerate or folded cells.
+
+    Note:
+        Terms, loads, contact terms and Dirichlet conditions (the ``add_*`` methods) are added
+        before the first :class:`~diffsolids.Simulation` of the model is created: it freezes
+        the model (see :meth:`freeze`), and a later ``add_*`` raises ParameterError.
     """
 
     def __init__(
@@ -95,6 +102,7 @@ class Model:
         self.inertia = Inertia()
         self.dirichlet: list[RealisedDirichlet] = []
         self.numeric_terms: list = []
+        self._frozen = False
 
     # -- construction helpers -------------------------------------------------------------
     def _body_materials(self, materials) -> dict[int, Material]:
@@ -205,9 +213,42 @@ class Model:
             for law, bodies in laws.items()
         ]
 
+    # -- freezing -----------------------------------------------------------------------------
+    @property
+    def frozen(self) -> bool:
+        """Whether a Simulation uses the model (no more terms, loads or conditions)."""
+        return self._frozen
+
+    def freeze(self) -> None:
+        """Refuse further terms, loads, contact terms and Dirichlet conditions.
+
+        Called by :class:`~diffsolids.Simulation` once it is created: its Newton solver has
+        compiled the potential and collected the step bounds (element inversion, contact CCD)
+        of the terms present then, so a later term would be ignored or miss its step bound.
+        """
+        self._frozen = True
+
+    def _check_not_frozen(self, method: str) -> None:
+        """Raise if a Simulation already uses the model.
+
+        Raises:
+            ParameterError: The model is frozen.
+        """
+        if self._frozen:
+            raise ParameterError(
+                f"Model.{method}: the model is already used by a Simulation, which compiled its "
+                "forms and collected its step bounds when it was created; add terms, loads, "
+                "contact terms and Dirichlet conditions before creating the Simulation"
+            )
+
     # -- user API -----------------------------------------------------------------------------
     def add_term(self, term: Term | Callable) -> Term:
-        """Add a UFL term (a Term or a callable ``fields -> scalar form``)."""
+        """Add a UFL term (a Term or a callable ``fields -> scalar form``).
+
+        Raises:
+            ParameterError: A Simulation already uses the model.
+        """
+        self._check_not_frozen("add_term")
         if not isinstance(term, Term):
             term = EnergyTerm(term)
         self.terms.append(term)
@@ -232,7 +273,12 @@ class Model:
     def add_body_force(
         self, acceleration, bodies: Sequence[int | str] | None = None, name: str | None = None
     ) -> Term:
-        """Body force rho g (e.g. gravity), ``acceleration`` a vector or ``g(t)``."""
+        """Body force rho g (e.g. gravity), ``acceleration`` a vector or ``g(t)``.
+
+        Raises:
+            ParameterError: A non-finite value, or a Simulation already uses the model.
+        """
+        self._check_not_frozen("add_body_force")
         name = name or f"body_force_{len([t for t in self.terms if isinstance(t, BodyForce)])}"
         ids = None if bodies is None else [self.domain.body_id(b) for b in bodies]
         self._uniform_vector_field(name, acceleration)
@@ -242,8 +288,10 @@ class Model:
         """Gravity of magnitude g along -axis (default: the last axis).
 
         Raises:
-            ParameterError: g is not a finite number, or axis is not an axis of the mesh.
+            ParameterError: g is not a finite number, axis is not an axis of the mesh, or a
+                Simulation already uses the model.
         """
+        self._check_not_frozen("add_gravity")
         if not isinstance(g, numbers.Real) or not np.isfinite(g):
             raise ParameterError(
                 f"gravity: g must be a finite number (a magnitude along -axis), got {g!r}; "
@@ -257,7 +305,12 @@ class Model:
         return self.add_body_force(vec, name="gravity")
 
     def add_traction(self, facet_tag: int | str, traction, name: str | None = None) -> Term:
-        """Dead traction on tagged facets, ``traction`` a vector or ``t(t)``."""
+        """Dead traction on tagged facets, ``traction`` a vector or ``t(t)``.
+
+        Raises:
+            ParameterError: A non-finite value, or a Simulation already uses the model.
+        """
+        self._check_not_frozen("add_traction")
         tag = self.domain.facet_id(facet_tag)
         name = name or f"traction_{tag}"
         self._uniform_vector_field(name, traction)
@@ -266,13 +319,23 @@ class Model:
     def add_dirichlet(
         self, where: int | str | Callable, value=0.0, components: Sequence[int] | None = None
     ) -> RealisedDirichlet:
-        """Prescribe displacements on tagged facets or located nodes (see DirichletCondition)."""
+        """Prescribe displacements on tagged facets or located nodes (see DirichletCondition).
+
+        Raises:
+            ParameterError: A Simulation already uses the model.
+        """
+        self._check_not_frozen("add_dirichlet")
         bc = RealisedDirichlet(DirichletCondition(where, value, components), self.V, self.domain)
         self.dirichlet.append(bc)
         return bc
 
     def add_numeric_term(self, term) -> None:
-        """Add a non-UFL term (e.g. contact) answering the same questions numerically."""
+        """Add a non-UFL term (e.g. contact) answering the same questions numerically.
+
+        Raises:
+            ParameterError: A Simulation already uses the model.
+        """
+        self._check_not_frozen("add_numeric_term")
         self.numeric_terms.append(term)
 
     # -- queries used by integrators, solvers and the adjoint ----------------------------
