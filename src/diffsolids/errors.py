@@ -60,13 +60,24 @@ class NewtonConvergenceError(ConvergenceError):
         iterations: Newton iterations performed.
         residual: Residual norm at the last iterate.
         reason: PETSc's converged reason (negative) or a short text.
+        details: What the solver and the numeric terms (e.g. the contact state) add.
     """
 
-    def __init__(self, step: int, iterations: int, residual: float, tolerance: float, reason):
+    def __init__(
+        self,
+        step: int,
+        iterations: int,
+        residual: float,
+        tolerance: float,
+        reason,
+        details: str = "",
+    ):
         self.step, self.iterations, self.residual, self.reason = step, iterations, residual, reason
+        self.details = details
         super().__init__(
             f"Newton solve of step {step} failed after {iterations} iterations: residual "
             f"{residual:.3e} (tolerance {tolerance:.3e}), reason: {reason}"
+            + (f"\n{details}" if details else "")
         )
 
 

@@ -349,8 +349,7 @@ class Simulation:
         )
         traj.records.append(rec)
         for term in self.model.numeric_terms:
-            if hasattr(term, "end_step"):
-                term.end_step(i, traj)
+            term.end_step(i, traj)
         logger.info(
             "step %4d  t=%-10.4g order=%d  newton=%2d  residual=%.3e  energy=%.6e  (%.2fs)",
             i,

@@ -61,7 +61,7 @@ class AdjointLinearSolver:
         self.comm = newton.comm
         self._mats = [newton.create_matrix(), newton.create_matrix()]
         # matrix-free when every numeric term can apply its exact Hessian, else assembled
-        matrix_free = all(hasattr(t, "add_hessian_action") for t in newton.numeric_terms)
+        matrix_free = all(t.has_hessian_action for t in newton.numeric_terms)
         self.action = JacobianAction(newton) if matrix_free else None
         self._factor_ksps: dict = {}
         self._precond = None  # (PETSc.PC, index of the frozen matrix or -1 for the forward one)

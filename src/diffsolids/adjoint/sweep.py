@@ -216,12 +216,15 @@ class BackwardSweep:
             comm = self.model.domain.comm
             if collective_comm(comm).allreduce(bool(np.any(lam)), op=MPI.LOR):
                 for term in self.model.numeric_terms:
-                    sens.shape += term.adjoint_shape(self.model.fields.u, lam)[: len(sens.shape)]
+                    g = term.adjoint_shape(self.model.fields.u, lam)
+                    if g is not None:
+                        sens.shape += g[: len(sens.shape)]
         lam = self.forms.lam.x.array
         for name in self.targets.contact:
             for term in self.model.numeric_terms:
-                contrib = getattr(term, f"adjoint_{name}")(self.model.fields.u, lam)
-                sens.contact[name] = sens.contact.get(name, 0.0) + contrib
+                if name in term.parameter_names:
+                    contrib = term.adjoint_parameter(name, self.model.fields.u, lam)
+                    sens.contact[name] = sens.contact.get(name, 0.0) + contrib
 
     def _initial_step(self, traj, leaf_weights, ubar, vbar, sens) -> None:
         """Step 0: objective partials at u^0, v^0 (lambda = 0) and the initial sensitivities."""

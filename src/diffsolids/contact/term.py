@@ -34,6 +34,7 @@ from scipy.spatial import cKDTree
 from diffsolids.contact.shape import barrier_shape_derivative
 from diffsolids.contact.surface import CollisionSurface, block_pattern
 from diffsolids.errors import IntersectionError, ParameterError
+from diffsolids.model.numeric import NumericTerm
 from diffsolids.parallel import collective_comm
 
 __all__ = ["ContactRecord", "ContactTerm"]
@@ -95,7 +96,7 @@ class _Evaluation:
     extras: dict = field(default_factory=dict)
 
 
-class ContactTerm:
+class ContactTerm(NumericTerm):
     """Barrier contact (self-contact included) and lagged friction between the bodies of a Model.
 
     Bodies are the cell tags of the mesh; every pair of bodies and every body with itself can
@@ -120,6 +121,9 @@ class ContactTerm:
 
     name = "contact"
     projectable_hessian = True
+    has_hessian_action = True
+    grows_pattern = True
+    parameter_names = ("friction",)
 
     def __init__(
         self,
@@ -801,6 +805,36 @@ class ContactTerm:
                 dw = c.weight_gradient
                 out[dw.indices] += (force @ lam[ids].ravel() / c.weight) * dw.data
         return out
+
+    def adjoint_parameter(self, name: str, u, lam) -> np.ndarray:
+        """Lam . dG_i/d(friction coefficient of each pair of :attr:`friction_pairs`)."""
+        if name != "friction":
+            return super().adjoint_parameter(name, u, lam)
+        return self.adjoint_friction(u, lam)
+
+    def failure_report(self) -> str | None:
+        """The contact state at the last evaluated iterate (for NewtonConvergenceError)."""
+        ev = self._eval
+        head = f"contact: kappa = {self.stiffness:.3g}, dhat = {self.dhat:.3g}"
+        if ev is None or len(ev.collisions) == 0:
+            return f"{head}, no pair within dhat at the last iterate"
+        d = float(np.sqrt(ev.collisions.compute_minimum_distance(self.surface.mesh, ev.x)))
+        force = float(np.linalg.norm(self._gradient(ev).reshape(-1, self.dim), axis=1).max())
+        # kappa b(d^2, dhat^2) with b = -(s - t)^2 ln(s / t) pushes with ~2 kappa dhat^4 / d at
+        # d << dhat: a pair carrying force f settles at d ~ 2 kappa dhat^4 / f
+        gap = 2.0 * self.stiffness * self.dhat**4 / max(force, 1e-300)
+        hint = (
+            "; the barrier is too soft for this load (pairs settle far inside dhat, where the "
+            "collision check cuts every Newton step): raise kappa, e.g. to "
+            "suggest_barrier_stiffness(...)"
+            if gap < 1e-3 * self.dhat
+            else ""
+        )
+        return (
+            f"{head}, {len(ev.collisions)} active pairs, smallest distance {d:.3e} "
+            f"({d / self.dhat:.2e} dhat), largest contact force {force:.3e}; a pair carrying "
+            f"it settles at a distance ~2 kappa dhat^4 / f = {gap:.2e}{hint}"
+        )
 
     @_timed_kernel("adjoint_friction")
     def adjoint_friction(self, u, lam) -> np.ndarray:

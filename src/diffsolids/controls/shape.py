@@ -140,8 +140,7 @@ class ShapeControl(Control):
         mesh.geometry.x[:, : self.dim] = new
         self.q = np.asarray(q, dtype=float).copy()
         for term in self.model.numeric_terms:
-            if hasattr(term, "update_rest_positions"):
-                term.update_rest_positions()
+            term.update_rest_positions()
 
     @override
     def targets(self) -> Targets:

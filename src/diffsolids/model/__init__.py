@@ -3,6 +3,7 @@
 from diffsolids.model.boundary_conditions import DirichletCondition, RealisedDirichlet
 from diffsolids.model.materials import LinearElastic, Material, NeoHookean, StVenantKirchhoff
 from diffsolids.model.model import Model
+from diffsolids.model.numeric import NumericTerm
 from diffsolids.model.terms import (
     BodyForce,
     Damping,
@@ -25,6 +26,7 @@ __all__ = [
     "Material",
     "Model",
     "NeoHookean",
+    "NumericTerm",
     "RealisedDirichlet",
     "StVenantKirchhoff",
     "StepFields",

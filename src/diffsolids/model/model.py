@@ -20,6 +20,7 @@ from diffsolids.errors import ParameterError, TagError
 from diffsolids.mesh import Domain, check_orientation
 from diffsolids.model.boundary_conditions import DirichletCondition, RealisedDirichlet
 from diffsolids.model.materials import Material
+from diffsolids.model.numeric import NumericTerm
 from diffsolids.model.terms import (
     BodyForce,
     Damping,
@@ -101,7 +102,7 @@ class Model:
             self.terms.append(Damping())
         self.inertia = Inertia()
         self.dirichlet: list[RealisedDirichlet] = []
-        self.numeric_terms: list = []
+        self.numeric_terms: list[NumericTerm] = []
         self._frozen = False
 
     # -- construction helpers -------------------------------------------------------------
@@ -329,13 +330,19 @@ class Model:
         self.dirichlet.append(bc)
         return bc
 
-    def add_numeric_term(self, term) -> None:
+    def add_numeric_term(self, term: NumericTerm) -> None:
         """Add a non-UFL term (e.g. contact) answering the same questions numerically.
 
         Raises:
-            ParameterError: A Simulation already uses the model.
+            ParameterError: A Simulation already uses the model, or ``term`` is not a
+                :class:`~diffsolids.model.numeric.NumericTerm`.
         """
         self._check_not_frozen("add_numeric_term")
+        if not isinstance(term, NumericTerm):
+            raise ParameterError(
+                f"add_numeric_term takes a NumericTerm (diffsolids.model.NumericTerm), "
+                f"not {type(term).__name__}"
+            )
         self.numeric_terms.append(term)
 
     # -- queries used by integrators, solvers and the adjoint ----------------------------

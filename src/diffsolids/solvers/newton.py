@@ -106,8 +106,8 @@ class NewtonSolver:
                 V, f.dx_strain.metadata()["quadrature_degree"], limit=1.0 / self.options.step_safety
             )
             self.step_bounds.append(guard)
-        # numeric terms with a step bound (contact: collision-free CCD fraction)
-        self.step_bounds.extend(t for t in self.numeric_terms if hasattr(t, "max_step"))
+        # the numeric terms' step bounds (contact: collision-free CCD fraction)
+        self.step_bounds.extend(self.numeric_terms)
         self.patterns = GrowingPattern(self)
         self.projected_steps = 0
         self._restarted_after = 0
@@ -287,6 +287,7 @@ class NewtonSolver:
             y.scale(scale)
             slope *= scale
             self.bounded_steps += 1
+            self._last_cut = scale
         self._line_search = {"f0": None, "x0": x.copy(), "F0": F.copy()}
 
     def _converged(self, snes, it, norms):
@@ -308,9 +309,21 @@ class NewtonSolver:
             return R.DIVERGED_JACOBIAN_DOMAIN
         return R.ITERATING
 
+    def _failure_details(self, iterations: int) -> str:
+        """The step bounds' and numeric terms' account of a failed solve."""
+        lines = []
+        if self.bounded_steps:
+            lines.append(
+                f"{self.bounded_steps} of {iterations} Newton steps were cut by a step bound "
+                f"(collision-free or inversion-free fraction; the last one to "
+                f"{self._last_cut:.2e} of the Newton step)"
+            )
+        lines += [r for r in (t.failure_report() for t in self.numeric_terms) if r]
+        return "\n".join(lines)
+
     # -- numeric terms: projected Hessians and growing sparsity -------------------------------
     def _projectable(self) -> bool:
-        return any(getattr(t, "projectable_hessian", False) for t in self.numeric_terms)
+        return any(t.projectable_hessian for t in self.numeric_terms)
 
     def assemble_projected_jacobian(self, A: PETSc.Mat) -> None:
         """Newton matrix with the PSD-projected Hessians of the numeric terms that offer one."""
@@ -318,10 +331,7 @@ class NewtonSolver:
         fem_petsc.assemble_matrix(A, self.jacobian_form, self.model.bcs, diag=1.0)
         bc_dofs = self.model.dirichlet_dofs()
         for term in self.numeric_terms:
-            if getattr(term, "projectable_hessian", False):
-                term.add_jacobian(self.u, A, bc_dofs, project=True)
-            else:
-                term.add_jacobian(self.u, A, bc_dofs)
+            term.add_jacobian(self.u, A, bc_dofs, project=term.projectable_hessian)
         A.assemble()
 
     def ensure_matrix_pattern(self, A: PETSc.Mat) -> PETSc.Mat:
@@ -361,8 +371,7 @@ class NewtonSolver:
             bc.set(increment, x0=self.u.x.array)  # g - u on the Dirichlet dofs
         for term in self.numeric_terms:
             term.add_residual(self.u, b)
-            if hasattr(term, "add_dirichlet_lifting"):
-                term.add_dirichlet_lifting(self.u, b, increment, bc_dofs)
+            term.add_dirichlet_lifting(self.u, b, increment, bc_dofs)
         fem_petsc.set_bc(b, self.model.bcs, x, -1.0)
         if self.patterns.active:  # contact entries at u may be missing from the matrix
             self._use_matrix(self.patterns.ensure(self.A))
@@ -437,6 +446,7 @@ class NewtonSolver:
         self._roundoff_converged = False
         self.fallbacks = 0
         self.bounded_steps = 0
+        self._last_cut = 1.0
         self._magnitude = abs(
             collective_comm(self.comm).allreduce(
                 fem.assemble_scalar(self.magnitude_form), op=MPI.SUM
@@ -471,5 +481,7 @@ class NewtonSolver:
             why = names.get(reason, reason)
             if reason > 0:
                 why = f"{why} with the residual above tolerance (a step bound blocked progress?)"
-            raise NewtonConvergenceError(step, its, self._fnorm, tolerance, why)
+            raise NewtonConvergenceError(
+                step, its, self._fnorm, tolerance, why, self._failure_details(its)
+            )
         return NewtonResult(its, self._fnorm, self._energy_at(self.x), self._f_char)

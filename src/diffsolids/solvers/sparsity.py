@@ -69,7 +69,7 @@ class GrowingPattern:
 
     def __init__(self, solver):
         self.solver = solver
-        self.terms = [t for t in solver.numeric_terms if hasattr(t, "matrix_pattern")]
+        self.terms = [t for t in solver.numeric_terms if t.grows_pattern]
         self._keys: dict[int, np.ndarray] = {}
         self._fe_keys: np.ndarray | None = None
         self.rebuilds = 0

@@ -1,0 +1,121 @@
+"""The protocol of numeric (non-UFL) terms of the incremental potential.
+
+A UFL term answers every question of the solver and the adjoint through ``ufl.derivative``. A
+numeric term (IPC contact, or any force computed outside UFL) answers the same questions with
+numpy/PETSc: its energy, residual and Jacobian for the Newton solve, the largest admissible step
+fraction, its per-step hooks, and the vector-Jacobian products the backward sweep needs with
+respect to the previous states, the rest shape and each of its named parameters (paper eqs.
+11-15: every term contributes its partial derivatives to the adjoint equations and to the
+gradient). :meth:`Model.add_numeric_term <diffsolids.model.Model.add_numeric_term>` takes
+instances of :class:`NumericTerm` only; the solver and the sweep call nothing else.
+
+Capabilities that change how the solver works are declared as class attributes rather than
+discovered: ``projectable_hessian`` (a PSD-projected Newton matrix exists),
+``has_hessian_action`` (the exact Hessian can be applied matrix-free), ``grows_pattern`` (the
+Jacobian may need entries outside the finite-element sparsity, see :meth:`matrix_pattern`).
+"""
+
+from abc import ABC, abstractmethod
+from typing import Any, ClassVar
+
+import numpy as np
+from dolfinx import fem
+from petsc4py import PETSc
+
+__all__ = ["NumericTerm"]
+
+
+class NumericTerm(ABC):
+    """A contribution to a step's incremental potential computed outside UFL.
+
+    All methods are collective under MPI. Arrays named ``u``/``lam`` are DOLFINx Functions or
+    local arrays of the model's vector space V (owned entries first, then ghosts); vectors and
+    matrices are the solver's PETSc objects, to which a term adds its owned rows only.
+
+    Attributes:
+        name: Human-readable name (used in reports and errors).
+        parameter_names: Names of the term's own parameters the adjoint can differentiate
+            (e.g. ``("friction",)``), see :meth:`adjoint_parameter`.
+    """
+
+    name: ClassVar[str] = "numeric term"
+    projectable_hessian: ClassVar[bool] = False
+    has_hessian_action: ClassVar[bool] = False
+    grows_pattern: ClassVar[bool] = False
+    parameter_names: ClassVar[tuple[str, ...]] = ()
+
+    # -- the Newton solve ------------------------------------------------------------------
+    @abstractmethod
+    def energy(self, u: fem.Function) -> float:
+        """The term's part of the incremental potential at ``u`` (the same on every rank)."""
+
+    @abstractmethod
+    def add_residual(self, u: fem.Function, b: PETSc.Vec) -> None:
+        """Add the gradient of :meth:`energy` w.r.t. u to the owned entries of ``b``."""
+
+    @abstractmethod
+    def add_jacobian(
+        self, u: fem.Function, A: PETSc.Mat, bc_dofs: np.ndarray, project: bool = False
+    ) -> None:
+        """Add the Hessian w.r.t. u to the owned rows of ``A``, skipping Dirichlet rows/columns.
+
+        Args:
+            u: Current displacement.
+            A: Matrix to add to (not yet assembled).
+            bc_dofs: Local indices of Dirichlet dofs.
+            project: Add the PSD-projected Hessian instead of the exact one (only called when
+                ``projectable_hessian``).
+        """
+
+    def add_adjoint_jacobian(self, u: fem.Function, A: PETSc.Mat, bc_dofs: np.ndarray) -> None:
+        """Add the exact Hessian w.r.t. u^i (adjoint matrix); the exact :meth:`add_jacobian`."""
+        self.add_jacobian(u, A, bc_dofs, project=False)
+
+    def add_hessian_action(self, u: fem.Function, direction: np.ndarray, y: PETSc.Vec) -> None:
+        """y[owned] += H direction with the exact Hessian (when ``has_hessian_action``)."""
+        raise NotImplementedError(f"{self.name} has no matrix-free Hessian action")
+
+    def add_dirichlet_lifting(  # noqa: B027 - optional: most terms couple no prescribed dofs
+        self, u: fem.Function, b: PETSc.Vec, increment: np.ndarray, bc_dofs: np.ndarray
+    ) -> None:
+        """b[owned free rows] += H[free, prescribed] increment; nothing for most terms.
+
+        The matrix of :meth:`add_jacobian` drops Dirichlet columns: a term coupling free and
+        prescribed dofs adds here the response of the free dofs to the prescribed increment.
+        """
+
+    def matrix_pattern(self, u: fem.Function, bc_dofs: np.ndarray) -> tuple[Any, Any] | None:
+        """Global (rows, cols) the Jacobian may need at ``u`` (when ``grows_pattern``)."""
+        return None
+
+    def max_step(self, x: PETSc.Vec, dx: PETSc.Vec) -> float:
+        """Largest admissible fraction of the step ``x -> x + dx`` (inf: no bound)."""
+        return np.inf
+
+    def failure_report(self) -> str | None:
+        """What a failed Newton solve should tell the user about this term (None: nothing)."""
+        return None
+
+    # -- per-step hooks --------------------------------------------------------------------
+    def begin_step(self, i: int, traj, coeffs, sim=None) -> None:  # noqa: B027 - optional hook
+        """Called before step ``i`` is solved (forward) or differentiated (backward)."""
+
+    def end_step(self, i: int, traj) -> Any:
+        """Called after step ``i`` converged; may return a record of the step."""
+        return None
+
+    def update_rest_positions(self) -> None:  # noqa: B027 - optional hook
+        """Called after the rest shape (mesh geometry) changed."""
+
+    # -- the backward sweep ----------------------------------------------------------------
+    def adjoint_history(self, u: fem.Function, lam: np.ndarray) -> dict[int, np.ndarray]:
+        """Lam . dG_i/du^{i-j} for the previous states the term reads, keyed by j >= 1."""
+        return {}
+
+    def adjoint_shape(self, u: fem.Function, lam: np.ndarray) -> np.ndarray | None:
+        """Lam . dG_i/dX over the geometry dofs (None: the term does not depend on the shape)."""
+        return None
+
+    def adjoint_parameter(self, name: str, u: fem.Function, lam: np.ndarray) -> np.ndarray:
+        """Lam . dG_i/dp for the term's parameter ``name`` (one of ``parameter_names``)."""
+        raise KeyError(f"{self.name} has no parameter {name!r} (it has {self.parameter_names})")

@@ -1,0 +1,129 @@
+"""The NumericTerm protocol: a new numeric force is one class, nothing else edited.
+
+A linear spring to the ground, E = k/2 sum_i |u_i|^2 over the free dofs, written as a
+:class:`~diffsolids.model.NumericTerm` in this file only: the forward solve uses its energy,
+residual and Jacobian, the matrix-free adjoint its Hessian action; gradients are checked by
+central differences along random directions and along the gradient.
+"""
+
+import numpy as np
+import pytest
+import ufl
+from dolfinx import fem
+from gradient_scenes import NEWTON, SCENES, build_model
+from mpi4py import MPI
+from petsc4py import PETSc
+
+import diffsolids as ds
+from diffsolids.controls import InitialCondition, ParameterControl
+from diffsolids.model import NumericTerm
+from diffsolids.objectives import Integral, final_value, time_integral
+from diffsolids.parallel import collective_comm
+from diffsolids.reduced_functional import ReducedFunctional
+from diffsolids.verification import finite_difference_check, taylor_test
+
+
+class GroundSpring(NumericTerm):
+    """k/2 |u|^2 summed over the owned dofs: every node tied to its rest position."""
+
+    name = "ground spring"
+    has_hessian_action = True
+
+    def __init__(self, model: ds.Model, k: float):
+        self.k = k
+        self.comm = model.domain.comm
+        imap = model.V.dofmap.index_map
+        self.owned = imap.size_local * model.V.dofmap.index_map_bs
+        self.start = imap.local_range[0] * model.V.dofmap.index_map_bs
+
+    def _owned(self, u) -> np.ndarray:
+        return (u.x.array if isinstance(u, fem.Function) else np.asarray(u))[: self.owned]
+
+    def energy(self, u) -> float:
+        local = 0.5 * self.k * float(self._owned(u) @ self._owned(u))
+        return collective_comm(self.comm).allreduce(local, op=MPI.SUM)
+
+    def add_residual(self, u, b: PETSc.Vec) -> None:
+        b.array_w[: self.owned] += self.k * self._owned(u)
+
+    def add_jacobian(self, u, A: PETSc.Mat, bc_dofs: np.ndarray, project: bool = False) -> None:
+        free = np.setdiff1d(np.arange(self.owned), bc_dofs)
+        rows = (self.start + free).astype(PETSc.IntType)
+        A.assemblyBegin(PETSc.Mat.AssemblyType.FLUSH)  # DOLFINx inserted the Dirichlet diagonal
+        A.assemblyEnd(PETSc.Mat.AssemblyType.FLUSH)
+        for r in rows:
+            A.setValue(r, r, self.k, addv=PETSc.InsertMode.ADD_VALUES)
+
+    def add_hessian_action(self, u, direction: np.ndarray, y: PETSc.Vec) -> None:
+        y.array_w[: self.owned] += self.k * np.asarray(direction)[: self.owned]
+
+
+def _spring_simulation(comm, k: float = 2.0e3) -> tuple[ds.Simulation, GroundSpring]:
+    model = build_model(SCENES["2d-p1-nh-damped"], comm)
+    spring = GroundSpring(model, k)
+    model.add_numeric_term(spring)
+    v0 = np.array([0.0, 0.3])
+    return ds.Simulation(model, ds.BDF(2, 0.05, 4), NEWTON, v0=v0, progress=False), spring
+
+
+def _reduced(sim) -> ReducedFunctional:
+    leaf = Integral(lambda f: ufl.dot(f.u, f.u) * f.dx, "squared displacement")
+    objective = time_integral(leaf, "uniform") + final_value(leaf) ** 2
+    controls = [ParameterControl(sim.model, "E", "bodies"), InitialCondition(sim, "velocity")]
+    return ReducedFunctional(sim, objective, controls)
+
+
+def _check(rf) -> float:
+    q0 = rf.initial_parameters()
+    g = rf.gradient(q0)
+    rng = np.random.default_rng(1)
+    d = rng.standard_normal(len(q0)) * (1e-2 * np.maximum(np.abs(q0), 1e-1))
+    steps = np.array([1e-2, 1e-3, 1e-4])
+    random = finite_difference_check(rf, q0, d, steps, gradient=g)
+    along = finite_difference_check(rf, q0, 1e-2 * g / np.abs(g).max() * np.abs(q0).max(), steps)
+    taylor = taylor_test(rf, q0, d, h0=0.5, num=3)
+    for res in (random, along):
+        assert abs(res.adjoint) > 0 and res.relative_error <= 1e-6, str(res)
+    assert taylor.min_rate >= 1.9, str(taylor)
+    return float(rf(q0))
+
+
+def test_a_ground_spring_changes_the_motion_and_its_gradient_is_exact():
+    sim, spring = _spring_simulation(MPI.COMM_SELF)
+    rf = _reduced(sim)
+    value = _check(rf)
+    loose = _reduced(_spring_simulation(MPI.COMM_SELF, k=1e-12)[0])
+    assert abs(value - loose(loose.initial_parameters())) > 1e-3 * abs(value)  # the spring acts
+    u = sim.trajectory.u[-1]
+    assert spring.energy(u) == pytest.approx(0.5 * spring.k * float(u @ u))
+
+
+def test_a_numeric_term_must_declare_the_protocol():
+    model = build_model(SCENES["2d-p1-nh-damped"], MPI.COMM_SELF)
+    with pytest.raises(ds.ParameterError, match="takes a NumericTerm"):
+        model.add_numeric_term(object())
+    with pytest.raises(TypeError, match="abstract"):
+        type("Incomplete", (NumericTerm,), {})()
+
+
+def test_a_failed_contact_solve_names_the_contact_state():
+    """A barrier far too soft for the load: the error says so and what to do."""
+    from diffsolids.contact import ContactTerm
+    from diffsolids.mesh import combine_meshes, simplex_box
+
+    dhat = 1e-3
+    lower = simplex_box([[0, 0], [1, 0.2]], [4, 1])
+    upper = simplex_box([[0.3, 0.2 + 0.5 * dhat], [0.6, 0.5]], [2, 2])
+    model = ds.Model(combine_meshes(MPI.COMM_WORLD, [lower, upper]), ds.NeoHookean(E=1e5, nu=0.3))
+    model.add_gravity(1e3)
+    model.add_dirichlet(lambda x: x[1] < 0.1, 0.0)
+    model.add_numeric_term(ContactTerm(model, dhat=dhat, stiffness=1.0))
+    options = ds.SolverOptions(max_iterations=8)
+    sim = ds.Simulation(model, ds.BDF(1, 0.01, 3), options, progress=False)
+    with pytest.raises(ds.NewtonConvergenceError) as info:
+        sim.run()
+    text = str(info.value)
+    assert "Newton steps were cut by a step bound" in text
+    assert "contact: kappa = 1, dhat = 0.001" in text
+    assert "settles at a distance ~2 kappa dhat^4 / f" in text
+    assert "the barrier is too soft for this load" in text
