@@ -1,0 +1,99 @@
+"""Contact parameters of a PolyFEM scene, as PolyFEM uses them.
+
+PolyFEM's step potential (BDF, h = beta dt) is
+
+    Pi_P = 1/2 |x - x_tilde|_M^2 + h^2 [Psi(x) - f.x + kappa_P B_P(x) + beta dt D(v)],
+
+with B_P = sum_k b(d_k^2, dhat^2), b(s, t) = -(s - t)^2 ln(s / t), every pair weighted 1 (the
+default, non-"convergent" formulation). diffsolids' step potential is Pi_P / h^2 term by term
+(see :mod:`diffsolids.contact.term`), so a numeric ``barrier_stiffness`` kappa_P is our
+``stiffness`` as written, with ``area_weighting=False``, independently of dt and the BDF order.
+``"barrier_stiffness": "adaptive"`` means ipctk's initial barrier stiffness, which
+:func:`~diffsolids.contact.suggest_barrier_stiffness` computes in our units.
+
+Defaults (PolyFEM's input spec): ``dhat`` 1e-3, reduced to 0.8 times the shortest boundary edge
+when that edge is shorter than 1e-3 and no dhat is given; ``epsv`` 1e-3; friction coefficient
+0; ``barrier_stiffness`` adaptive. PolyFEM reads ``barrier_stiffness`` from
+``solver.contact``, the others from ``contact``. The "convergent formulation" (area weights,
+a collision set with correction pairs, a barrier divided by dhat^3) is not supported.
+
+With ipctk's squared-distance barrier a pair carrying a contact force f settles at a distance
+d ~ 2 kappa dhat^4 / f: the scenes' kappa_P (1e4-1e5 with dhat ~ 1e-3) put pairs at gaps of
+1e-11..1e-9 m, where every Newton step is cut by the collision check.
+"""
+
+from collections.abc import Mapping
+from typing import Any
+
+import dolfinx
+import numpy as np
+from mpi4py import MPI
+
+from diffsolids.errors import ParameterError
+from diffsolids.mesh import Domain
+
+__all__ = ["polyfem_contact_options", "shortest_boundary_edge"]
+
+_DEFAULT_DHAT = 1e-3
+_DEFAULT_EPSV = 1e-3
+
+
+def shortest_boundary_edge(domain: Domain) -> float:
+    """Length of the shortest edge of the boundary (collective)."""
+    mesh = domain.mesh
+    tdim = mesh.topology.dim
+    mesh.topology.create_connectivity(tdim - 1, tdim)
+    facets = dolfinx.mesh.exterior_facet_indices(mesh.topology)
+    nodes = dolfinx.mesh.entities_to_geometry(mesh, tdim - 1, facets)
+    x = mesh.geometry.x[:, : domain.dim]
+    pairs = [(0, 1)] if tdim == 2 else [(0, 1), (1, 2), (2, 0)]
+    lengths = [np.linalg.norm(x[nodes[:, a]] - x[nodes[:, b]], axis=1) for a, b in pairs]
+    local = min((float(v.min()) for v in lengths if v.size), default=np.inf)
+    out = np.array(local)
+    domain.comm.Allreduce(MPI.IN_PLACE, out, op=MPI.MIN)
+    return float(out)
+
+
+def polyfem_contact_options(scene: Mapping[str, Any], domain: Domain) -> dict[str, Any]:
+    """Keyword arguments of :class:`~diffsolids.contact.ContactTerm` for a PolyFEM scene.
+
+    Args:
+        scene: The scene JSON as a dict (its ``contact`` and ``solver.contact`` sections).
+        domain: The Domain the scene's geometry was assembled into (for the dhat default).
+
+    Returns:
+        ``dhat``, ``stiffness`` (None for "adaptive": use ``suggest_barrier_stiffness``),
+        ``friction``, ``eps_v`` and ``area_weighting=False``.
+
+    Raises:
+        ParameterError: Contact disabled, the convergent formulation, or a malformed value.
+    """
+    contact = dict(scene.get("contact", {}))
+    if not contact.get("enabled", False):
+        raise ParameterError("the scene has no contact (contact.enabled is not true)")
+    if contact.get("use_convergent_formulation", False):
+        raise ParameterError(
+            "PolyFEM's convergent contact formulation (use_convergent_formulation) is not "
+            "supported: it needs ipctk's IMPROVED_MAX_APPROX collision set"
+        )
+    if "dhat" in contact:
+        dhat = float(contact["dhat"])
+    else:
+        edge = shortest_boundary_edge(domain)
+        dhat = 0.8 * edge if edge < _DEFAULT_DHAT else _DEFAULT_DHAT
+    kappa = scene.get("solver", {}).get("contact", {}).get("barrier_stiffness", "adaptive")
+    if kappa == "adaptive":
+        stiffness = None
+    elif isinstance(kappa, int | float) and np.isfinite(kappa) and kappa > 0:
+        stiffness = float(kappa)
+    else:
+        raise ParameterError(
+            f"solver.contact.barrier_stiffness = {kappa!r}: a number > 0 or 'adaptive'"
+        )
+    return {
+        "dhat": dhat,
+        "stiffness": stiffness,
+        "friction": float(contact.get("friction_coefficient", 0.0)),
+        "eps_v": float(contact.get("epsv", _DEFAULT_EPSV)),
+        "area_weighting": False,
+    }

@@ -1,0 +1,67 @@
+"""PolyFEM scenes' contact parameters, read as PolyFEM reads them."""
+
+import json
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+from test_mesh_input import _paper_file
+
+import diffsolids as ds
+from diffsolids.contact.polyfem import polyfem_contact_options, shortest_boundary_edge
+from diffsolids.mesh import boundary_facets, combine_meshes, read_mesh
+
+COMM = MPI.COMM_WORLD
+
+
+def _puzzle_scene():
+    scene = json.loads(_paper_file("fig14_puzzle_piece/run-new.json").read_text())
+    wave = read_mesh(_paper_file("fig14_puzzle_piece/wave.msh"), MPI.COMM_SELF, scale=[2, 1])
+    piece = read_mesh(
+        _paper_file("fig14_puzzle_piece/puzzle.msh"),
+        MPI.COMM_SELF,
+        scale=0.001,
+        translation=[-1, 0.2],
+    )
+    return scene, combine_meshes(COMM, [wave, piece], bodies=[3, 1])
+
+
+def _numpy_shortest_edge(domain) -> float:
+    """Independent of DOLFINx's facet topology: edges on one cell only, from the cell array."""
+    cells = domain.mesh.geometry.dofmaps[0]
+    edges = boundary_facets(cells)
+    x = domain.mesh.geometry.x[:, :2]
+    return float(np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1).min())
+
+
+def test_the_puzzle_scene_gets_polyfems_dhat_rule_and_kappa_as_written():
+    scene, domain = _puzzle_scene()
+    edge = shortest_boundary_edge(domain)
+    if COMM.size == 1:
+        assert edge == pytest.approx(_numpy_shortest_edge(domain), rel=1e-12)
+    assert edge == pytest.approx(4.24e-4, rel=5e-3)  # < 1e-3: PolyFEM uses 0.8 of it
+    options = polyfem_contact_options(scene, domain)
+    assert options == {
+        "dhat": pytest.approx(0.8 * edge, rel=1e-12),
+        "stiffness": 1e5,
+        "friction": 0.5,
+        "eps_v": 1e-3,
+        "area_weighting": False,
+    }
+
+
+def test_given_dhat_adaptive_kappa_and_unsupported_options():
+    scene, domain = _puzzle_scene()
+    scene["contact"]["dhat"] = 2e-3
+    scene["solver"]["contact"]["barrier_stiffness"] = "adaptive"
+    options = polyfem_contact_options(scene, domain)
+    assert options["dhat"] == 2e-3 and options["stiffness"] is None
+    for bad in (-1.0, "soft", float("nan")):
+        scene["solver"]["contact"]["barrier_stiffness"] = bad
+        with pytest.raises(ds.ParameterError, match="barrier_stiffness"):
+            polyfem_contact_options(scene, domain)
+    scene["contact"]["use_convergent_formulation"] = True
+    with pytest.raises(ds.ParameterError, match="convergent contact formulation"):
+        polyfem_contact_options(scene, domain)
+    with pytest.raises(ds.ParameterError, match="no contact"):
+        polyfem_contact_options({"contact": {"enabled": False}}, domain)
