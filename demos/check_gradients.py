@@ -136,8 +136,8 @@ def _dynamic_material(comm, tiny: bool):
 
 def _contact_friction(comm, tiny: bool):
     from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
-    from diffsolids.mesh.scene import combine_meshes, simplex_box
     from diffsolids.controls import FrictionControl, ParameterControl, RigidVelocity, ShapeControl
+    from diffsolids.mesh.scene import combine_meshes, simplex_box
     from diffsolids.objectives import Integral, final_value, time_integral
     from diffsolids.reduced_functional import ReducedFunctional
 
