@@ -12,7 +12,7 @@ from diffsolids.forms.elasticity import plane_strain_normal_stress
 from diffsolids.model.terms import ElasticEnergy
 from diffsolids.solvers.forms import compile_expression
 
-__all__ = ["TrajectoryWriter", "von_mises_field"]
+__all__ = ["TrajectoryWriter", "von_mises_field", "write_trajectory"]
 
 
 class _VonMises:
@@ -81,6 +81,9 @@ class TrajectoryWriter:
             or DG of any degree (extra files ``<name>_<p2|dg1|...>.bp`` for elements other than
             the displacement's and DG0); XDMF: interpolated into P1 unless P1 or DG0.
 
+    Attributes:
+        files: The files (VTX folders, XDMF and HDF5 files) the writer writes.
+
     Raises:
         ParameterError: A suffix other than .bp/.xdmf, an extra function on another mesh, of a
             non-Lagrange family (VTX), or with a name already used.
@@ -107,6 +110,7 @@ class TrajectoryWriter:
         self.v = fem.Function(model.V, name="velocity")
         self.stress = _VonMises(model, self.u)
         self._closed = False
+        self.files: list[Path] = []
         if self.path.suffix == ".bp":
             self._open_vtx(comm)
         else:
@@ -135,10 +139,12 @@ class TrajectoryWriter:
             else:
                 path = self.path.with_name(f"{self.path.stem}_{_key_label(key)}.bp")
             self._vtx.append(io.VTXWriter(comm, path, functions))
+            self.files.append(path)
 
     def _open_xdmf(self, mesh) -> None:
         self._vtx = []
         self._xdmf = io.XDMFFile(mesh.comm, self.path, "w")
+        self.files += [self.path, self.path.with_suffix(".h5")]
         self._xdmf.write_mesh(mesh)
         vertex_keys = {_element_key(self.stress.field)}  # DG0
         self._xdmf_pairs = []  # (source, function written: source itself or its P1 copy)
@@ -183,3 +189,23 @@ class TrajectoryWriter:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def write_trajectory(
+    model, trajectory, path: str | os.PathLike, extra: list[fem.Function] | None = None
+) -> list[Path]:
+    """Write every state of a trajectory (u, v, von Mises stress) with a :class:`TrajectoryWriter`.
+
+    Args:
+        model: The model of the trajectory.
+        trajectory: The Trajectory (its times, u and v).
+        path: Output path ending in ``.bp`` (VTX) or ``.xdmf``.
+        extra: Further functions written with their current values at every state.
+
+    Returns:
+        The files written (``TrajectoryWriter.files``).
+    """
+    with TrajectoryWriter(model, path, extra=extra) as writer:
+        for t, u, v in zip(trajectory.times, trajectory.u, trajectory.v, strict=True):
+            writer.write(t, u, v)
+    return list(writer.files)

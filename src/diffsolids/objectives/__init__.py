@@ -24,6 +24,7 @@ from diffsolids.objectives.library import (
     volume_penalty,
 )
 from diffsolids.objectives.regularisers import BoundarySmoothing, MaterialSmoothing
+from diffsolids.objectives.values import series_values
 
 __all__ = [
     "BoundarySmoothing",
@@ -40,6 +41,7 @@ __all__ = [
     "center_of_mass_trajectory",
     "final_value",
     "height_objective",
+    "series_values",
     "step_weights",
     "stress_bound_penalty",
     "stress_lp_norm",

@@ -3,10 +3,19 @@
 The optimiser accepts only valid iterates (inside the bounds, no inverted element, no
 intersecting rest configuration, a converged forward solve), warm-starts every forward solve
 from the last accepted trajectory, writes a history, plots, selected iterates and checkpoints,
-and offers a remeshing hook (see :mod:`diffsolids.optimize.optimizer`).
+and offers a remeshing hook (see :mod:`diffsolids.optimize.optimizer`). Observers of accepted
+iterates (``on_accept``: trajectories, invariants) are in :mod:`diffsolids.optimize.observers`,
+checks of those invariants in :mod:`diffsolids.optimize.invariants`.
 """
 
 from diffsolids.optimize.checkpoint import Checkpoint
+from diffsolids.optimize.invariants import (
+    BoundaryIntersection,
+    StateChecks,
+    check_trajectories,
+    inverted_rest_cells,
+    min_volume_ratio,
+)
 from diffsolids.optimize.lbfgs import LBFGSMemory
 from diffsolids.optimize.mesh_motion import (
     MeshMotion,
@@ -15,13 +24,16 @@ from diffsolids.optimize.mesh_motion import (
     ShapeInnerProduct,
 )
 from diffsolids.optimize.monitor import IterationRecord, OptimizationOutput, plot_history
+from diffsolids.optimize.observers import InvariantMonitor, TrajectoryKeeper
 from diffsolids.optimize.optimizer import LBFGS, OptimizationResult, minimize
 from diffsolids.optimize.options import LBFGSOptions, OptimizationError, OptimizationWarning
 from diffsolids.optimize.remesh import Remesher, load_domain, remesh_domain, save_domain
 
 __all__ = [
     "LBFGS",
+    "BoundaryIntersection",
     "Checkpoint",
+    "InvariantMonitor",
     "IterationRecord",
     "LBFGSMemory",
     "LBFGSOptions",
@@ -34,7 +46,12 @@ __all__ = [
     "Remesher",
     "RieszMap",
     "ShapeInnerProduct",
+    "StateChecks",
+    "TrajectoryKeeper",
+    "check_trajectories",
+    "inverted_rest_cells",
     "load_domain",
+    "min_volume_ratio",
     "minimize",
     "plot_history",
     "remesh_domain",

@@ -1,0 +1,88 @@
+"""Values of step series along a trajectory: the numbers behind an objective, per state.
+
+An objective's :class:`~diffsolids.objectives.Series` (a centre of mass, a stress norm, a
+misfit) has one value per state; :func:`series_values` evaluates it on any trajectory, e.g. the
+path of a body's centre of mass for a figure or a check::
+
+    com = series_values(sim, center_of_mass(model, "B"), trajectory)  # (N + 1, dim)
+"""
+
+from collections.abc import Sequence
+
+import numpy as np
+from dolfinx import fem
+from mpi4py import MPI
+
+from diffsolids.objectives.functional import Series
+from diffsolids.parallel import collective_comm
+from diffsolids.solvers.forms import compile_form
+
+__all__ = ["series_values"]
+
+
+def _state_indices(steps: Sequence[int] | None, num_states: int) -> list[int]:
+    if steps is None:
+        return list(range(num_states))
+    out = []
+    for s in steps:
+        i = int(s)
+        if not -num_states <= i < num_states:
+            raise IndexError(f"state {i} out of range for a trajectory of {num_states} states")
+        out.append(i % num_states)
+    return out
+
+
+def series_values(
+    simulation,
+    series: Series | Sequence[Series],
+    trajectory,
+    steps: Sequence[int] | None = None,
+) -> np.ndarray:
+    """Values of one or several series at the states of a trajectory (collective).
+
+    Every state is evaluated as the ReducedFunctional evaluates an objective: the step's data
+    (time, loads, history fields) are those set by ``simulation.load_step(i, trajectory)``
+    (time 0 for state 0) and the model's ``u`` and ``v`` hold the state. The model's ``u`` and
+    ``v`` are restored afterwards; the step data stay those of the last state evaluated (every
+    solve and objective evaluation sets its own).
+
+    Args:
+        simulation: The Simulation the trajectory belongs to (its model and integrator).
+        series: A Series, or a sequence of them (e.g. ``center_of_mass(model, "B")``).
+        trajectory: The Trajectory (states 0..N).
+        steps: The states to evaluate (negative indices count from the end; default: all).
+
+    Returns:
+        Shape (number of states,) for one series, (number of states, number of series) for a
+        sequence; the same on every rank.
+
+    Raises:
+        IndexError: A state outside 0..N.
+    """
+    single = isinstance(series, Series)
+    parts = [series] if single else list(series)
+    model = simulation.model
+    f = model.fields
+    num_states = len(trajectory.u)
+    wanted = _state_indices(steps, num_states)
+    leaves = list(dict.fromkeys(leaf for s in parts for leaf in s.leaves()))
+    forms = {leaf: compile_form(leaf.form(f)) for leaf in leaves}
+    comm = collective_comm(model.domain.comm)
+    table = {leaf: np.full(num_states, np.nan) for leaf in leaves}
+    saved_u, saved_v = f.u.x.array.copy(), f.v.x.array.copy()
+    try:
+        for i in sorted(set(wanted)):
+            if i > 0:
+                simulation.load_step(i, trajectory)
+            else:
+                model.update_time(0.0)
+            f.u.x.array[:] = trajectory.u[i]
+            f.v.x.array[:] = trajectory.v[i]
+            for leaf, form in forms.items():
+                table[leaf][i] = comm.allreduce(fem.assemble_scalar(form), op=MPI.SUM)
+    finally:
+        f.u.x.array[:] = saved_u
+        f.v.x.array[:] = saved_v
+    values = np.column_stack([np.broadcast_to(s.values(table), (num_states,)) for s in parts])
+    values = values[wanted]
+    return values[:, 0] if single else values
