@@ -11,6 +11,7 @@ combined form per step.
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partialmethod
 from typing import override
 
 import numpy as np
@@ -52,37 +53,29 @@ def _wrap(other, kind):
 
 
 class _Algebra:
-    """Elementwise algebra shared by series and scalar objectives."""
+    """Elementwise algebra shared by series and scalar objectives.
+
+    A subclass names its kind (Series or Objective) and the node types of its results: a
+    binary operation and an elementwise function.
+    """
 
     _kind: type
+    _binary_node: type
+    _mapped_node: type
 
-    def __add__(self, other):
+    def _operation(self, other, op: str, reflected: bool = False):
+        """``self op other`` (``other op self`` when ``reflected``); numbers become constants."""
         other = _wrap(other, self._kind)
-        return NotImplemented if other is NotImplemented else self._binary(other, "+")
+        if other is NotImplemented:
+            return NotImplemented
+        return other._binary(self, op) if reflected else self._binary(other, op)
 
-    __radd__ = __add__
-
-    def __sub__(self, other):
-        other = _wrap(other, self._kind)
-        return NotImplemented if other is NotImplemented else self._binary(other, "-")
-
-    def __rsub__(self, other):
-        other = _wrap(other, self._kind)
-        return NotImplemented if other is NotImplemented else other._binary(self, "-")
-
-    def __mul__(self, other):
-        other = _wrap(other, self._kind)
-        return NotImplemented if other is NotImplemented else self._binary(other, "*")
-
-    __rmul__ = __mul__
-
-    def __truediv__(self, other):
-        other = _wrap(other, self._kind)
-        return NotImplemented if other is NotImplemented else self._binary(other, "/")
-
-    def __rtruediv__(self, other):
-        other = _wrap(other, self._kind)
-        return NotImplemented if other is NotImplemented else other._binary(self, "/")
+    __add__ = __radd__ = partialmethod(_operation, op="+")
+    __sub__ = partialmethod(_operation, op="-")
+    __rsub__ = partialmethod(_operation, op="-", reflected=True)
+    __mul__ = __rmul__ = partialmethod(_operation, op="*")
+    __truediv__ = partialmethod(_operation, op="/")
+    __rtruediv__ = partialmethod(_operation, op="/", reflected=True)
 
     def __pow__(self, p: float):
         return self.apply(lambda x: x**p, lambda x: p * x ** (p - 1), f"pow{p}")
@@ -91,11 +84,11 @@ class _Algebra:
         return self * -1.0
 
     def _binary(self, other, op):
-        raise NotImplementedError
+        return self._binary_node(self, other, op)
 
     def apply(self, fn: Callable, dfn: Callable, name: str = "fn"):
         """Elementwise ``fn`` with derivative ``dfn`` (e.g. ``np.sqrt`` and its derivative)."""
-        raise NotImplementedError
+        return self._mapped_node(self, fn, dfn, name)
 
 
 def _binary_grad(op, a, b):
@@ -133,16 +126,6 @@ class Series(_Algebra):
         """Accumulate d(objective)/d(leaf value at step i) into ``out[leaf]``."""
         raise NotImplementedError
 
-    def _binary(self, other, op):
-        return BinarySeries(self, other, op)
-
-    @override
-    def apply(self, fn, dfn, name="fn"):
-        return MappedSeries(self, fn, dfn, name)
-
-
-Series._kind = Series
-
 
 class Integral(Series):
     """A UFL integral of the step fields: ``integrand(fields) -> scalar form``.
@@ -171,35 +154,58 @@ class Integral(Series):
         out[self] = out.get(self, 0.0) + seed
 
 
-class ConstantSeries(Series):
-    """The same value at every step."""
+class DataSeries(Series):
+    """Values that are data, not integrals of the state: no leaves, no derivatives."""
 
-    def __init__(self, value: float):
-        self.value = value
+    @staticmethod
+    def num_states(table: dict, default: int) -> int:
+        """States of the run whose leaf values ``table`` holds (``default`` without leaves)."""
+        return len(next(iter(table.values()))) if table else default
 
     @override
     def leaves(self):
         return []
 
     @override
-    def values(self, table):
-        n = len(next(iter(table.values()))) if table else 1
-        return np.full(n, self.value)
-
-    @override
     def backward(self, table, seed, out):
         pass
 
 
-class BinarySeries(Series):
-    """Elementwise a (op) b."""
+class ConstantSeries(DataSeries):
+    """The same value at every step."""
 
-    def __init__(self, a: Series, b: Series, op: str):
-        self.a, self.b, self.op = a, b, op
+    def __init__(self, value: float):
+        self.value = value
 
     @override
-    def leaves(self):
+    def values(self, table):
+        return np.full(self.num_states(table, 1), self.value)
+
+
+class _BinaryNode:
+    """a (op) b of two series or two objectives: the operands and the integrals they read."""
+
+    def __init__(self, a, b, op: str):
+        self.a, self.b, self.op = a, b, op
+
+    def leaves(self) -> list[Integral]:
+        """Integrals of both operands."""
         return self.a.leaves() + self.b.leaves()
+
+
+class _MappedNode:
+    """fn(a) of a series or an objective, with the derivative dfn."""
+
+    def __init__(self, a, fn: Callable, dfn: Callable, name: str):
+        self.a, self.fn, self.dfn, self.name = a, fn, dfn, name
+
+    def leaves(self) -> list[Integral]:
+        """Integrals of the operand."""
+        return self.a.leaves()
+
+
+class BinarySeries(_BinaryNode, Series):
+    """Elementwise a (op) b."""
 
     @override
     def values(self, table):
@@ -212,15 +218,8 @@ class BinarySeries(Series):
         self.b.backward(table, _masked(seed, db), out)
 
 
-class MappedSeries(Series):
+class MappedSeries(_MappedNode, Series):
     """Elementwise fn(a)."""
-
-    def __init__(self, a: Series, fn, dfn, name):
-        self.a, self.fn, self.dfn, self.name = a, fn, dfn, name
-
-    @override
-    def leaves(self):
-        return self.a.leaves()
 
     @override
     def values(self, table):
@@ -229,6 +228,9 @@ class MappedSeries(Series):
     @override
     def backward(self, table, seed, out):
         self.a.backward(table, _masked(seed, self.dfn(self.a.values(table))), out)
+
+
+Series._kind, Series._binary_node, Series._mapped_node = Series, BinarySeries, MappedSeries
 
 
 def _masked(seed, factor):
@@ -261,16 +263,6 @@ class Objective(_Algebra):
     def requirements(self, grid: TimeGrid) -> dict:
         """Steps at which each leaf must be evaluated: ``{leaf: set of steps}``."""
         raise NotImplementedError
-
-    def _binary(self, other, op):
-        return BinaryObjective(self, other, op)
-
-    @override
-    def apply(self, fn, dfn, name="fn"):
-        return MappedObjective(self, fn, dfn, name)
-
-
-Objective._kind = Objective
 
 
 def _merge(*dicts) -> dict:
@@ -308,15 +300,8 @@ class ConstantObjective(Objective):
         pass
 
 
-class BinaryObjective(Objective):
+class BinaryObjective(_BinaryNode, Objective):
     """a (op) b of scalar objectives."""
-
-    def __init__(self, a: Objective, b: Objective, op: str):
-        self.a, self.b, self.op = a, b, op
-
-    @override
-    def leaves(self):
-        return self.a.leaves() + self.b.leaves()
 
     @override
     def regularisers(self):
@@ -340,15 +325,8 @@ class BinaryObjective(Objective):
         self.b.backward(table, reg, grid, seed * db, out, reg_out)
 
 
-class MappedObjective(Objective):
+class MappedObjective(_MappedNode, Objective):
     """fn(a) of a scalar objective."""
-
-    def __init__(self, a: Objective, fn, dfn, name):
-        self.a, self.fn, self.dfn, self.name = a, fn, dfn, name
-
-    @override
-    def leaves(self):
-        return self.a.leaves()
 
     @override
     def regularisers(self):
@@ -366,6 +344,10 @@ class MappedObjective(Objective):
     def backward(self, table, reg, grid, seed, out, reg_out):
         a = self.a.value(table, reg, grid)
         self.a.backward(table, reg, grid, seed * float(self.dfn(a)), out, reg_out)
+
+
+Objective._kind = Objective
+Objective._binary_node, Objective._mapped_node = BinaryObjective, MappedObjective
 
 
 def step_weights(spec, grid: TimeGrid) -> np.ndarray:

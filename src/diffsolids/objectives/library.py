@@ -26,6 +26,7 @@ from diffsolids.errors import ParameterError
 from diffsolids.model.terms import ElasticEnergy
 from diffsolids.objectives.functional import (
     ConstantSeries,
+    DataSeries,
     Integral,
     Objective,
     ObjectiveError,
@@ -50,7 +51,7 @@ _STRESSES = ("cauchy", "piola", "von_mises")
 Tags = int | str | Sequence[int | str] | None
 
 
-class StepValues(Series):
+class StepValues(DataSeries):
     """Given values s_0..s_N (data, e.g. a target per step); no derivatives.
 
     Args:
@@ -65,21 +66,13 @@ class StepValues(Series):
         self.name = name
 
     @override
-    def leaves(self):
-        return []
-
-    @override
     def values(self, table):
-        n = len(next(iter(table.values()))) if table else len(self.array)
+        n = self.num_states(table, len(self.array))
         if len(self.array) != n:
             raise ObjectiveError(
                 f"{self.name} has {len(self.array)} values but the run has {n} states (0..{n - 1})"
             )
         return self.array
-
-    @override
-    def backward(self, table, seed, out):
-        pass
 
 
 # -- helpers ---------------------------------------------------------------------------------
@@ -294,7 +287,15 @@ def _mass_and_moments(model, bodies: Tags) -> tuple[Integral, list[Integral]]:
 
 
 def center_of_mass(model, bodies: Tags = None) -> list[Series]:
-    """Components of the deformed centre of mass per step, J^P_k / J^D (paper eq. 32)."""
+    """Components of the deformed centre of mass per step, J^P_k / J^D (paper eq. 32).
+
+    Series of an objective, and the numbers along any trajectory: ``series_values(sim,
+    center_of_mass(model, "B"), trajectory)`` is the (N + 1, dim) path of body B's centre.
+
+    Args:
+        model: The Model (its density).
+        bodies: Restrict to these bodies (default: all).
+    """
     mass, moments = _mass_and_moments(model, bodies)
     return [m / mass for m in moments]
 
