@@ -23,177 +23,70 @@ Run ``python demos/beam3d_stress.py`` (default size), ``--tiny`` (smoke test), `
 (paper-like resolution), or ``mpiexec -n 2 python demos/beam3d_stress.py``.
 """
 
-import logging
-import time
-
-import numpy as np
-from common import MESHES, DemoReport, demo_parser, finish, report_from, run_demo, size_name
+from common import MESHES, DemoReport, by_size, run_demo
 from mpi4py import MPI
-from shape_tools import (
-    GuardedMeshMotion,
-    Invariants,
-    max_von_mises,
-    plot_shapes_3d,
-    silhouettes_3d,
-    volume,
-    write_state,
-)
+from shape_tools import GuardedMeshMotion, StressProblem, plot_shapes_3d, shape_run
 
 import diffsolids as ds
-from diffsolids.io import configure_logging
+from diffsolids.io import silhouette_edges
 from diffsolids.mesh import from_geo
-from diffsolids.objectives import BoundarySmoothing, final_value, stress_lp_norm, volume_penalty
-from diffsolids.optimize import LBFGSOptions, Remesher, ShapeInnerProduct, minimize
-from diffsolids.parallel import collective_comm
-from diffsolids.reduced_functional import ReducedFunctional
 
 GEO = MESHES / "beam3d.geo"
 SUPPORT = "support"
 LOADS = ("load_left", "load_right")
 TRACTION = 15.0  # downward traction on each end face (tip deflection ~ 5 % of the arm)
 E, NU = 1.0e4, 0.3
-SIZES = {
-    "tiny": {"h": 0.125, "iterations": 3, "max_change": 0.01},
-    "default": {"h": 0.06, "iterations": 30, "max_change": 0.01},
-    "full": {"h": 0.025, "iterations": 150, "max_change": 0.005},
-}
-WEIGHT_VOLUME = 1.0e3
-WEIGHT_SMOOTHING = 5.0e-2
-MIN_REDUCTION = 1.5  # checked: max von Mises before / after
-VOLUME_TOLERANCE = 0.01  # checked: (V - V0) / V0
+SIZES = by_size(h=(0.125, 0.06, 0.025), iterations=(3, 30, 150), max_change=(0.01, 0.01, 0.005))
 
 
-class Problem:
-    """Builds the scene on a mesh (also after remeshing) with fixed normalisation constants."""
+class Problem(StressProblem):
+    """The beam on its support; the volume may not grow; figures of silhouettes."""
 
-    def __init__(self):
-        self.s0: float | None = None  # L8 stress of the initial shape
-        self.V0: float | None = None  # initial volume
+    smoothing_exclude = (SUPPORT,)  # w_V = 1e3, w_S = 0.05
+    remesh_threshold = 0.01
+    min_reduction = 1.5  # checked: max von Mises before / after
+    volume_tolerance = 0.01  # checked: (V - V0) / V0
 
-    def __call__(self, domain) -> ReducedFunctional:
-        """The reduced functional on a mesh (the first call fixes s0 and V0)."""
+    def model(self, domain) -> ds.Model:
+        """The supported, loaded beam on a mesh."""
         model = ds.Model(domain, ds.NeoHookean(E=E, nu=NU), degree=1)
         model.add_dirichlet(SUPPORT, 0.0)
         for load in LOADS:
             model.add_traction(load, [0.0, 0.0, -TRACTION])
-        sim = ds.Simulation(model, ds.Static(), ds.SolverOptions(rtol=1e-10), progress=False)
-        control = GuardedMeshMotion(model, exclude_facets=[SUPPORT, *LOADS])
-        stress = final_value(stress_lp_norm(model, 8, "von_mises"))
-        if self.s0 is None:
-            self.V0 = volume(model)
-            self.s0 = ReducedFunctional(sim, stress, control)(np.zeros(control.size))
-        V0 = self.V0
-        smooth = BoundarySmoothing(model, 2, exclude_facets=[SUPPORT])
-        J = (
-            (1.0 / self.s0) * stress
-            + (WEIGHT_VOLUME / V0**2) * volume_penalty(model, V0, "upper")
-            + WEIGHT_SMOOTHING * smooth
+        return model
+
+    def control(self, model, sim) -> GuardedMeshMotion:
+        """Every boundary vertex except those of the support patch and of the loaded faces."""
+        return GuardedMeshMotion(model, exclude_facets=[SUPPORT, *LOADS])
+
+    def outline(self, model) -> list:
+        """Silhouettes seen from the side and from above."""
+        return silhouette_edges(model)
+
+    def extra(self, result) -> dict:
+        """Newton iterations of the final solve."""
+        return {"newton_iterations": result.functional.trajectory.newton_iterations()}
+
+    def check(self, report, V1: float) -> None:
+        """The volume grows by at most ``volume_tolerance``."""
+        growth = (V1 - self.V0) / self.V0
+        report.check(
+            "volume growth",
+            growth,
+            self.volume_tolerance,
+            growth <= self.volume_tolerance,
+            f"(V {self.V0:.5g} -> {V1:.5g})",
         )
-        return ReducedFunctional(sim, J, control)
+
+    def plot(self, path, before, after, result, title: str, comm) -> None:
+        """Side and top silhouettes before and after."""
+        plot_shapes_3d(path, before, after, result, title, comm)
 
 
 def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     """Run the demo on ``comm``; returns the report (printed on rank 0)."""
-    parser = demo_parser(__doc__.splitlines()[0], "beam3d_stress")
-    parser.add_argument("--h", type=float, help="mesh size")
-    args = parser.parse_args(argv)
-    size = size_name(args)
-    setup = SIZES[size]
-    h = args.h or setup["h"]
-    iterations = args.iterations if args.iterations is not None else setup["iterations"]
-    configure_logging(logging.INFO if args.verbose else logging.WARNING, comm)
-    t0 = time.perf_counter()
-    cpu0 = time.process_time()
-
-    problem = Problem()
-    domain = from_geo(GEO, comm, numbers={"h": h})
-    rf = problem(domain)
-    model0 = rf.model
-    q0 = rf.initial_parameters()
-    rf(q0)
-    u0 = rf.trajectory.u[-1].copy()
-    stress0 = max_von_mises(model0, u0)
-    suffix = ".xdmf" if args.xdmf else ".bp"
-    files = write_state(model0, args.out / f"initial{suffix}", u0)
-    before = silhouettes_3d(model0)
-
-    invariants = Invariants()
-    options = LBFGSOptions(
-        max_iterations=iterations,
-        gradient_rtol=1e-6,
-        max_change=setup["max_change"],
-        initial_step=setup["max_change"],
-    )
-    result = minimize(
-        rf,
-        q0,
-        options,
-        inner_product=ShapeInnerProduct(rf),
-        remesher=Remesher(problem, threshold=0.01),
-        stop_conditions=[invariants],
-        progress=False,
-        output_dir=args.out,
-        plot_every=0 if args.no_plot else max(iterations, 1),  # at the end only
-    )
-    rf = result.functional
-    model = rf.model
-    u1 = rf.trajectory.u[-1]
-    stress1 = max_von_mises(model, u1)
-    V1 = volume(model)
-    files += write_state(model, args.out / f"final{suffix}", u1)
-    after = silhouettes_3d(model)
-
-    report = report_from("beam3d_stress", args, result, t0)
-    reduction = stress0 / stress1
-    growth = (V1 - problem.V0) / problem.V0
-    report.extra = {
-        "max_von_mises_initial": stress0,
-        "max_von_mises_final": stress1,
-        "reduction": reduction,
-        "volume_initial": problem.V0,
-        "volume_final": V1,
-        "remeshes": sum(r.remeshed for r in result.history),
-        "vertices": domain.mesh.geometry.index_map().size_global,
-        "newton_iterations": rf.trajectory.newton_iterations(),
-        "ranks": comm.size,
-        "cpu_seconds": collective_comm(comm).allreduce(time.process_time() - cpu0, op=MPI.SUM),
-        "files": [str(f) for f in files],
-    }
-    report.check(
-        "objective decreased",
-        report.final_objective,
-        report.initial_objective,
-        report.final_objective < report.initial_objective,
-    )
-    report.check("iterates with inverted cells", invariants.inverted, 0, invariants.inverted == 0)
-    report.check(
-        "iterates with self-intersecting boundaries",
-        invariants.intersecting,
-        0,
-        invariants.intersecting == 0,
-    )
-    if size != "tiny":
-        report.check(
-            "max von Mises reduction",
-            reduction,
-            MIN_REDUCTION,
-            reduction >= MIN_REDUCTION,
-            f"({stress0:.4g} -> {stress1:.4g})",
-        )
-        report.check(
-            "volume growth",
-            growth,
-            VOLUME_TOLERANCE,
-            growth <= VOLUME_TOLERANCE,
-            f"(V {problem.V0:.5g} -> {V1:.5g})",
-        )
-    if not args.no_plot:
-        title = (
-            f"max von Mises {stress0:.3g} -> {stress1:.3g} ({reduction:.2f}x), "
-            f"volume {problem.V0:.4g} -> {V1:.4g}"
-        )
-        plot_shapes_3d(args.out / "beam3d_stress.png", before, after, result, title, comm)
-    return finish(report, args, comm)
+    run = shape_run(__doc__.splitlines()[0], "beam3d_stress", argv, comm, SIZES)
+    return Problem().run(run, from_geo(GEO, comm, numbers={"h": run.args.h}))
 
 
 if __name__ == "__main__":

@@ -18,33 +18,25 @@ Run ``python demos/bouncing_ball_height.py`` (default size, well under 2 minutes
 ``result.json``.
 """
 
-import logging
-import time
-
 import numpy as np
-from common import MESHES, DemoReport, demo_parser, finish, report_from, run_demo, save_figure
-from material_common import (
-    TrajectoryGrabber,
-    body_cell_mask,
-    cell_values,
-    center_of_mass_history,
-    cpu_seconds,
-    deformed_triangles,
-    intersection_free,
-    min_volume_ratio,
-    write_states,
-)
+from common import MESHES, DemoReport, DemoRun, run_demo, save_figure
+from dynamic_common import add_contact
+from material_common import body_cell_mask, cell_values, check_invariants, finish_material
 from mpi4py import MPI
 
 import diffsolids as ds
-from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
 from diffsolids.controls import ParameterControl
 from diffsolids.controls.ordering import CanonicalLayout
-from diffsolids.io import configure_logging
+from diffsolids.io import deformed_triangles
 from diffsolids.mesh import from_geo
-from diffsolids.objectives import MaterialSmoothing, final_value
-from diffsolids.objectives.library import height_objective
-from diffsolids.optimize import LBFGSOptions, minimize
+from diffsolids.objectives import (
+    MaterialSmoothing,
+    center_of_mass,
+    final_value,
+    height_objective,
+    series_values,
+)
+from diffsolids.optimize import LBFGSOptions, check_trajectories, min_volume_ratio
 from diffsolids.reduced_functional import ReducedFunctional
 
 GEO = MESHES / "bouncing_ball.geo"
@@ -61,19 +53,16 @@ SIZES = {
 }
 
 
-def build(comm: MPI.Comm, config: dict):
+def build(comm: MPI.Comm, args):
     """The scene, its BDF2 simulation with contact, and the reduced functional."""
-    dim = config["dim"]
-    domain = from_geo(GEO, comm, dim=dim, numbers={"D": dim, "h": config["h"], "hp": config["hp"]})
+    dim = args.dim
+    domain = from_geo(GEO, comm, dim=dim, numbers={"D": dim, "h": args.h, "hp": args.hp})
     materials = {"plank": ds.NeoHookean(**PLANK), "ball": ds.NeoHookean(**BALL)}
     model = ds.Model(domain, materials)
     model.add_gravity(9.81)
     model.add_dirichlet("plank_ends", 0.0)
-    integrator = ds.BDF(2, config["dt"], config["steps"])
-    probe = ContactTerm(model, dhat=DHAT, stiffness=1.0)
-    kappa = suggest_barrier_stiffness(probe, integrator)
-    contact = ContactTerm(model, dhat=DHAT, stiffness=kappa)
-    model.add_numeric_term(contact)
+    integrator = ds.BDF(2, args.dt, args.steps)
+    contact = add_contact(model, integrator, DHAT)
     # the ball lies above the plank's top face (height 0): throw it down
     X = model.V.tabulate_dof_coordinates()[:, :dim]
     v0 = np.zeros_like(X)
@@ -92,7 +81,7 @@ def build(comm: MPI.Comm, config: dict):
     objective = final_value(height_objective(model, bodies="ball"))
     objective = objective + SMOOTHING * MaterialSmoothing(model, ("E",))
     rf = ReducedFunctional(sim, objective, control)
-    return model, contact, rf, ~plank, kappa
+    return model, contact, rf, ~plank
 
 
 def plot(path, model, states, heights, result, times, comm) -> None:
@@ -152,64 +141,39 @@ def plot(path, model, states, heights, result, times, comm) -> None:
     ax.grid(alpha=0.3)
     ax.set_title("objective")
     fig.suptitle("Bouncing ball: stiffness field optimised for the final height (paper Fig. 22)")
-    fig.tight_layout()
     save_figure(fig, path, comm)
-    plt.close(fig)
 
 
 def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     """Optimise the ball's stiffness field; returns the report (printed on rank 0)."""
-    parser = demo_parser(__doc__.splitlines()[0], "bouncing_ball_height")
-    args = parser.parse_args(argv)
-    size = "tiny" if args.tiny else ("full" if args.full else "default")
-    config = SIZES[size]
-    configure_logging(logging.INFO if args.verbose else logging.WARNING, comm)
-    t0, c0 = time.perf_counter(), time.process_time()
+    run = DemoRun(
+        DemoRun.parser(__doc__.splitlines()[0], "bouncing_ball_height"), argv, comm, SIZES
+    )
+    args = run.args
 
-    model, contact, rf, ball_cells, kappa = build(comm, config)
+    model, contact, rf, ball_cells = build(comm, args)
+    sim = rf.simulation
     q0 = rf.initial_parameters()
-    grab = TrajectoryGrabber()
-    options = LBFGSOptions(
-        max_iterations=args.iterations or config["iterations"],
-        gradient_rtol=1e-6,
-        max_change=1.0,
-    )
-    result = minimize(
-        rf,
-        options=options,
-        output_dir=args.out,
-        stop_conditions=[grab],
-        progress=False,
-        plot_every=0,
-    )
+    options = LBFGSOptions(max_iterations=args.iterations, gradient_rtol=1e-6, max_change=1.0)
+    result, keeper = run.optimise(rf, q0, options, progress=False)
     final_traj = rf.trajectory
     min_distance = min((r.min_distance for r in contact.records), default=np.inf)
-    states = {"initial": (q0, grab.initial), "final": (result.q, final_traj)}
+    states = {"initial": (q0, keeper.first), "final": (result.q, final_traj)}
     vertical = model.dim - 1
-    heights = {
-        k: center_of_mass_history(model, traj, "ball")[:, vertical]
-        for k, (_, traj) in states.items()
-    }
-    free = intersection_free(contact, [grab.initial, final_traj])
-    volume_ratio = min(min_volume_ratio(model, u) for u in [*grab.initial.u, *final_traj.u])
+    com = center_of_mass(model, "ball")[vertical]
+    heights = {k: series_values(sim, com, traj) for k, (_, traj) in states.items()}
+    runs = [keeper.first, final_traj]
+    free = check_trajectories(sim, runs, contact).intersecting == 0
+    volume_ratio = min(min_volume_ratio(model, u) for traj in runs for u in traj.u)
 
-    report = report_from("bouncing_ball_height", args, result, t0)
+    report = run.report(result)
     gain = heights["final"][-1] - heights["initial"][-1]
-    report.check(
-        "objective decreased",
-        result.objective,
-        report.initial_objective,
-        result.objective < report.initial_objective,
-    )
-    report.check(
-        "no intersection", float(free), 1.0, free, "every state of the initial and final runs"
-    )
-    report.check(
-        "no inverted element",
+    check_invariants(
+        report,
         volume_ratio,
-        0.0,
-        volume_ratio > 0,
         "smallest deformed/rest cell volume ratio over every state of the initial and final runs",
+        free,
+        "every state of the initial and final runs",
     )
     report.check(
         "final height increased",
@@ -224,9 +188,9 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
             "dim": model.dim,
             "ball_cells": int(ball_cells.sum()),
             "dofs": model.V.dofmap.index_map.size_global * model.dim,
-            "steps": config["steps"],
-            "dt": config["dt"],
-            "kappa": kappa,
+            "steps": args.steps,
+            "dt": args.dt,
+            "kappa": contact.stiffness,
             "height_initial": float(heights["initial"][-1]),
             "height_final": float(heights["final"][-1]),
             "min_contact_distance_final_run": float(min_distance),
@@ -236,17 +200,12 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
             "newton_iterations_final_run": final_traj.newton_iterations(),
         }
     )
-    paths = write_states(
-        model, rf.controls, states, args.out, "bouncing_ball_height", args.xdmf, ["E"]
-    )
-    rf.controls.assign(result.q)
-    if not args.no_plot:
-        times = np.asarray(final_traj.times)
-        plot(args.out / "bouncing_ball_height.png", model, states, heights, result, times, comm)
-    report.extra["files"] = [str(p) for p in paths]
-    report.extra["cpu_seconds"] = cpu_seconds(comm, c0)
-    report.wall_seconds = time.perf_counter() - t0
-    return finish(report, args, comm)
+    t = np.asarray(final_traj.times)
+
+    def figure(path):
+        plot(path, model, states, heights, result, t, comm)
+
+    return finish_material(run, report, rf, result, states, ["E"], figure)
 
 
 if __name__ == "__main__":

@@ -22,29 +22,27 @@ Run ``python demos/bridge_fabricated.py`` (default size), ``--tiny`` (smoke test
 (paper-like resolution), or ``mpiexec -n 2 python demos/bridge_fabricated.py``.
 """
 
-import logging
-import time
-
 import numpy as np
-from common import MESHES, DemoReport, demo_parser, finish, report_from, run_demo, size_name
+from common import MESHES, DemoReport, run_demo
 from dolfinx import fem
 from mpi4py import MPI
 from shape_tools import (
     GuardedMeshMotion,
-    Invariants,
+    check_invariants,
     design_vertex_coordinates,
-    facet_polygons_2d,
+    optimise_shape,
     plot_shapes_2d,
+    run_extra,
+    shape_run,
     vertex_coordinates,
     write_state,
 )
 
 import diffsolids as ds
-from diffsolids.io import configure_logging
+from diffsolids.io import boundary_edges
 from diffsolids.mesh import from_geo
 from diffsolids.objectives import BoundarySmoothing, final_value, target_positions
-from diffsolids.optimize import LBFGSOptions, ShapeInnerProduct, minimize
-from diffsolids.parallel import collective_comm
+from diffsolids.optimize import LBFGSOptions, ShapeInnerProduct
 from diffsolids.reduced_functional import ReducedFunctional
 
 GEO = MESHES / "bridge.geo"
@@ -73,20 +71,16 @@ def perturbation(x: np.ndarray) -> np.ndarray:
     return AMPLITUDE * d / np.abs(d).max()
 
 
+def look(model, u) -> tuple:
+    """Outline and vertex positions of a rest shape."""
+    return boundary_edges(model), vertex_coordinates(model.domain)
+
+
 def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     """Run the demo on ``comm``; returns the report (printed on rank 0)."""
-    parser = demo_parser(__doc__.splitlines()[0], "bridge_fabricated")
-    parser.add_argument("--h", type=float, help="mesh size")
-    args = parser.parse_args(argv)
-    size = size_name(args)
-    setup = SIZES[size]
-    h = args.h or setup["h"]
-    iterations = args.iterations if args.iterations is not None else setup["iterations"]
-    configure_logging(logging.INFO if args.verbose else logging.WARNING, comm)
-    t0 = time.perf_counter()
-    cpu0 = time.process_time()
-
-    domain = from_geo(GEO, comm, numbers={"h": h})
+    run = shape_run(__doc__.splitlines()[0], "bridge_fabricated", argv, comm, SIZES)
+    args = run.args
+    domain = from_geo(GEO, comm, numbers={"h": args.h})
     material = ds.LinearElastic(E=E, nu=NU, density=DENSITY)
     model = ds.Model(domain, material, degree=1, plane_stress=True)
     model.add_gravity(GRAVITY)
@@ -100,7 +94,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     # the fabricated solution: the deformed unperturbed bridge, attached to the vertices
     u_true = sim.run().u[-1]
     files = write_state(model, args.out / f"target{suffix}", u_true)
-    target_shape = facet_polygons_2d(model)
+    target_shape = boundary_edges(model)
     target = fem.Function(model.V, name="target")
     dofs_x = model.V.tabulate_dof_coordinates()[:, :2]
     target.x.array[:] = dofs_x.ravel() + u_true
@@ -111,54 +105,32 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     q_perturbed = perturbation(design_vertex_coordinates(control)).ravel()
     J_perturbed = scale(q_perturbed)
     rf = ReducedFunctional(sim, (1.0 / J_perturbed) * misfit + WEIGHT_SMOOTHING * smooth, control)
-    rf(q_perturbed)
-    files += write_state(model, args.out / f"initial{suffix}", rf.trajectory.u[-1])
-    before = facet_polygons_2d(model)
-    X_perturbed = vertex_coordinates(domain)
-    perturbation_size = float(np.linalg.norm(X_perturbed - X_true, axis=1).max())
-
-    invariants = Invariants()
-    options = LBFGSOptions(max_iterations=iterations, gradient_rtol=1e-9)
-    result = minimize(
+    opt = optimise_shape(
         rf,
         q_perturbed,
-        options,
+        LBFGSOptions(max_iterations=args.iterations, gradient_rtol=1e-9),
+        args,
+        look,
         inner_product=ShapeInnerProduct(rf, mass_weight=1.0 / HEIGHT**2),
-        stop_conditions=[invariants],
-        progress=False,
-        output_dir=args.out,
-        plot_every=0 if args.no_plot else max(iterations, 1),  # at the end only
     )
-    error = float(np.linalg.norm(vertex_coordinates(domain) - X_true, axis=1).max())
-    files += write_state(model, args.out / f"final{suffix}", rf.trajectory.u[-1])
-    after = facet_polygons_2d(model)
+    (before, X_perturbed), (after, X_final) = opt.initial, opt.final
+    perturbation_size = float(np.linalg.norm(X_perturbed - X_true, axis=1).max())
+    error = float(np.linalg.norm(X_final - X_true, axis=1).max())
 
-    report = report_from("bridge_fabricated", args, result, t0)
+    report = run.report(opt.result)
     relative = error / perturbation_size
-    report.extra = {
-        "max_perturbation": perturbation_size,
-        "max_vertex_error": error,
-        "relative_error": relative,
-        "vertices": domain.mesh.geometry.index_map().size_global,
-        "parameters": rf.size,
-        "ranks": comm.size,
-        "cpu_seconds": collective_comm(comm).allreduce(time.process_time() - cpu0, op=MPI.SUM),
-        "files": [str(f) for f in files],
-    }
-    report.check(
-        "objective decreased",
-        report.final_objective,
-        report.initial_objective,
-        report.final_objective < report.initial_objective,
+    opt.files[:0] = files  # the target first
+    report.extra = run_extra(
+        run,
+        opt,
+        domain,
+        max_perturbation=perturbation_size,
+        max_vertex_error=error,
+        relative_error=relative,
+        parameters=rf.size,
     )
-    report.check("iterates with inverted cells", invariants.inverted, 0, invariants.inverted == 0)
-    report.check(
-        "iterates with self-intersecting boundaries",
-        invariants.intersecting,
-        0,
-        invariants.intersecting == 0,
-    )
-    if size != "tiny":
+    check_invariants(report, opt.monitor)
+    if not args.tiny:
         report.check(
             "max vertex error / perturbation",
             relative,
@@ -175,13 +147,13 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
             args.out / "bridge_fabricated.png",
             before,
             after,
-            result,
+            opt.result,
             title,
             comm,
             target=target_shape,
             labels=("perturbed", "recovered", "original"),
         )
-    return finish(report, args, comm)
+    return run.finish(report)
 
 
 if __name__ == "__main__":

@@ -20,32 +20,18 @@ also under ``mpiexec -n 2``. Output in ``output/bridge_material/``:
 ``history.jsonl``, ``bridge_material.png`` and ``result.json``.
 """
 
-import logging
-import time
-
 import numpy as np
-from common import (
-    MESHES,
-    DemoReport,
-    boundary_segments,
-    demo_parser,
-    finish,
-    plot_history,
-    report_from,
-    run_demo,
-    save_figure,
-)
+from common import MESHES, DemoReport, DemoRun, plot_history, run_demo, save_figure
 from dolfinx import fem
-from material_common import TrajectoryGrabber, cpu_seconds, min_volume_ratio, write_states
+from material_common import check_invariants, check_recovered, finish_material
 from mpi4py import MPI
 
 import diffsolids as ds
 from diffsolids.controls import ParameterControl
-from diffsolids.io import configure_logging
+from diffsolids.io import boundary_edges
 from diffsolids.mesh import from_geo
-from diffsolids.objectives import final_value
-from diffsolids.objectives.library import target_displacement
-from diffsolids.optimize import LBFGSOptions, minimize
+from diffsolids.objectives import final_value, target_displacement
+from diffsolids.optimize import LBFGSOptions, min_volume_ratio
 from diffsolids.parallel import collective_comm
 from diffsolids.reduced_functional import ReducedFunctional
 
@@ -80,14 +66,13 @@ def plot(path, model, states, result, comm) -> None:
     import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection
 
-    outlines = {
-        k: boundary_segments(model.domain, traj.u[-1], model.V) for k, (_, traj) in states.items()
-    }
-    rest = boundary_segments(model.domain)
+    outlines = {k: boundary_edges(model, traj.u[-1]) for k, (_, traj) in states.items()}
+    rest = boundary_edges(model)
     if comm.rank != 0:
         return
     fig = plt.figure(figsize=(12, 4.2))
     grid = fig.add_gridspec(1, 3, width_ratios=[2.2, 1, 1])
+    fig.suptitle("Bridge: recovering lambda and mu from the target displacement (paper Fig. 17)")
     ax = fig.add_subplot(grid[0])
     styles = {
         "rest": ("0.75", 0.6, ":"),
@@ -113,24 +98,16 @@ def plot(path, model, states, result, comm) -> None:
     ax.legend()
     ax.grid(alpha=0.3)
     ax = fig.add_subplot(grid[2])
-    plot_history(ax, result)
-    ax.set_title("objective")
-    fig.suptitle("Bridge: recovering lambda and mu from the target displacement (paper Fig. 17)")
-    fig.tight_layout()
+    plot_history(ax, result, title="objective")
     save_figure(fig, path, comm)
-    plt.close(fig)
 
 
 def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     """Recover lambda and mu of the bridge; returns the report (printed on rank 0)."""
-    parser = demo_parser(__doc__.splitlines()[0], "bridge_material")
-    args = parser.parse_args(argv)
-    size = "tiny" if args.tiny else ("full" if args.full else "default")
-    config = SIZES[size]
-    configure_logging(logging.INFO if args.verbose else logging.WARNING, comm)
-    t0, c0 = time.perf_counter(), time.process_time()
+    run = DemoRun(DemoRun.parser(__doc__.splitlines()[0], "bridge_material"), argv, comm, SIZES)
+    args = run.args
 
-    model, sim = build(comm, config["h"])
+    model, sim = build(comm, args.h)
     controls = [
         ParameterControl(model, "lmbda", "uniform", log=True),
         ParameterControl(model, "mu", "uniform", log=True),
@@ -143,50 +120,23 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     target.x.array[:] = target_traj.u[-1]
     q0 = np.log([START["lmbda"], START["mu"]])
 
-    grab = TrajectoryGrabber()
-    options = LBFGSOptions(
-        max_iterations=args.iterations or config["iterations"], gradient_rtol=1e-9
-    )
-    result = minimize(
-        rf,
-        q0,
-        options,
-        output_dir=args.out,
-        stop_conditions=[grab],
-        progress=False,
-        plot_every=0,
-        write_parameters=True,
-    )
+    options = LBFGSOptions(max_iterations=args.iterations, gradient_rtol=1e-9)
+    result, keeper = run.optimise(rf, q0, options, progress=False, write_parameters=True)
     states = {
-        "initial": (q0, grab.initial),
+        "initial": (q0, keeper.first),
         "target": (q_true, target_traj),
         "final": (result.q, rf.trajectory),
     }
-    report = report_from("bridge_material", args, result, t0)
+    report = run.report(result)
     found = dict(zip(("lmbda", "mu"), np.exp(result.q), strict=True))
     errors = {k: abs(found[k] / TRUE[k] - 1.0) for k in TRUE}
     volumes = {k: min_volume_ratio(model, traj.u[-1]) for k, (_, traj) in states.items()}
-    report.check(
-        "objective decreased",
-        result.objective,
-        report.initial_objective,
-        result.objective < report.initial_objective,
-    )
-    report.check(
-        "no inverted element",
+    check_invariants(
+        report,
         min(volumes.values()),
-        0.0,
-        min(volumes.values()) > 0,
         "smallest deformed/rest cell area ratio of the initial, target and final states",
     )
-    for name, symbol in (("lmbda", "lambda"), ("mu", "mu")):
-        report.check(
-            f"{symbol} relative error",
-            errors[name],
-            MAX_ERROR,
-            errors[name] <= MAX_ERROR,
-            f"{START[name]:g} -> {found[name]:.6g} (truth {TRUE[name]:g})",
-        )
+    check_recovered(report, START, found, TRUE, MAX_ERROR)
     report.extra.update(
         {
             "cells": model.domain.mesh.topology.index_map(2).size_global,
@@ -202,16 +152,11 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
             "num_forward": result.num_forward,
         }
     )
-    paths = write_states(
-        model, rf.controls, states, args.out, "bridge_material", args.xdmf, ["lmbda", "mu"]
-    )
-    rf.controls.assign(result.q)
-    if not args.no_plot:
-        plot(args.out / "bridge_material.png", model, states, result, comm)
-    report.extra["files"] = [str(p) for p in paths]
-    report.extra["cpu_seconds"] = cpu_seconds(comm, c0)
-    report.wall_seconds = time.perf_counter() - t0
-    return finish(report, args, comm)
+
+    def figure(path):
+        plot(path, model, states, result, comm)
+
+    return finish_material(run, report, rf, result, states, ["lmbda", "mu"], figure)
 
 
 if __name__ == "__main__":

@@ -4,10 +4,15 @@ Every optimisation demo is a script with ``main(argv=None) -> DemoReport``. Size
 (smoke tests: a few iterations on a coarse mesh), default (under 2 minutes on 2 cores, checks
 the outcome stated in the README), ``--full`` (paper-like resolution). ``--check`` makes the
 exit code non-zero when an outcome falls short (``make demos`` runs every demo that way).
+
+What every user needs (centres of mass, trajectory keeping, invariant checks, state output,
+figure geometry) is in the package (``diffsolids.objectives``, ``diffsolids.optimize``,
+``diffsolids.io``); this module holds the demos' own conventions.
 """
 
 import argparse
 import json
+import logging
 import os
 import sys
 import time
@@ -20,6 +25,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import numpy as np
 from mpi4py import MPI
 
+from diffsolids.io import configure_logging
+from diffsolids.optimize import LBFGSOptions, OptimizationResult, TrajectoryKeeper, minimize
 from diffsolids.parallel import collective_comm
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -28,14 +35,19 @@ MESHES = ROOT / "meshes"
 __all__ = [
     "MESHES",
     "DemoReport",
+    "DemoRun",
     "Outcome",
-    "boundary_segments",
+    "by_size",
+    "check_decrease",
+    "cpu_seconds",
     "demo_parser",
     "finish",
+    "parse_sized",
     "plot_history",
     "report_from",
     "run_demo",
     "save_figure",
+    "size_name",
 ]
 
 
@@ -105,12 +117,119 @@ def demo_parser(description: str, default_out: str) -> argparse.ArgumentParser:
     p.add_argument("--no-plot", action="store_true", help="skip the PNG figure")
     p.add_argument("--check", action="store_true", help="exit non-zero if an outcome falls short")
     p.add_argument("--verbose", action="store_true", help="log every Newton step")
+    p.set_defaults(demo=default_out)
     return p
 
 
-def size_name(args) -> str:
+def by_size(**settings: Sequence) -> dict[str, dict]:
+    """Settings per size from one (tiny, default, full) triple per setting (see parse_sized)."""
+    return {
+        size: {key: values[k] for key, values in settings.items()}
+        for k, size in enumerate(("tiny", "default", "full"))
+    }
+
+
+def size_name(args: argparse.Namespace) -> str:
     """The size of the run: tiny, default or full."""
     return "tiny" if args.tiny else ("full" if args.full else "default")
+
+
+def parse_sized(
+    parser: argparse.ArgumentParser, argv: Sequence[str] | None, sizes: dict[str, dict]
+) -> argparse.Namespace:
+    """Parse the arguments; every setting of the run's size not given on the command line is set.
+
+    Args:
+        parser: The demo's parser (:func:`demo_parser` and its own options).
+        argv: Command line (None: ``sys.argv``).
+        sizes: Settings per size name ("tiny", "default", "full"), e.g. ``{"h": 0.1,
+            "iterations": 60}``; an option left at None (or without a command-line option)
+            takes the size's value.
+    """
+    args = parser.parse_args(argv)
+    for key, value in sizes[size_name(args)].items():
+        if getattr(args, key, None) is None:
+            setattr(args, key, value)
+    return args
+
+
+def cpu_seconds(comm: MPI.Comm, start: float = 0.0) -> float:
+    """Process CPU time since ``start`` summed over the ranks (the machine is shared)."""
+    return collective_comm(comm).allreduce(time.process_time() - start, op=MPI.SUM)
+
+
+class DemoRun:
+    """One run of a demo: its arguments, communicator and start times.
+
+    ``DemoRun(DemoRun.parser(__doc__.splitlines()[0], "throw"), argv, comm, SIZES)`` parses the
+    command line (every setting of the run's size not given on it is set, see
+    :func:`parse_sized`), configures logging (``--verbose``) and starts the clocks.
+
+    Args:
+        parser: The demo's parser (:meth:`parser` with the demo's own options).
+        argv: Command line (None: ``sys.argv``).
+        comm: Communicator of the run.
+        sizes: Settings per size name.
+
+    Attributes:
+        args: The parsed arguments; ``args.demo`` is the demo's name.
+        comm: The communicator.
+        t0: Wall-clock start.
+        cpu0: CPU-time start (this process).
+    """
+
+    parser = staticmethod(demo_parser)
+
+    def __init__(
+        self,
+        parser: argparse.ArgumentParser,
+        argv: Sequence[str] | None,
+        comm: MPI.Comm,
+        sizes: dict[str, dict],
+    ):
+        self.args = parse_sized(parser, argv, sizes)
+        self.comm = comm
+        configure_logging(logging.INFO if self.args.verbose else logging.WARNING, comm)
+        self.t0, self.cpu0 = time.perf_counter(), time.process_time()
+
+    @property
+    def times(self) -> tuple[float, float]:
+        """(wall-clock start, CPU start)."""
+        return self.t0, self.cpu0
+
+    def cpu_seconds(self) -> float:
+        """CPU time of the run so far, summed over the ranks."""
+        return cpu_seconds(self.comm, self.cpu0)
+
+    def optimise(
+        self, rf, q0, options: LBFGSOptions, **kwargs
+    ) -> tuple[OptimizationResult, TrajectoryKeeper]:
+        """``minimize`` writing into ``args.out`` and keeping the first and last trajectories.
+
+        Args:
+            rf: The ReducedFunctional.
+            q0: Initial parameters.
+            options: L-BFGS options.
+            **kwargs: Further arguments of ``minimize`` (``plot_every`` defaults to 0;
+                observers in ``on_accept`` run after the keeper).
+
+        Returns:
+            (result, keeper): ``keeper.first`` and ``keeper.last`` are the trajectories of the
+            initial and the final iterate.
+        """
+        keeper = TrajectoryKeeper()
+        kwargs["on_accept"] = [keeper, *kwargs.get("on_accept", ())]
+        kwargs.setdefault("plot_every", 0)
+        result = minimize(rf, q0, options, output_dir=self.args.out, **kwargs)
+        return result, keeper
+
+    def report(self, result: OptimizationResult) -> "DemoReport":
+        """The DemoReport of an OptimizationResult (see :func:`report_from`)."""
+        return report_from(self.args.demo, self.args, result, self.t0)
+
+    def finish(self, report: "DemoReport") -> "DemoReport":
+        """Print the summary and write ``result.json`` (see :func:`finish`)."""
+        return finish(report, self.args, self.comm)
 
 
 def report_from(demo: str, args, result, t0: float) -> DemoReport:
@@ -130,6 +249,16 @@ def report_from(demo: str, args, result, t0: float) -> DemoReport:
     )
 
 
+def check_decrease(report: DemoReport) -> None:
+    """Record the outcome every run checks first: the objective decreased."""
+    report.check(
+        "objective decreased",
+        report.final_objective,
+        report.initial_objective,
+        report.final_objective < report.initial_objective,
+    )
+
+
 def finish(report: DemoReport, args, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     """Print the summary and write ``result.json`` (rank 0)."""
     if comm.rank == 0:
@@ -139,46 +268,27 @@ def finish(report: DemoReport, args, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoRep
     return report
 
 
-def plot_history(ax, result, label: str = "objective") -> None:
-    """Objective per iteration on a log axis."""
+def plot_history(ax, result, label: str = "objective", title: str | None = None, **kw) -> None:
+    """Objective per iteration on a log axis (``title`` with the text options ``kw``)."""
     its = [h.iteration for h in result.history]
     vals = np.array([h.objective for h in result.history])
     ax.semilogy(its, np.abs(vals), "o-", ms=3, label=label)
     ax.set_xlabel("iteration")
     ax.set_ylabel("objective")
     ax.grid(True, which="both", alpha=0.3)
-
-
-def boundary_segments(domain, displacement: np.ndarray | None = None, V=None) -> np.ndarray:
-    """Boundary edges of a 2D mesh as an (n, 2, 2) array (gathered on all ranks)."""
-    import dolfinx.mesh
-
-    mesh = domain.mesh
-    fdim = mesh.topology.dim - 1
-    mesh.topology.create_connectivity(fdim, fdim + 1)
-    facets = dolfinx.mesh.exterior_facet_indices(mesh.topology)
-    nodes = dolfinx.mesh.entities_to_geometry(mesh, fdim, facets)
-    x = mesh.geometry.x[:, :2].copy()
-    if displacement is not None:
-        from dolfinx import fem
-
-        u = fem.Function(V)
-        u.x.array[:] = displacement
-        P1 = fem.functionspace(mesh, ("Lagrange", 1, (2,)))
-        u1 = fem.Function(P1)
-        u1.interpolate(u)
-        # P1 dofs and geometry nodes share the per-cell ordering
-        node_of_dof = np.empty(len(x), dtype=np.int64)
-        node_of_dof[mesh.geometry.dofmaps[0].ravel()] = P1.dofmap.list.ravel()
-        x += u1.x.array.reshape(-1, 2)[node_of_dof]
-    return np.concatenate(collective_comm(mesh.comm).allgather(x[nodes]))
+    if title is not None:
+        ax.set_title(title, **kw)
 
 
 def save_figure(fig, path: Path, comm: MPI.Comm = MPI.COMM_WORLD) -> None:
-    """Save a matplotlib figure on rank 0."""
+    """Lay out a matplotlib figure (``tight_layout``), save it on rank 0 and close it."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
     if comm.rank == 0:
         path.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(path, dpi=130, bbox_inches="tight")
+    plt.close(fig)
 
 
 def run_demo(main, argv: Sequence[str] | None = None) -> None:

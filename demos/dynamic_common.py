@@ -1,32 +1,29 @@
 """Helpers of the transient contact demos (throw, sliding friction, puzzle, shock protection).
 
-A contact term with the suggested barrier stiffness, deformed centres of mass per state, the
-invariants every run checks (no inverted element and no intersection in any reported state),
-trajectory output, an optimiser stop condition that keeps the accepted trajectories, and the
+A contact term with the suggested barrier stiffness, the nodes of a body, the output of the
+runs, the invariants every run checks (no inverted element and no intersection in any
+reported state; the counts come from ``diffsolids.optimize.check_trajectories``), and the
 closing figures and summary line every run prints.
 """
 
 import time
+from collections.abc import Mapping
+from pathlib import Path
 
 import numpy as np
-from common import finish
-from dolfinx import fem
-from mpi4py import MPI
+from common import check_decrease
 
 from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
-from diffsolids.errors import IntersectionError
-from diffsolids.io import TrajectoryWriter
-from diffsolids.parallel import collective_comm
+from diffsolids.io import write_trajectory
+from diffsolids.optimize import StateChecks
 
 __all__ = [
-    "CentreOfMass",
-    "TrajectoryKeeper",
     "add_contact",
     "body_nodes",
     "check_invariants",
-    "check_states",
     "finish_transient",
-    "write_states",
+    "scene_figure",
+    "write_runs",
 ]
 
 
@@ -44,73 +41,24 @@ def body_nodes(model, body) -> np.ndarray:
     return np.unique(model.V.dofmap.list[model.domain.cells_of(body)])
 
 
-class CentreOfMass:
-    """Deformed centres of mass of bodies, per state (forms compiled once)."""
-
-    def __init__(self, model, bodies):
-        self.model = model
-        f = model.fields
-        rho = model.coefficients["density"]
-        self.forms = {}
-        for body in bodies:
-            dx = f.dx(model.domain.body_id(body))
-            mass = fem.form(rho * dx)
-            moments = [fem.form(rho * (f.X[k] + f.u[k]) * dx) for k in range(model.dim)]
-            self.forms[body] = (mass, moments)
-
-    def path(self, body, states) -> np.ndarray:
-        """(len(states), dim) centres of mass of ``body`` for displacement arrays (collective)."""
-        comm = self.model.domain.comm
-        u = self.model.fields.u
-        saved = u.x.array.copy()
-        mass, moments = self.forms[body]
-        out = []
-        for state in states:
-            u.x.array[:] = state
-            m = collective_comm(comm).allreduce(fem.assemble_scalar(mass), op=MPI.SUM)
-            out.append(
-                [
-                    collective_comm(comm).allreduce(fem.assemble_scalar(f), op=MPI.SUM) / m
-                    for f in moments
-                ]
-            )
-        u.x.array[:] = saved
-        return np.array(out)
+def write_runs(model, runs: Mapping[str, object], args, prefix: str) -> list[Path]:
+    """Write each labelled trajectory to ``<out>/<prefix>_<label>.bp`` (``.xdmf``); the paths."""
+    suffix = ".xdmf" if args.xdmf else ".bp"
+    paths = [args.out / f"{prefix}_{label}{suffix}" for label in runs]
+    for path, traj in zip(paths, runs.values(), strict=True):
+        write_trajectory(model, traj, path)
+    return paths
 
 
-def check_states(sim, contact, trajectories) -> tuple[int, int, float]:
-    """States with an inverted element, intersecting states and the smallest gap (collective).
-
-    Every state of every given trajectory is checked: det F > 0 at the quadrature points (the
-    solver's inversion guard) and no intersection of the collision surface (ipctk).
-    """
-    u = sim.model.fields.u
-    saved = u.x.array.copy()
-    inverted = intersecting = 0
-    gap = np.inf
-    for traj in trajectories:
-        for i, state in enumerate(traj.u):
-            u.x.array[:] = state
-            inverted += int(sim.solver.inverted())
-            try:
-                gap = min(gap, contact.check_configuration(contact.surface.gather(state), i))
-            except IntersectionError:
-                intersecting += 1
-    u.x.array[:] = saved
-    return inverted, intersecting, float(gap)
-
-
-def check_invariants(report, inverted: int, intersecting: int, gap: float) -> None:
+def check_invariants(report, *checks: StateChecks) -> None:
     """Add the checks every run makes: objective decreased, no inverted element, no intersection.
 
-    ``inverted``, ``intersecting`` and ``gap`` are the counts of :func:`check_states`.
+    ``checks`` are the results of ``check_trajectories`` for the reported runs.
     """
-    report.check(
-        "objective decreased",
-        report.final_objective,
-        report.initial_objective,
-        report.final_objective < report.initial_objective,
-    )
+    inverted = sum(c.inverted for c in checks)
+    intersecting = sum(c.intersecting for c in checks)
+    gap = min(c.min_distance for c in checks)
+    check_decrease(report)
     report.check("no inverted element", inverted, 0, inverted == 0, "(states with one)")
     report.check(
         "no intersection",
@@ -121,53 +69,42 @@ def check_invariants(report, inverted: int, intersecting: int, gap: float) -> No
     )
 
 
-def write_states(model, traj, path) -> None:
-    """Write a trajectory (u, v and von Mises stress per state) to VTX or XDMF."""
-    with TrajectoryWriter(model, path) as writer:
-        for t, u, v in zip(traj.times, traj.u, traj.v, strict=True):
-            writer.write(t, u, v)
+def scene_figure(height: float, heights: tuple, widths: tuple | None, plots: int):
+    """The transient demos' figure: the scene across the top, ``plots`` panels below it.
 
-
-class TrajectoryKeeper:
-    """An optimiser stop condition keeping the trajectories of the first and last iterates.
-
-    ``minimize(..., stop_conditions=[keeper])``; ``keeper.first`` and ``keeper.last`` are the
-    trajectories of the initial and the final iterate (no extra forward solve). With ``stop``,
-    a callable ``stop(trajectory) -> bool`` ends the run when it returns True (collective); the
-    optimiser then reports the reason "user: <name>".
+    Returns:
+        (figure, the scene's axes, the list of the lower axes).
     """
+    import matplotlib.pyplot as plt
 
-    def __init__(self, stop=None, name: str = "stop"):
-        self.first = None
-        self.last = None
-        self.stop = stop
-        self.name = name
-
-    def __call__(self, record, optimizer) -> str | bool:
-        """Keep the accepted trajectory; stop (returning the name) when ``stop`` says so."""
-        traj = optimizer.point.trajectory
-        if self.first is None:
-            self.first = traj
-        self.last = traj
-        return self.name if self.stop is not None and self.stop(traj) else False
+    fig = plt.figure(figsize=(11, height))
+    grid = fig.add_gridspec(2, plots, height_ratios=list(heights), width_ratios=widths)
+    scene = fig.add_subplot(grid[0, :])
+    return fig, scene, [fig.add_subplot(grid[1, k]) for k in range(plots)]
 
 
-def finish_transient(report, args, comm, model, result, times, files, figures, headline):
-    """Record a transient demo's figures, write ``result.json`` and print its summary line.
+def finish_transient(
+    run, report, model, result, files: list, figures: dict, headline: str, plot=None
+):
+    """Draw a transient demo's figure, write ``result.json`` and print its summary line.
 
     Args:
+        run: The DemoRun (arguments ``steps``, ``dt``, ``out``; communicator; clocks).
         report: The DemoReport.
-        args: Parsed arguments (``steps``, ``dt``, ``out``).
-        comm: Communicator of the run.
         model: The Model (its dof count).
         result: The OptimizationResult.
-        times: (wall-clock start, CPU start) of the run.
-        files: Files the run wrote.
+        files: Files the run wrote (the figure is added).
         figures: The demo's own figures for ``report.extra``.
         headline: The demo's part of the summary line (the run's size and cost follow).
+        plot: ``plot(path)`` drawing the figure ``<out>/<demo>.png`` (skipped with
+            ``--no-plot``).
     """
-    t0, cpu0 = times
-    cpu = collective_comm(comm).allreduce(time.process_time() - cpu0, op=MPI.SUM)
+    args, comm = run.args, run.comm
+    if plot is not None and not args.no_plot:
+        path = args.out / f"{args.demo}.png"
+        plot(path)
+        files.append(path)
+    cpu = run.cpu_seconds()
     dofs = model.V.dofmap.index_map.size_global * model.dim
     report.extra.update(
         {"dofs": dofs, "ranks": comm.size, "steps": args.steps, "dt": args.dt, **figures}
@@ -179,8 +116,8 @@ def finish_transient(report, args, comm, model, result, times, files, figures, h
             "files": [str(f) for f in files],
         }
     )
-    report.wall_seconds = time.perf_counter() - t0
-    finish(report, args, comm)
+    report.wall_seconds = time.perf_counter() - run.t0
+    run.finish(report)
     if comm.rank == 0:
         print(
             f"{headline}; {dofs} dofs, {args.steps} steps, {result.num_forward} forward solves; "

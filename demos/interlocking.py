@@ -35,46 +35,24 @@ Run ``python demos/interlocking.py`` (default size), ``--tiny`` (smoke test), ``
 (paper-like resolution), or ``mpiexec -n 2 python demos/interlocking.py``.
 """
 
-import logging
-import time
-
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from common import MESHES, DemoReport, demo_parser, finish, report_from, run_demo, size_name
+from common import MESHES, DemoReport, by_size, run_demo
 from mpi4py import MPI
-from shape_tools import (
-    GuardedShapeControl,
-    Invariants,
-    facet_polygons_2d,
-    max_von_mises,
-    plot_shapes_2d,
-    volume,
-    write_state,
-)
+from shape_tools import GuardedShapeControl, StressProblem, shape_run
 
 import diffsolids as ds
 from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
-from diffsolids.io import configure_logging
 from diffsolids.mesh import from_geo
-from diffsolids.objectives import BoundarySmoothing, final_value, stress_lp_norm, volume_penalty
-from diffsolids.optimize import LBFGSOptions, MeshMotion, Remesher, minimize
-from diffsolids.parallel import collective_comm
-from diffsolids.reduced_functional import ReducedFunctional
+from diffsolids.optimize import MeshMotion
 
 GEO = MESHES / "interlocking.geo"
 GAP = 0.01  # between the parts, in the mesh
 DHAT = 2 * GAP  # barrier activation distance
 TRACTION = 2.0 * np.array([1.0, -1.0]) / np.sqrt(2.0)  # on the top side, down and to the right
 E, NU = 1.0e3, 0.3
-SIZES = {
-    "tiny": {"h": 0.2, "iterations": 3, "max_change": 0.02},
-    "default": {"h": 0.08, "iterations": 40, "max_change": 0.02},
-    "full": {"h": 0.03, "iterations": 100, "max_change": 0.01},
-}
-WEIGHT_VOLUME = 1.0e3
-WEIGHT_SMOOTHING = 5.0e-2
-MIN_REDUCTION = 2.0  # checked: max von Mises before / after
+SIZES = by_size(h=(0.2, 0.08, 0.03), iterations=(3, 40, 100), max_change=(0.02, 0.02, 0.01))
 
 
 def interface_tie(motion: MeshMotion, surface, max_distance: float):
@@ -156,171 +134,99 @@ class TiedInnerProduct:
 
 
 class MinimumDistance:
-    """Stop condition that never stops: the smallest contact distance of every accepted iterate."""
+    """Observer of accepted iterates: the smallest contact distance of each."""
 
     def __init__(self):
         self.values: list[float] = []
 
-    def __call__(self, record, optimizer) -> bool:
-        """Record the minimum distance of the last step; returns False."""
+    def __call__(self, record, optimizer) -> None:
+        """Record the minimum distance of the accepted iterate's solve."""
         (contact,) = optimizer.rf.model.numeric_terms
         self.values.append(min(r.min_distance for r in contact.records))
-        return False
 
 
-class Problem:
-    """Builds the scene on a mesh (also after remeshing) with fixed constants.
+class Problem(StressProblem):
+    """The two plates held together by contact, with the tied interface.
 
     The normalisation s0, the volume bound V0 and the barrier stiffness are fixed by the first
     mesh, so the objective is the same function on every mesh.
     """
 
+    smoothing_exclude = ("fixed", "load")  # w_V = 1e3, w_S = 0.05; checked: a 2x reduction
+    rest_check = "iterates with intersecting rest shapes"
+    deformed = True
+
     def __init__(self):
-        self.s0: float | None = None
-        self.V0: float | None = None
+        super().__init__()
         self.kappa: float | None = None
         self.parts: dict[int, dict] = {}  # per functional: contact, motion, tie, tied vertices
+        self.distances = MinimumDistance()
 
-    def __call__(self, domain) -> ReducedFunctional:
-        """The reduced functional on a mesh."""
+    def model(self, domain) -> ds.Model:
+        """The plates on a mesh, with the contact term (barrier stiffness of the first mesh)."""
         model = ds.Model(domain, ds.NeoHookean(E=E, nu=NU), degree=1)
         model.add_dirichlet("fixed", 0.0)
         model.add_traction("load", TRACTION)
-        integrator = ds.Static()
         if self.kappa is None:
             probe = ContactTerm(model, dhat=DHAT, stiffness=1.0)
-            self.kappa = suggest_barrier_stiffness(probe, integrator)
-        contact = ContactTerm(model, dhat=DHAT, stiffness=self.kappa)
-        model.add_numeric_term(contact)
-        sim = ds.Simulation(model, integrator, ds.SolverOptions(rtol=1e-9), progress=False)
-        motion = MeshMotion(domain, exclude_facets=["fixed", "load"])
-        T, tied = interface_tie(motion, contact.surface, 2.5 * GAP)
+            self.kappa = suggest_barrier_stiffness(probe, ds.Static())
+        self._contact = ContactTerm(model, dhat=DHAT, stiffness=self.kappa)
+        model.add_numeric_term(self._contact)
+        return model
+
+    def solver_options(self) -> ds.SolverOptions:
+        """Newton options of the static solve with contact."""
+        return ds.SolverOptions(rtol=1e-9)
+
+    def control(self, model, sim) -> GuardedShapeControl:
+        """The boundary of both parts except the clamped and loaded sides, interface tied."""
+        motion = MeshMotion(model.domain, exclude_facets=["fixed", "load"])
+        T, tied = interface_tie(motion, self._contact.surface, 2.5 * GAP)
         tie = spla.aslinearoperator(T)
         control = GuardedShapeControl(model, linear_map=spla.aslinearoperator(motion) @ tie)
         control.name = "shape[tied mesh motion]"
-        stress = final_value(stress_lp_norm(model, 8, "von_mises"))
-        if self.s0 is None:
-            self.V0 = volume(model)
-            self.s0 = ReducedFunctional(sim, stress, control)(np.zeros(control.size))
-        smooth = BoundarySmoothing(model, 2, exclude_facets=["fixed", "load"])
-        J = (
-            (1.0 / self.s0) * stress
-            + (WEIGHT_VOLUME / self.V0**2) * volume_penalty(model, self.V0, "upper")
-            + WEIGHT_SMOOTHING * smooth
-        )
-        rf = ReducedFunctional(sim, J, control)
-        self.parts[id(rf)] = {"contact": contact, "motion": motion, "tie": T, "tied": tied}
+        self._parts = {"contact": self._contact, "motion": motion, "tie": T, "tied": tied}
+        return control
+
+    def __call__(self, domain):
+        """The reduced functional on a mesh (its parts kept in ``parts``)."""
+        rf = super().__call__(domain)
+        self.parts[id(rf)] = self._parts
         return rf
+
+    def inner_product(self, rf) -> TiedInnerProduct:
+        """The Riesz map of the mesh motion through the tie."""
+        return TiedInnerProduct(self, rf)
+
+    def observers(self) -> list:
+        """The smallest contact distance of every accepted iterate."""
+        return [self.distances]
+
+    def extra(self, result) -> dict:
+        """Contact distances, barrier, tie and size of the final functional."""
+        rf = result.functional
+        return {
+            "min_contact_distance": min(self.distances.values),
+            "barrier_distance": DHAT,
+            "barrier_stiffness": self.kappa,
+            "invalid_trials": result.num_invalid_trials,
+            "tied_vertices": self.parts[id(rf)]["tied"],
+            "parameters": rf.size,
+            "newton_iterations": rf.trajectory.newton_iterations(),
+        }
+
+    def title(self, stress0: float, stress1: float, V1: float) -> str:
+        """Title of the figure: the stress reduction and the smallest contact distance."""
+        return (
+            f"max von Mises {stress0:.3g} -> {stress1:.3g} ({stress0 / stress1:.2f}x), "
+            f"min contact distance {min(self.distances.values):.2g}"
+        )
 
 
 def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     """Run the demo on ``comm``; returns the report (printed on rank 0)."""
-    parser = demo_parser(__doc__.splitlines()[0], "interlocking")
-    parser.add_argument("--h", type=float, help="mesh size")
-    args = parser.parse_args(argv)
-    size = size_name(args)
-    setup = SIZES[size]
-    h = args.h or setup["h"]
-    iterations = args.iterations if args.iterations is not None else setup["iterations"]
-    configure_logging(logging.INFO if args.verbose else logging.WARNING, comm)
-    t0 = time.perf_counter()
-    cpu0 = time.process_time()
-
-    domain = from_geo(GEO, comm, numbers={"h": h, "G": GAP})
-    problem = Problem()
-    rf = problem(domain)
-    V0 = problem.V0
-    model = rf.model
-    q0 = rf.initial_parameters()
-    rf(q0)
-    u0 = rf.trajectory.u[-1].copy()
-    stress0 = max_von_mises(model, u0)
-    suffix = ".xdmf" if args.xdmf else ".bp"
-    files = write_state(model, args.out / f"initial{suffix}", u0)
-    before = facet_polygons_2d(model)
-
-    invariants = Invariants(deformed=True)
-    distances = MinimumDistance()
-    options = LBFGSOptions(
-        max_iterations=iterations,
-        gradient_rtol=1e-6,
-        max_change=setup["max_change"],
-        initial_step=setup["max_change"],
-    )
-    result = minimize(
-        rf,
-        q0,
-        options,
-        inner_product=TiedInnerProduct(problem, rf),
-        remesher=Remesher(problem, threshold=0.1),
-        stop_conditions=[invariants, distances],
-        progress=False,
-        output_dir=args.out,
-        plot_every=0 if args.no_plot else max(iterations, 1),  # at the end only
-    )
-    rf = result.functional
-    model = rf.model
-    u1 = rf.trajectory.u[-1]
-    stress1 = max_von_mises(model, u1)
-    V1 = volume(model)
-    files += write_state(model, args.out / f"final{suffix}", u1)
-    after = facet_polygons_2d(model)
-
-    report = report_from("interlocking", args, result, t0)
-    reduction = stress0 / stress1
-    report.extra = {
-        "max_von_mises_initial": stress0,
-        "max_von_mises_final": stress1,
-        "reduction": reduction,
-        "volume_initial": V0,
-        "volume_final": V1,
-        "min_contact_distance": min(distances.values),
-        "barrier_distance": DHAT,
-        "barrier_stiffness": problem.kappa,
-        "remeshes": sum(r.remeshed for r in result.history),
-        "invalid_trials": result.num_invalid_trials,
-        "tied_vertices": problem.parts[id(rf)]["tied"],
-        "parameters": rf.size,
-        "vertices": domain.mesh.geometry.index_map().size_global,
-        "newton_iterations": rf.trajectory.newton_iterations(),
-        "ranks": comm.size,
-        "cpu_seconds": collective_comm(comm).allreduce(time.process_time() - cpu0, op=MPI.SUM),
-        "files": [str(f) for f in files],
-    }
-    report.check(
-        "objective decreased",
-        report.final_objective,
-        report.initial_objective,
-        report.final_objective < report.initial_objective,
-    )
-    report.check("iterates with inverted cells", invariants.inverted, 0, invariants.inverted == 0)
-    report.check(
-        "iterates with intersecting rest shapes",
-        invariants.intersecting,
-        0,
-        invariants.intersecting == 0,
-    )
-    report.check(
-        "iterates with intersecting deformed shapes",
-        invariants.intersecting_deformed,
-        0,
-        invariants.intersecting_deformed == 0,
-    )
-    if size != "tiny":
-        report.check(
-            "max von Mises reduction",
-            reduction,
-            MIN_REDUCTION,
-            reduction >= MIN_REDUCTION,
-            f"({stress0:.4g} -> {stress1:.4g})",
-        )
-    if not args.no_plot:
-        title = (
-            f"max von Mises {stress0:.3g} -> {stress1:.3g} ({reduction:.2f}x), "
-            f"min contact distance {min(distances.values):.2g}"
-        )
-        plot_shapes_2d(args.out / "interlocking.png", before, after, result, title, comm)
-    return finish(report, args, comm)
+    run = shape_run(__doc__.splitlines()[0], "interlocking", argv, comm, SIZES)
+    return Problem().run(run, from_geo(GEO, comm, numbers={"h": run.args.h, "G": GAP}))
 
 
 if __name__ == "__main__":

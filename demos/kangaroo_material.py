@@ -24,31 +24,19 @@ Run ``python demos/kangaroo_material.py`` (default size, under 2 minutes on 2 co
 ``kangaroo_material.png`` and ``result.json``.
 """
 
-import logging
-import time
-
 import numpy as np
-from common import MESHES, DemoReport, demo_parser, finish, report_from, run_demo, save_figure
+from common import MESHES, DemoReport, DemoRun, run_demo, save_figure
 from dolfinx import fem
-from material_common import (
-    TrajectoryGrabber,
-    center_of_mass_history,
-    cpu_seconds,
-    deformed_triangles,
-    intersection_free,
-    min_volume_ratio,
-    write_states,
-)
+from dynamic_common import add_contact
+from material_common import check_invariants, check_recovered, finish_material
 from mpi4py import MPI
 
 import diffsolids as ds
-from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
 from diffsolids.controls import ParameterControl
-from diffsolids.io import configure_logging
+from diffsolids.io import deformed_triangles
 from diffsolids.mesh import from_geo
-from diffsolids.objectives import time_integral
-from diffsolids.objectives.library import target_displacement
-from diffsolids.optimize import LBFGSOptions, minimize
+from diffsolids.objectives import center_of_mass, series_values, target_displacement, time_integral
+from diffsolids.optimize import LBFGSOptions, check_trajectories, min_volume_ratio
 from diffsolids.parallel import collective_comm
 from diffsolids.reduced_functional import ReducedFunctional
 
@@ -70,9 +58,9 @@ SIZES = {
 }
 
 
-def build(comm: MPI.Comm, config: dict):
+def build(comm: MPI.Comm, args):
     """The scene (at the true material), its BDF2 simulation and the contact term."""
-    domain = from_geo(GEO, comm, numbers={"h": config["h"]})
+    domain = from_geo(GEO, comm, numbers={"h": args.h})
     materials = {
         "ground": ds.NeoHookean(**GROUND),
         "kangaroo": ds.NeoHookean(**TRUE, density=DENSITY),
@@ -80,19 +68,16 @@ def build(comm: MPI.Comm, config: dict):
     model = ds.Model(domain, materials)
     model.add_gravity(9.81)
     model.add_dirichlet(lambda x: x[1] <= 1e-9, 0.0)  # the whole ground (top face y = 0)
-    integrator = ds.BDF(2, config["dt"], config["steps"])
+    integrator = ds.BDF(2, args.dt, args.steps)
     friction = {("ground", "kangaroo"): FRICTION}
-    probe = ContactTerm(model, dhat=DHAT, stiffness=1.0, friction=friction, eps_v=EPS_V)
-    kappa = suggest_barrier_stiffness(probe, integrator)
-    contact = ContactTerm(model, dhat=DHAT, stiffness=kappa, friction=friction, eps_v=EPS_V)
-    model.add_numeric_term(contact)
+    contact = add_contact(model, integrator, DHAT, friction=friction, eps_v=EPS_V)
     X = model.V.tabulate_dof_coordinates()[:, :2]
     v0 = np.zeros_like(X)
     v0[X[:, 1] > 1e-9] = VELOCITY
     sim = ds.Simulation(
         model, integrator, ds.SolverOptions(rtol=1e-8), v0=v0.ravel(), progress=False
     )
-    return model, sim, contact, kappa
+    return model, sim, contact
 
 
 def matched(record, optimizer) -> bool:
@@ -172,22 +157,16 @@ def plot(path, model, states, steps, com, result, comm) -> None:
     ax.set_title("objective")
     ax.grid(alpha=0.3, which="both")
     fig.suptitle("Kangaroo: recovering E and nu from a bouncing trajectory (paper Fig. 20)")
-    fig.tight_layout()
     save_figure(fig, path, comm)
-    plt.close(fig)
 
 
 def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     """Recover the kangaroo's E and nu; returns the report (printed on rank 0)."""
-    parser = demo_parser(__doc__.splitlines()[0], "kangaroo_material")
-    args = parser.parse_args(argv)
-    size = "tiny" if args.tiny else ("full" if args.full else "default")
-    config = SIZES[size]
-    configure_logging(logging.INFO if args.verbose else logging.WARNING, comm)
-    t0, c0 = time.perf_counter(), time.process_time()
+    run = DemoRun(DemoRun.parser(__doc__.splitlines()[0], "kangaroo_material"), argv, comm, SIZES)
+    args = run.args
 
-    model, sim, contact, kappa = build(comm, config)
-    steps = sample_steps(config["steps"])
+    model, sim, contact = build(comm, args)
+    steps = sample_steps(args.steps)
     targets = [fem.Function(model.V, name=f"target_{k}") for k in steps]
     misfits = [
         time_integral(target_displacement(model, target, bodies="kangaroo"), [k])
@@ -208,72 +187,45 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
         target.x.array[:] = target_traj.u[k]
     q0 = np.array([np.log(START["E"]), START["nu"]])
 
-    grab = TrajectoryGrabber()
     options = LBFGSOptions(
-        max_iterations=args.iterations or config["iterations"],
+        max_iterations=args.iterations,
         gradient_rtol=1e-10,  # the misfit is flat along the valley where the bounce is alike
         max_change=[1.0, 0.1],
     )
-    result = minimize(
-        rf,
-        q0,
-        options,
-        output_dir=args.out,
-        stop_conditions=[grab, matched],
-        progress=False,
-        plot_every=0,
-        write_parameters=True,
+    result, keeper = run.optimise(
+        rf, q0, options, stop_conditions=[matched], progress=False, write_parameters=True
     )
     final_traj = rf.trajectory
     states = {
         "target": (q_true, target_traj),
-        "initial": (q0, grab.initial),
+        "initial": (q0, keeper.first),
         "final": (result.q, final_traj),
     }
     found = {"E": float(np.exp(result.q[0])), "nu": float(result.q[1])}
     errors = {k: abs(found[k] / TRUE[k] - 1.0) for k in TRUE}
     trajectories = [traj for _, traj in states.values()]
-    free = intersection_free(contact, trajectories)
+    free = check_trajectories(sim, trajectories, contact).intersecting == 0
     volume_ratio = min(min_volume_ratio(model, u) for traj in trajectories for u in traj.u)
-    com = {k: center_of_mass_history(model, traj, "kangaroo") for k, (_, traj) in states.items()}
+    centre = center_of_mass(model, "kangaroo")
+    com = {k: series_values(sim, centre, traj) for k, (_, traj) in states.items()}
 
-    report = report_from("kangaroo_material", args, result, t0)
-    report.check(
-        "objective decreased",
-        result.objective,
-        report.initial_objective,
-        result.objective < report.initial_objective,
-    )
-    report.check(
-        "no intersection",
-        float(free),
-        1.0,
+    report = run.report(result)
+    check_invariants(
+        report,
+        volume_ratio,
+        "smallest deformed/rest cell area ratio over every state of the three runs",
         free,
         "every state of the target, initial and final runs",
     )
-    report.check(
-        "no inverted element",
-        volume_ratio,
-        0.0,
-        volume_ratio > 0,
-        "smallest deformed/rest cell area ratio over every state of the three runs",
-    )
-    for name, text in (("E", "E"), ("nu", "nu")):
-        report.check(
-            f"{text} relative error",
-            errors[name],
-            MAX_ERROR,
-            errors[name] <= MAX_ERROR,
-            f"{START[name]:g} -> {found[name]:.6g} (truth {TRUE[name]:g})",
-        )
+    check_recovered(report, START, found, TRUE, MAX_ERROR)
     report.extra.update(
         {
             "vertices": model.domain.mesh.geometry.index_map().size_global,
             "dofs": model.V.dofmap.index_map.size_global * model.dim,
-            "steps": config["steps"],
-            "dt": config["dt"],
+            "steps": args.steps,
+            "dt": args.dt,
             "sampled_steps": steps,
-            "kappa": kappa,
+            "kappa": contact.stiffness,
             "recovered": found,
             "relative_errors": errors,
             "com_distance_final_initial_m": float(
@@ -288,16 +240,11 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
             "newton_iterations_final_run": final_traj.newton_iterations(),
         }
     )
-    paths = write_states(
-        model, rf.controls, states, args.out, "kangaroo_material", args.xdmf, ["E", "nu"]
-    )
-    rf.controls.assign(result.q)
-    if not args.no_plot:
-        plot(args.out / "kangaroo_material.png", model, states, steps, com, result, comm)
-    report.extra["files"] = [str(p) for p in paths]
-    report.extra["cpu_seconds"] = cpu_seconds(comm, c0)
-    report.wall_seconds = time.perf_counter() - t0
-    return finish(report, args, comm)
+
+    def figure(path):
+        plot(path, model, states, steps, com, result, comm)
+
+    return finish_material(run, report, rf, result, states, ["E", "nu"], figure)
 
 
 if __name__ == "__main__":

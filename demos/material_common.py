@@ -1,102 +1,69 @@
-"""Helpers of the material optimisation demos: state output, invariants, field plots.
+"""Helpers of the material optimisation demos: invariants, labelled state output, field plots.
 
 Shared by ``sine_bar``, ``bridge_material``, ``bouncing_ball_height`` and ``kangaroo_material``:
-writing the initial and final states (with the material fields) to VTX/XDMF, the invariants
-every run checks (no inverted element in any deformed state, no intersection in contact
-scenes), CPU time, and the deformed mesh coloured by a cellwise field for the figures.
+the invariants every run reports (objective decreased, no inverted element in any deformed
+state, no intersection in contact scenes), writing the labelled states (with the material
+fields) and the closing output, and cellwise material values for the figures.
 """
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 
-import ipctk
 import numpy as np
+from common import check_decrease
 from dolfinx import fem
-from mpi4py import MPI
 
-from diffsolids.io import TrajectoryWriter
-from diffsolids.mesh import signed_cell_volumes
-from diffsolids.parallel import collective_comm
+from diffsolids.io import write_trajectory
 
 __all__ = [
-    "TrajectoryGrabber",
     "body_cell_mask",
     "cell_values",
-    "center_of_mass_history",
-    "cpu_seconds",
-    "deformed_triangles",
-    "intersection_free",
-    "min_volume_ratio",
+    "check_invariants",
+    "check_recovered",
+    "finish_material",
     "write_states",
 ]
 
 
-def cpu_seconds(comm: MPI.Comm, start: float = 0.0) -> float:
-    """Process CPU time since ``start`` summed over the ranks (the machine is shared)."""
-    return collective_comm(comm).allreduce(time.process_time() - start, op=MPI.SUM)
+def check_invariants(
+    report, volume_ratio: float, volume_text: str, free: bool | None = None, free_text: str = ""
+) -> None:
+    """Record: objective decreased, (with ``free``) no intersection, no inverted element.
 
-
-class TrajectoryGrabber:
-    """An optimiser stop condition that never stops; keeps the initial iterate's trajectory.
-
-    ``minimize(..., stop_conditions=[grab])`` then ``grab.initial`` is the Trajectory of the
-    initial parameters (no extra forward solve is needed for the "before" output).
+    Args:
+        report: The DemoReport.
+        volume_ratio: Smallest deformed/rest cell volume ratio of the reported states.
+        volume_text: Which states that ratio covers.
+        free: Whether no reported state intersects (contact scenes; None: not checked).
+        free_text: Which states were checked for intersections.
     """
-
-    def __init__(self):
-        self.initial = None
-
-    def __call__(self, record, optimizer) -> bool:
-        """Keep the trajectory at iteration 0; never stop."""
-        if record.iteration == 0 and self.initial is None:
-            self.initial = optimizer.point.trajectory
-        return False
+    check_decrease(report)
+    if free is not None:
+        report.check("no intersection", float(free), 1.0, free, free_text)
+    report.check("no inverted element", volume_ratio, 0.0, volume_ratio > 0, volume_text)
 
 
-def _p1_displacement(model, u: np.ndarray) -> np.ndarray:
-    """Displacement at the local geometry nodes, shape (num nodes, dim)."""
-    mesh = model.domain.mesh
-    d = model.dim
-    uf = fem.Function(model.V)
-    uf.x.array[:] = u
-    uf.x.scatter_forward()
-    if model.degree != 1:
-        P1 = fem.functionspace(mesh, ("Lagrange", 1, (d,)))
-        u1 = fem.Function(P1)
-        u1.interpolate(uf)
-        uf = u1
-    node_of_dof = np.empty(len(mesh.geometry.x), dtype=np.int64)
-    nv = mesh.geometry.dofmaps[0].shape[1]
-    node_of_dof[mesh.geometry.dofmaps[0].ravel()] = uf.function_space.dofmap.list[:, :nv].ravel()
-    return uf.x.array.reshape(-1, d)[node_of_dof]
+def check_recovered(report, start: dict, found: dict, true: dict, max_error: float) -> None:
+    """Record the identification outcomes: each parameter within ``max_error`` of the truth.
 
-
-def min_volume_ratio(model, u: np.ndarray) -> float:
-    """Smallest deformed/rest volume ratio of the (vertex-)deformed cells, over all ranks.
-
-    A non-positive value means an inverted element. Linear elasticity has no inversion guard,
-    so the demos check every state they report.
+    Args:
+        report: The DemoReport.
+        start: Initial value per parameter name.
+        found: Recovered value per parameter name.
+        true: True value per parameter name (the outcome is named after the key, "lmbda" as
+            "lambda").
+        max_error: Largest admissible relative error.
     """
-    mesh = model.domain.mesh
-    d = model.dim
-    owned = mesh.topology.index_map(mesh.topology.dim).size_local
-    x = mesh.geometry.x.copy()
-    x[:, :d] += _p1_displacement(model, u)
-    rest = signed_cell_volumes(mesh)[:owned]
-    deformed = signed_cell_volumes(mesh, x)[:owned]
-    local = float((deformed / rest).min()) if owned else np.inf
-    return collective_comm(mesh.comm).allreduce(local, op=MPI.MIN)
-
-
-def intersection_free(contact, trajectories) -> bool:
-    """No state of the trajectories intersects (ipctk exact check on the collision surface)."""
-    surf = contact.surface
-    for traj in trajectories:
-        for u in traj.u:
-            x = np.asfortranarray(surf.rest_positions + surf.gather(u))
-            if ipctk.has_intersections(surf.mesh, x):
-                return False
-    return True
+    for name, value in true.items():
+        error = abs(found[name] / value - 1.0)
+        report.check(
+            f"{'lambda' if name == 'lmbda' else name} relative error",
+            error,
+            max_error,
+            error <= max_error,
+            f"{start[name]:g} -> {found[name]:.6g} (truth {value:g})",
+        )
 
 
 def cell_values(model, name: str) -> np.ndarray:
@@ -105,24 +72,6 @@ def cell_values(model, name: str) -> np.ndarray:
     owned = model.domain.mesh.topology.index_map(model.dim).size_local
     cells = np.arange(owned, dtype=np.int32)
     return fn.x.array[fn.function_space.dofmap.list[cells, 0]]
-
-
-def deformed_triangles(model, u: np.ndarray | None, values: np.ndarray | None = None):
-    """Deformed triangles (n, 3, 2) of the owned cells with their values, gathered on all ranks.
-
-    For plotting 2D meshes (``matplotlib.collections.PolyCollection``).
-    """
-    mesh = model.domain.mesh
-    owned = mesh.topology.index_map(mesh.topology.dim).size_local
-    x = mesh.geometry.x[:, :2].copy()
-    if u is not None:
-        x += _p1_displacement(model, u)
-    tris = x[mesh.geometry.dofmaps[0][:owned, :3]]
-    comm = mesh.comm
-    tris = np.concatenate(collective_comm(comm).allgather(tris))
-    if values is None:
-        return tris, None
-    return tris, np.concatenate(collective_comm(comm).allgather(np.asarray(values)))
 
 
 def write_states(
@@ -145,33 +94,40 @@ def write_states(
     for label, (q, traj) in states.items():
         controls.assign(q)
         path = out / f"{name}_{label}{suffix}"
-        with TrajectoryWriter(model, path, extra=extra) as writer:
-            for t, u, v in zip(traj.times, traj.u, traj.v, strict=True):
-                writer.write(t, u, v)
+        write_trajectory(model, traj, path, extra=extra)
         paths.append(path)
     return paths
 
 
-def center_of_mass_history(model, trajectory, body) -> np.ndarray:
-    """Deformed centre of mass of a body at every state, shape (N + 1, dim), on all ranks."""
-    f = model.fields
-    rho = model.coefficients["density"]
-    dx = f.dx(model.domain.body_id(body))
-    comm = model.domain.comm
-    mass = collective_comm(comm).allreduce(fem.assemble_scalar(fem.form(rho * dx)), op=MPI.SUM)
-    moments = [fem.form(rho * (f.X[k] + f.u[k]) * dx) for k in range(model.dim)]
-    saved = f.u.x.array.copy()
-    out = []
-    for u in trajectory.u:
-        f.u.x.array[:] = u
-        out.append(
-            [
-                collective_comm(comm).allreduce(fem.assemble_scalar(m), op=MPI.SUM) / mass
-                for m in moments
-            ]
-        )
-    f.u.x.array[:] = saved
-    return np.array(out)
+def finish_material(
+    run,
+    report,
+    rf,
+    result,
+    states: dict,
+    fields: list[str],
+    plot: Callable[[Path], None] | None = None,
+):
+    """Write the labelled states, the figure and ``result.json``; print the summary.
+
+    Args:
+        run: The DemoRun (arguments ``out``, ``xdmf``, ``no_plot``; communicator; clocks).
+        report: The DemoReport (its ``demo`` names the files).
+        rf: The ReducedFunctional (its controls are left at the optimum).
+        result: The OptimizationResult.
+        states: ``{label: (q, trajectory)}`` to write.
+        fields: Names of the material fields written with the states.
+        plot: ``plot(path)`` drawing the demo's figure (skipped with ``--no-plot``).
+    """
+    args = run.args
+    paths = write_states(rf.model, rf.controls, states, args.out, report.demo, args.xdmf, fields)
+    rf.controls.assign(result.q)
+    if plot is not None and not args.no_plot:
+        plot(args.out / f"{report.demo}.png")
+    report.extra["files"] = [str(p) for p in paths]
+    report.extra["cpu_seconds"] = run.cpu_seconds()
+    report.wall_seconds = time.perf_counter() - run.t0
+    return run.finish(report)
 
 
 def body_cell_mask(model, layout, body) -> np.ndarray:

@@ -21,39 +21,18 @@ step). Writes into ``output/puzzle_initial_velocity/`` (``--out``): ``puzzle_tar
 Run ``python demos/puzzle_initial_velocity.py`` or under ``mpiexec -n 2``.
 """
 
-import logging
-import time
-
 import numpy as np
-from common import (
-    MESHES,
-    DemoReport,
-    boundary_segments,
-    demo_parser,
-    plot_history,
-    report_from,
-    run_demo,
-    save_figure,
-    size_name,
-)
+from common import MESHES, DemoReport, DemoRun, plot_history, run_demo, save_figure
 from dolfinx import fem
-from dynamic_common import (
-    CentreOfMass,
-    TrajectoryKeeper,
-    add_contact,
-    check_invariants,
-    check_states,
-    finish_transient,
-    write_states,
-)
+from dynamic_common import add_contact, check_invariants, finish_transient, write_runs
 from mpi4py import MPI
 
 import diffsolids as ds
 from diffsolids.controls import RigidVelocity
-from diffsolids.io import configure_logging
+from diffsolids.io import boundary_edges
 from diffsolids.mesh import from_geo
-from diffsolids.objectives import target_displacement, time_integral
-from diffsolids.optimize import LBFGSOptions, minimize
+from diffsolids.objectives import center_of_mass, series_values, target_displacement, time_integral
+from diffsolids.optimize import LBFGSOptions, check_trajectories
 from diffsolids.parallel import collective_comm
 from diffsolids.reduced_functional import ReducedFunctional
 
@@ -71,14 +50,11 @@ SIZES = {
 RECOVERY_RTOL = 0.01  # relative error of the recovered throw
 
 
-def parse_args(argv=None):
-    p = demo_parser(__doc__.splitlines()[0], "puzzle_initial_velocity")
-    args = p.parse_args(argv)
-    size = SIZES[size_name(args)]
-    if args.iterations is None:
-        args.iterations = size["iterations"]
-    args.h, args.dt, args.steps = size["h"], size["dt"], size["steps"]
-    return args
+def parse_args(argv, comm: MPI.Comm) -> DemoRun:
+    """The run with its arguments."""
+    return DemoRun(
+        DemoRun.parser(__doc__.splitlines()[0], "puzzle_initial_velocity"), argv, comm, SIZES
+    )
 
 
 class TargetSimulation(ds.Simulation):
@@ -125,23 +101,19 @@ def plot(path, args, model, trajs, paths, q0, q1, result, comm) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from dynamic_common import scene_figure
     from matplotlib.collections import LineCollection
 
     steps = [round(k * args.steps / 3) for k in range(4)]
-    rest = boundary_segments(model.domain)
+    rest = boundary_edges(model)
     on_piece = rest[:, :, 1].min(axis=1) > 0.1  # the piece starts above y = 0.1, the ground below
     outlines = {
-        key: [boundary_segments(model.domain, traj.u[i], model.V)[on_piece] for i in steps]
+        key: [boundary_edges(model, traj.u[i])[on_piece] for i in steps]
         for key, traj in trajs.items()
     }
     if comm.rank != 0:
         return
-    fig = plt.figure(figsize=(11, 6.0))
-    grid = fig.add_gridspec(2, 2, height_ratios=[1.3, 1], width_ratios=[1.5, 1])
-    ax = fig.add_subplot(grid[0, :])
-    ax_v = fig.add_subplot(grid[1, 0])
-    ax_h = fig.add_subplot(grid[1, 1])
+    fig, ax, (ax_v, ax_h) = scene_figure(6.0, (1.3, 1), [1.5, 1], 2)
     ax.add_collection(LineCollection(rest[~on_piece], colors="0.4", lw=1.0))
     styles = {
         "initial": ("tab:blue", "--", 0.9, "initial guess"),
@@ -186,18 +158,13 @@ def plot(path, args, model, trajs, paths, q0, q1, result, comm) -> None:
     ax_v.set_title("initial velocity (dashed: true values)", fontsize=9)
     ax_v.legend(fontsize=8)
     ax_v.grid(alpha=0.3)
-    plot_history(ax_h, result, "J")
-    ax_h.set_title("trajectory misfit J [m^2]", fontsize=9)
-    fig.tight_layout()
+    plot_history(ax_h, result, "J", "trajectory misfit J [m^2]", fontsize=9)
     save_figure(fig, path, comm)
-    plt.close(fig)
 
 
 def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
-    args = parse_args(argv)
-    configure_logging(logging.INFO if args.verbose else logging.WARNING, comm)
-    t0 = time.perf_counter()
-    cpu0 = time.process_time()
+    run = parse_args(argv, comm)
+    args = run.args
     model, contact, sim = build_scene(args, comm)
     control = RigidVelocity(sim, "piece", angular=True)
     true, q0 = np.array(TRUE_THROW), np.array(START_THROW)
@@ -214,7 +181,6 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     T = args.steps * args.dt
     objective = time_integral(misfit, "uniform") * (1.0 / (area * T))
     rf = ReducedFunctional(sim, objective, control)
-    keeper = TrajectoryKeeper()
     options = LBFGSOptions(
         max_iterations=args.iterations,
         gradient_rtol=1e-7,
@@ -224,31 +190,20 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     # precondition: a spin omega moves the piece's points by omega * r, r ~ SIZE / 2, so L-BFGS
     # starts from the metric of (v_x, v_y, omega * r) instead of (v_x, v_y, omega)
     scale = np.array([1.0, 1.0, (2.0 / SIZE) ** 2])
-    result = minimize(
-        rf,
-        q0,
-        options=options,
-        inner_product=lambda g: scale * g,
-        output_dir=args.out,
-        stop_conditions=[keeper],
-        plot_every=0,
-        write_parameters=True,
+    result, keeper = run.optimise(
+        rf, q0, options, inner_product=lambda g: scale * g, write_parameters=True
     )
     traj0, traj1 = keeper.first, keeper.last
     trajs = {"target": target, "initial": traj0, "final": traj1}
-    com = CentreOfMass(model, ["piece"])
-    paths = {k: com.path("piece", t.u) for k, t in trajs.items()}
-    suffix = ".xdmf" if args.xdmf else ".bp"
-    files = [args.out / f"puzzle_{k}{suffix}" for k in trajs]
-    for f, traj in zip(files, trajs.values(), strict=True):
-        write_states(model, traj, f)
+    com = center_of_mass(model, "piece")
+    paths = {k: series_values(sim, com, t) for k, t in trajs.items()}
+    files = write_runs(model, trajs, args, "puzzle")
     files += [args.out / "history.jsonl", args.out / "result.json"]
 
-    report = report_from("puzzle_initial_velocity", args, result, t0)
+    report = run.report(result)
     error0, error1 = throw_error(q0, true), throw_error(result.q, true)
     path_error = float(np.abs(paths["final"] - paths["target"]).max())
-    inverted, intersecting, gap = check_states(sim, contact, [target, traj0, traj1])
-    check_invariants(report, inverted, intersecting, gap)
+    check_invariants(report, check_trajectories(sim, [target, traj0, traj1], contact))
     if not args.tiny:
         report.check(
             "relative error of the recovered throw",
@@ -264,19 +219,6 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
             1e-3,
             path_error < 1e-3,
         )
-    if not args.no_plot:
-        plot(
-            args.out / "puzzle_initial_velocity.png",
-            args,
-            model,
-            trajs,
-            paths,
-            q0,
-            result.q,
-            result,
-            comm,
-        )
-        files.append(args.out / "puzzle_initial_velocity.png")
     figures = {
         "throw_true": TRUE_THROW,
         "throw_initial": q0.tolist(),
@@ -291,7 +233,11 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
         f"{error0:.3f} -> {error1:.2e}; centre of mass within {path_error:.2e} m of the "
         f"target path"
     )
-    return finish_transient(report, args, comm, model, result, (t0, cpu0), files, figures, headline)
+
+    def figure(path):
+        plot(path, args, model, trajs, paths, q0, result.q, result, comm)
+
+    return finish_transient(run, report, model, result, files, figures, headline, figure)
 
 
 if __name__ == "__main__":

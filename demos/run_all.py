@@ -102,17 +102,30 @@ def status(row: dict) -> str:
     return "ok"
 
 
-def _num(result: dict, key: str, fmt: str) -> str:
-    value = result.get(key)
-    return format(value, fmt) if isinstance(value, int | float) else "-"
+# the table's columns: title, alignment and width, format of a number (values "-" when missing)
+TITLES = ("demo", "status", "J initial", "J final", "its", "fwd/it", "grad/it", "wall", "cpu")
+WIDTHS = ("<22", "<6", ">11", ">11", ">4", ">7", ">7", ">7", ">7")
+FORMATS = ("s", "s", ".4e", ".4e", "d", ".2f", ".2f", ".1f", ".1f")
+# the numbers of result.json in the columns from "J initial" to "grad/it"
+RESULT_KEYS = (
+    "initial_objective",
+    "final_objective",
+    "iterations",
+    "forward_seconds",
+    "gradient_seconds",
+)
+
+
+def _cell(value, width: str, fmt: str) -> str:
+    """One cell: a number (or text) in its column's format, "-" when it is missing."""
+    if fmt != "s" and not isinstance(value, int | float):
+        return f"{'-':{width}}"
+    return format(value, width + fmt)
 
 
 def table(rows: list[dict]) -> str:
     """The summary table."""
-    header = (
-        f"{'demo':<22} {'status':<6} {'J initial':>11} {'J final':>11} {'its':>4} "
-        f"{'fwd/it':>7} {'grad/it':>7} {'wall':>7} {'cpu':>7}  outcomes"
-    )
+    header = " ".join(f"{t:{w}}" for t, w in zip(TITLES, WIDTHS, strict=True)) + "  outcomes"
     lines = [header, "-" * len(header)]
     for row in rows:
         res = row.get("result") or {}
@@ -122,12 +135,10 @@ def table(rows: list[dict]) -> str:
         )
         if not res:
             outcome = f"exit {row['code']}, see {row['log']}"
-        lines.append(
-            f"{row['demo']:<22} {status(row):<6} {_num(res, 'initial_objective', '11.4e')} "
-            f"{_num(res, 'final_objective', '11.4e')} {_num(res, 'iterations', '4d')} "
-            f"{_num(res, 'forward_seconds', '7.2f')} {_num(res, 'gradient_seconds', '7.2f')} "
-            f"{row['wall']:7.1f} {row['cpu']:7.1f}  {outcome}"
-        )
+        values = [row["demo"], status(row), *(res.get(k) for k in RESULT_KEYS)]
+        values += [row["wall"], row["cpu"]]
+        cells = (_cell(*c) for c in zip(values, WIDTHS, FORMATS, strict=True))
+        lines.append(" ".join(cells) + f"  {outcome}")
     return "\n".join(lines)
 
 

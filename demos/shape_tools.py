@@ -1,45 +1,69 @@
 """Helpers shared by the static shape-optimisation demos (bridges, 3D beam, interlocking parts).
 
-Measurements of a state (volume, maximum von Mises stress, inverted cells, self-intersection
-of the boundary), output of the initial and final states, and the before/after figures.
-All functions are collective over the mesh communicator and return the same value on every
-rank.
+The stress problem the three stress demos share (L8 von Mises stress, volume term and boundary
+smoothing, normalised by the first mesh), a run that writes and looks at the initial and final
+states around L-BFGS while ``diffsolids.optimize.InvariantMonitor`` checks every accepted
+iterate, the checks every run reports, shape controls that refuse a folded boundary, and the
+before/after figures. All functions are collective over the mesh communicator and return the
+same value on every rank.
 """
 
+import argparse
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
-import dolfinx.mesh
-import ipctk
 import numpy as np
+from common import DemoReport, DemoRun, check_decrease
 from dolfinx import fem
 from mpi4py import MPI
 
-from diffsolids.contact.surface import CollisionSurface
+import diffsolids as ds
 from diffsolids.controls import ShapeControl
 from diffsolids.errors import InvertedElementError
-from diffsolids.io import TrajectoryWriter
+from diffsolids.io import boundary_edges, write_trajectory
 from diffsolids.io.output import von_mises_field
-from diffsolids.mesh import inverted_cells, min_scaled_jacobian
-from diffsolids.optimize import MeshMotionControl
+from diffsolids.objectives import BoundarySmoothing, final_value, stress_lp_norm, volume_penalty
+from diffsolids.optimize import (
+    BoundaryIntersection,
+    InvariantMonitor,
+    LBFGSOptions,
+    MeshMotionControl,
+    OptimizationResult,
+    Remesher,
+    ShapeInnerProduct,
+    minimize,
+)
 from diffsolids.parallel import collective_comm
+from diffsolids.reduced_functional import ReducedFunctional
 
 __all__ = [
-    "BoundaryCheck",
     "GuardedMeshMotion",
     "GuardedShapeControl",
-    "Invariants",
+    "ShapeRun",
+    "StressProblem",
+    "check_invariants",
+    "check_stress_reduction",
     "design_vertex_coordinates",
-    "facet_polygons_2d",
     "max_von_mises",
-    "min_quality",
-    "num_inverted",
+    "optimise_shape",
     "plot_shapes_2d",
     "plot_shapes_3d",
-    "silhouettes_3d",
+    "run_extra",
+    "shape_run",
     "vertex_coordinates",
     "volume",
     "write_state",
 ]
+
+
+def shape_run(
+    description: str, name: str, argv: Sequence[str] | None, comm: MPI.Comm, sizes: dict
+) -> DemoRun:
+    """A shape demo's run: the arguments of every demo and ``--h``, the mesh size."""
+    parser = DemoRun.parser(description, name)
+    parser.add_argument("--h", type=float, help="mesh size")
+    return DemoRun(parser, argv, comm, sizes)
 
 
 def vertex_coordinates(domain) -> np.ndarray:
@@ -76,37 +100,6 @@ def max_von_mises(model, u: np.ndarray) -> float:
     return collective_comm(model.domain.comm).allreduce(float(local), op=MPI.MAX)
 
 
-def num_inverted(model) -> int:
-    """Cells of the current rest mesh whose orientation flipped against the original mesh."""
-    bad = inverted_cells(model.domain.mesh, model.reference_signs)
-    return collective_comm(model.domain.comm).allreduce(len(bad), op=MPI.SUM)
-
-
-def min_quality(model) -> float:
-    """Minimum scaled Jacobian of the current rest mesh."""
-    return float(min_scaled_jacobian(model.domain.mesh))
-
-
-class BoundaryCheck:
-    """Self-intersection test of a model's boundary (all bodies) with ipctk.
-
-    ``check(u)`` tests the rest boundary (``u`` None) or the deformed one, ``X + u``.
-    """
-
-    def __init__(self, model):
-        self.model = model
-        self.surface = CollisionSurface(model.domain, model.V)
-
-    def intersects(self, u: np.ndarray | None = None) -> bool:
-        """Whether the boundary at rest (or deformed by ``u``) intersects itself."""
-        s = self.surface
-        s.update_rest_positions()
-        x = s.rest_positions.copy()
-        if u is not None:
-            x += s.gather(u)
-        return bool(ipctk.has_intersections(s.mesh, np.asfortranarray(x), ipctk.LBVH()))
-
-
 class _BoundaryGuard:
     """Refuses rest shapes whose boundary intersects itself (mixin of a shape control).
 
@@ -127,7 +120,7 @@ class GuardedMeshMotion(_BoundaryGuard, MeshMotionControl):
 
     def __init__(self, model, **kwargs):
         super().__init__(model, **kwargs)
-        self.boundary = BoundaryCheck(model)
+        self.boundary = BoundaryIntersection(model)
 
 
 class GuardedShapeControl(_BoundaryGuard, ShapeControl):
@@ -135,117 +128,271 @@ class GuardedShapeControl(_BoundaryGuard, ShapeControl):
 
     def __init__(self, model, **kwargs):
         super().__init__(model, **kwargs)
-        self.boundary = BoundaryCheck(model)
-
-
-class Invariants:
-    """Stop condition that never stops: checks every accepted iterate (collective).
-
-    Counts iterates with inverted cells, with a self-intersecting rest boundary and (with
-    ``deformed``) with a self-intersecting deformed boundary at the last state.
-    """
-
-    def __init__(self, deformed: bool = False):
-        self.deformed = deformed
-        self.inverted = 0
-        self.intersecting = 0
-        self.intersecting_deformed = 0
-        self.checked = 0
-        self._checks: dict[int, BoundaryCheck] = {}
-
-    def __call__(self, record, optimizer) -> bool:
-        """Check the accepted iterate of ``optimizer``; returns False (never stops the run)."""
-        rf = optimizer.rf
-        model = rf.model
-        if id(model) not in self._checks:
-            self._checks[id(model)] = BoundaryCheck(model)
-        check = self._checks[id(model)]
-        self.inverted += int(num_inverted(model) > 0)
-        self.intersecting += int(check.intersects())
-        if self.deformed:
-            self.intersecting_deformed += int(check.intersects(rf.trajectory.u[-1]))
-        self.checked += 1
-        return False
+        self.boundary = BoundaryIntersection(model)
 
 
 def write_state(model, path: Path, u: np.ndarray) -> list[Path]:
-    """Write one state (displacement and von Mises stress) as VTX ``.bp`` or XDMF; returns files."""
-    writer = TrajectoryWriter(model, path)
-    writer.write(0.0, u, np.zeros_like(u))
-    writer.close()
-    if path.suffix == ".xdmf":
-        return [path, path.with_suffix(".h5")]
-    return [path, path.with_name(path.stem + "_cells.bp")]
+    """Write one state (displacement and von Mises stress) as VTX ``.bp`` or XDMF; the files."""
+    return write_trajectory(model, ds.Trajectory([0.0], [u], [np.zeros_like(u)]), path)
 
 
-def facet_polygons_2d(model, u: np.ndarray | None = None) -> np.ndarray:
-    """Boundary edges (n, 2, 2) of a 2D model at rest or deformed, gathered on every rank."""
-    mesh = model.domain.mesh
-    mesh.topology.create_connectivity(1, 2)
-    facets = dolfinx.mesh.exterior_facet_indices(mesh.topology)
-    nodes = dolfinx.mesh.entities_to_geometry(mesh, 1, facets)
-    x = mesh.geometry.x[:, :2].copy()
-    if u is not None:
-        x += _nodal_displacement(model, u)
-    return np.concatenate(collective_comm(mesh.comm).allgather(x[nodes]))
+@dataclass
+class ShapeRun:
+    """An optimisation run of :func:`optimise_shape`.
 
-
-def silhouettes_3d(model, axes=(1, 2)) -> list[np.ndarray]:
-    """Silhouette edges of a 3D model's rest boundary seen along each of the given axes.
-
-    An edge of the boundary belongs to the silhouette seen along axis k when the outward
-    normals of its two boundary triangles point to opposite sides of k (one faces the viewer,
-    the other away). Returns one (n, 2, 3) array of edge end points per axis, on every rank.
+    Attributes:
+        result: The OptimizationResult.
+        monitor: The InvariantMonitor that checked every accepted iterate.
+        files: The files of the initial and final states.
+        initial: What ``look`` returned for the initial state.
+        final: What ``look`` returned for the final state.
     """
-    mesh = model.domain.mesh
-    mesh.topology.create_connectivity(2, 3)
-    facets = dolfinx.mesh.exterior_facet_indices(mesh.topology)
-    nodes = dolfinx.mesh.entities_to_geometry(mesh, 2, facets)
-    f2c = mesh.topology.connectivity(2, 3)
-    cells = f2c.array[f2c.offsets[facets]]
-    corner = mesh.geometry.dofmaps[0][cells]
-    x = mesh.geometry.x
-    tri = x[nodes]
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    centroid = x[corner].mean(axis=1)  # inside the cell: the normal points away from it
-    normal *= -np.sign(np.sum(normal * (centroid - tri[:, 0]), axis=1))[:, None]
-    ids = mesh.geometry.input_global_indices[nodes]
-    parts = collective_comm(mesh.comm).allgather((ids, tri, normal))
-    ids, tri, normal = (np.concatenate([p[k] for p in parts]) for k in range(3))
-    _, first = np.unique(np.sort(ids, axis=1), axis=0, return_index=True)  # once per facet
-    tri_ids, tri, normal = ids[first], tri[first], normal[first]
-    # edges (sorted global vertex ids) of every triangle with the triangle they belong to
-    edges, owner, ends = [], [], []
-    for i, j in ((0, 1), (1, 2), (2, 0)):
-        e = np.sort(tri_ids[:, [i, j]], axis=1)
-        edges.append(e)
-        owner.append(np.arange(len(tri_ids)))
-        ends.append(tri[:, [i, j]])
-    edges, owner, ends = np.concatenate(edges), np.concatenate(owner), np.concatenate(ends)
-    key = np.lexsort(edges.T[::-1])
-    edges, owner, ends = edges[key], owner[key], ends[key]
-    pair = np.flatnonzero(np.all(edges[1:] == edges[:-1], axis=1))
-    out = []
-    unit = normal / np.linalg.norm(normal, axis=1)[:, None]
-    for k in axes:
-        side = np.where(np.abs(unit[:, k]) < 1e-6, 0.0, np.sign(unit[:, k]))
-        flip = side[owner[pair]] != side[owner[pair + 1]]
-        out.append(ends[pair[flip]])
-    return out
+
+    result: OptimizationResult
+    monitor: InvariantMonitor
+    files: list[Path]
+    initial: object
+    final: object
 
 
-def _nodal_displacement(model, u: np.ndarray) -> np.ndarray:
-    """Displacement (num nodes, dim) at the geometry nodes (P1 interpolation of u)."""
-    mesh = model.domain.mesh
-    dim = model.dim
-    P1 = fem.functionspace(mesh, ("Lagrange", 1, (dim,)))
-    src = fem.Function(model.V)
-    src.x.array[:] = u
-    dst = fem.Function(P1)
-    dst.interpolate(src)
-    dof_of_node = np.empty(len(mesh.geometry.x), dtype=np.int64)
-    dof_of_node[mesh.geometry.dofmaps[0].ravel()] = P1.dofmap.list.ravel()
-    return dst.x.array.reshape(-1, dim)[dof_of_node]
+def optimise_shape(
+    rf,
+    q0: np.ndarray,
+    options: LBFGSOptions,
+    args: argparse.Namespace,
+    look: Callable[[object, np.ndarray], object],
+    deformed: bool = False,
+    **kwargs,
+) -> ShapeRun:
+    """L-BFGS on a shape problem; the initial and final states are written and looked at.
+
+    The initial state is solved first; ``look(model, u)`` measures it (outlines, stresses,
+    coordinates) before the shape changes, and the final state after the run. Every accepted
+    iterate is checked by an InvariantMonitor (``deformed``: also the deformed boundary).
+
+    Args:
+        rf: The ReducedFunctional.
+        q0: Initial parameters.
+        options: L-BFGS options.
+        args: Parsed arguments (``out``, ``xdmf``, ``no_plot``).
+        look: Measurements of a state on the model it belongs to.
+        deformed: Check the deformed boundaries of the iterates too.
+        **kwargs: Further arguments of ``minimize`` (inner product, remesher, observers).
+    """
+    suffix = ".xdmf" if args.xdmf else ".bp"
+    rf(q0)
+    u0 = rf.trajectory.u[-1].copy()
+    initial = look(rf.model, u0)
+    files = write_state(rf.model, args.out / f"initial{suffix}", u0)
+    monitor = InvariantMonitor(deformed)
+    kwargs["on_accept"] = [monitor, *kwargs.get("on_accept", ())]
+    result = minimize(
+        rf,
+        q0,
+        options,
+        progress=False,
+        output_dir=args.out,
+        plot_every=0 if args.no_plot else max(options.max_iterations, 1),  # at the end only
+        **kwargs,
+    )
+    model = result.functional.model
+    u1 = result.functional.trajectory.u[-1]
+    final = look(model, u1)
+    files += write_state(model, args.out / f"final{suffix}", u1)
+    return ShapeRun(result, monitor, files, initial, final)
+
+
+def check_invariants(
+    report, monitor: InvariantMonitor, rest: str = "iterates with self-intersecting boundaries"
+) -> None:
+    """Record: objective decreased, no iterate with inverted cells or intersecting boundaries.
+
+    Args:
+        report: The DemoReport.
+        monitor: The run's InvariantMonitor.
+        rest: Name of the outcome "no iterate with an intersecting rest boundary".
+    """
+    check_decrease(report)
+    report.check("iterates with inverted cells", monitor.inverted, 0, monitor.inverted == 0)
+    report.check(rest, monitor.intersecting, 0, monitor.intersecting == 0)
+    if monitor.deformed:
+        report.check(
+            "iterates with intersecting deformed shapes",
+            monitor.intersecting_deformed,
+            0,
+            monitor.intersecting_deformed == 0,
+        )
+
+
+def check_stress_reduction(report, stress0: float, stress1: float, minimum: float) -> None:
+    """Record the stress demos' outcome: the maximum von Mises stress fell ``minimum``-fold."""
+    reduction = stress0 / stress1
+    report.check(
+        "max von Mises reduction",
+        reduction,
+        minimum,
+        reduction >= minimum,
+        f"({stress0:.4g} -> {stress1:.4g})",
+    )
+
+
+def run_extra(run: DemoRun, opt: ShapeRun, domain, **values) -> dict:
+    """``report.extra`` of a shape run: the demo's values, then remeshes, size, cost, files."""
+    return {
+        **values,
+        "remeshes": sum(r.remeshed for r in opt.result.history),
+        "vertices": domain.mesh.geometry.index_map().size_global,
+        "ranks": run.comm.size,
+        "cpu_seconds": run.cpu_seconds(),
+        "files": [str(f) for f in opt.files],
+    }
+
+
+class StressProblem:
+    """A stress demo: its functional on a mesh (also after remeshing) and the run around it.
+
+    J = ||sigma_vM||_L8 / s0 + w_V * volume term / V0^2 + w_S * boundary smoothing, with the
+    L8 stress s0 and the volume V0 of the first mesh, so that J is the same function on every
+    mesh. A subclass gives the model and the control and sets the class attributes; the other
+    methods are the defaults of the bridge and the beam (one-sided volume bound of eq. 35,
+    ShapeInnerProduct, boundary outlines in 2D).
+
+    Attributes:
+        weight_volume: w_V.
+        weight_smoothing: w_S.
+        smoothing_exclude: Facet tags left out of the boundary smoothing.
+        remesh_threshold: Minimum scaled Jacobian below which the interior is remeshed.
+        min_reduction: The outcome: the maximum von Mises stress falls this many times.
+        rest_check: Name of the outcome "no iterate with an intersecting rest boundary".
+        deformed: Also check the deformed boundary of every iterate.
+        s0: L8 stress of the initial shape (set by the first call).
+        V0: Initial volume (set by the first call).
+    """
+
+    weight_volume = 1.0e3
+    weight_smoothing = 5.0e-2
+    smoothing_exclude: Sequence[str] = ()
+    remesh_threshold = 0.1
+    min_reduction = 2.0
+    rest_check = "iterates with self-intersecting boundaries"
+    deformed = False
+
+    def __init__(self) -> None:
+        self.s0: float | None = None
+        self.V0: float | None = None
+
+    # -- the scene ---------------------------------------------------------------------------
+    def model(self, domain) -> ds.Model:
+        """The scene's model on a mesh."""
+        raise NotImplementedError
+
+    def control(self, model, sim):
+        """The shape control of the scene's model."""
+        raise NotImplementedError
+
+    def volume_term(self, model, V0: float):
+        """The volume term (default: one-sided, V may not grow)."""
+        return volume_penalty(model, V0, "upper")
+
+    def solver_options(self) -> ds.SolverOptions:
+        """Newton options of the static solve."""
+        return ds.SolverOptions(rtol=1e-10)
+
+    def __call__(self, domain) -> ReducedFunctional:
+        """The reduced functional on a mesh (the first call fixes s0 and V0)."""
+        model = self.model(domain)
+        sim = ds.Simulation(model, ds.Static(), self.solver_options(), progress=False)
+        control = self.control(model, sim)
+        stress = final_value(stress_lp_norm(model, 8, "von_mises"))
+        if self.s0 is None:
+            self.V0 = volume(model)
+            self.s0 = ReducedFunctional(sim, stress, control)(np.zeros(control.size))
+        V0 = self.V0
+        smooth = BoundarySmoothing(model, 2, exclude_facets=list(self.smoothing_exclude))
+        J = (
+            (1.0 / self.s0) * stress
+            + (self.weight_volume / V0**2) * self.volume_term(model, V0)
+            + self.weight_smoothing * smooth
+        )
+        return ReducedFunctional(sim, J, control)
+
+    # -- the story -----------------------------------------------------------------------------
+    def outline(self, model):
+        """What the figure shows of a rest shape (default: the boundary edges of a 2D mesh)."""
+        return boundary_edges(model)
+
+    def inner_product(self, rf):
+        """The initial inverse Hessian of L-BFGS (default: the Riesz map of the mesh motion)."""
+        return ShapeInnerProduct(rf)
+
+    def observers(self) -> list:
+        """Further ``on_accept`` observers of the run."""
+        return []
+
+    def extra(self, result: OptimizationResult) -> dict:
+        """The demo's own values in ``report.extra``."""
+        return {}
+
+    def check(self, report, V1: float) -> None:
+        """The demo's own outcomes of the default and full sizes (the final volume V1)."""
+
+    def title(self, stress0: float, stress1: float, V1: float) -> str:
+        """Title of the figure."""
+        return (
+            f"max von Mises {stress0:.3g} -> {stress1:.3g} ({stress0 / stress1:.2f}x), "
+            f"volume {self.V0:.4g} -> {V1:.4g}"
+        )
+
+    def plot(self, path: Path, before, after, result, title: str, comm) -> None:
+        """The figure (default: 2D outlines, see :func:`plot_shapes_2d`)."""
+        plot_shapes_2d(path, before, after, result, title, comm)
+
+    def look(self, model, u: np.ndarray) -> tuple:
+        """Maximum von Mises stress, volume and outline of a state."""
+        return max_von_mises(model, u), volume(model), self.outline(model)
+
+    def run(self, run: DemoRun, domain) -> "DemoReport":
+        """Optimise the shape on ``domain``, check the outcomes, write the figure and report."""
+        args = run.args
+        rf = self(domain)
+        options = LBFGSOptions(
+            max_iterations=args.iterations,
+            gradient_rtol=1e-6,
+            max_change=args.max_change,
+            initial_step=args.max_change,
+        )
+        opt = optimise_shape(
+            rf,
+            rf.initial_parameters(),
+            options,
+            args,
+            self.look,
+            deformed=self.deformed,
+            inner_product=self.inner_product(rf),
+            remesher=Remesher(self, threshold=self.remesh_threshold),
+            on_accept=self.observers(),
+        )
+        (stress0, _, before), (stress1, V1, after) = opt.initial, opt.final
+        report = run.report(opt.result)
+        report.extra = run_extra(
+            run,
+            opt,
+            domain,
+            max_von_mises_initial=stress0,
+            max_von_mises_final=stress1,
+            reduction=stress0 / stress1,
+            volume_initial=self.V0,
+            volume_final=V1,
+            **self.extra(opt.result),
+        )
+        check_invariants(report, opt.monitor, self.rest_check)
+        if not args.tiny:
+            check_stress_reduction(report, stress0, stress1, self.min_reduction)
+            self.check(report, V1)
+        if not args.no_plot:
+            title = self.title(stress0, stress1, V1)
+            self.plot(args.out / f"{args.demo}.png", before, after, opt.result, title, run.comm)
+        return run.finish(report)
 
 
 def plot_shapes_2d(
@@ -274,13 +421,11 @@ def plot_shapes_2d(
     ax.legend(loc="upper right", fontsize="small")
     ax.set_title(title, fontsize="medium")
     plot_history(ax_j, result)
-    fig.tight_layout()
     save_figure(fig, path, comm)
-    plt.close(fig)
 
 
 def plot_shapes_3d(path: Path, before, after, result, title: str, comm) -> None:
-    """Side (x-z) and top (x-y) silhouettes before and after (see silhouettes_3d); J history."""
+    """Side (x-z) and top (x-y) silhouettes before and after (``silhouette_edges``); J history."""
     if comm.rank != 0:
         return
     import matplotlib
@@ -307,6 +452,4 @@ def plot_shapes_3d(path: Path, before, after, result, title: str, comm) -> None:
     axes[0].legend(loc="upper right", fontsize="small")
     plot_history(axes[2], result)
     fig.suptitle(title, fontsize="medium")
-    fig.tight_layout()
     save_figure(fig, path, comm)
-    plt.close(fig)

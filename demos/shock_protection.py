@@ -25,41 +25,21 @@ time step). Writes into ``output/shock_protection/`` (``--out``): ``shock_initia
 Run ``python demos/shock_protection.py`` or under ``mpiexec -n 2``.
 """
 
-import logging
-import time
 from typing import override
 
 import numpy as np
-from common import (
-    MESHES,
-    DemoReport,
-    boundary_segments,
-    demo_parser,
-    plot_history,
-    report_from,
-    run_demo,
-    save_figure,
-    size_name,
-)
+from common import MESHES, DemoReport, DemoRun, plot_history, run_demo, save_figure
 from dolfinx import fem
-from dynamic_common import (
-    TrajectoryKeeper,
-    add_contact,
-    body_nodes,
-    check_invariants,
-    check_states,
-    finish_transient,
-    write_states,
-)
+from dynamic_common import add_contact, body_nodes, check_invariants, finish_transient, write_runs
 from mpi4py import MPI
 
 import diffsolids as ds
 from diffsolids import forms
 from diffsolids.controls import ShapeControl
-from diffsolids.io import configure_logging
+from diffsolids.io import boundary_edges
 from diffsolids.mesh import from_geo
-from diffsolids.objectives import Integral, time_integral
-from diffsolids.optimize import LBFGSOptions, minimize
+from diffsolids.objectives import Integral, series_values, time_integral
+from diffsolids.optimize import LBFGSOptions, check_trajectories
 from diffsolids.parallel import collective_comm
 from diffsolids.reduced_functional import ReducedFunctional
 
@@ -82,15 +62,9 @@ SIZES = {
 MIN_REDUCTION = 0.10  # the default run must reduce J by at least this fraction
 
 
-def parse_args(argv=None):
-    p = demo_parser(__doc__.splitlines()[0], "shock_protection")
-    args = p.parse_args(argv)
-    size = SIZES[size_name(args)]
-    if args.iterations is None:
-        args.iterations = size["iterations"]
-    for key in ("h", "hload", "dt", "steps"):
-        setattr(args, key, size[key])
-    return args
+def parse_args(argv, comm: MPI.Comm) -> DemoRun:
+    """The run with its arguments."""
+    return DemoRun(DemoRun.parser(__doc__.splitlines()[0], "shock_protection"), argv, comm, SIZES)
 
 
 def hole_modes(X: np.ndarray) -> np.ndarray:
@@ -171,24 +145,13 @@ def load_stress_power(model):
     return Integral(integrand, f"load |sigma|^{P:g}")
 
 
-class StressHistory:
-    """Per-step L_p norm of the load's stress, (int_load |sigma|^p / |load|)^(1/p) [Pa]."""
+def stress_history(sim, traj, volume: float) -> np.ndarray:
+    """Per-step L_p norm of the load's stress, (int_load |sigma|^p / |load|)^(1/p) [Pa].
 
-    def __init__(self, model, volume: float):
-        self.model, self.volume = model, volume
-        self.form = fem.form(load_stress_power(model).form(model.fields))
-
-    def __call__(self, traj) -> np.ndarray:
-        """The norm at every state of ``traj`` (for the model's current shape)."""
-        comm = self.model.domain.comm
-        u = self.model.fields.u
-        saved = u.x.array.copy()
-        out = []
-        for state in traj.u:
-            u.x.array[:] = state
-            out.append(collective_comm(comm).allreduce(fem.assemble_scalar(self.form), op=MPI.SUM))
-        u.x.array[:] = saved
-        return (np.maximum(np.array(out), 0.0) / self.volume) ** (1.0 / P)
+    At every state of ``traj``, for the model's current shape.
+    """
+    power = series_values(sim, load_stress_power(sim.model), traj)
+    return (np.maximum(power, 0.0) / volume) ** (1.0 / P)
 
 
 def plot(path, args, model, traj0, traj1, q0, q1, stress, result, control, comm) -> None:
@@ -202,11 +165,11 @@ def plot(path, args, model, traj0, traj1, q0, q1, stress, result, control, comm)
     s0, s1 = stress
     i0, i1 = int(np.argmax(s0)), int(np.argmax(s1))
     control.assign(q0)
-    rest0 = boundary_segments(model.domain)
-    squeezed0 = boundary_segments(model.domain, traj0.u[i0], model.V)
+    rest0 = boundary_edges(model)
+    squeezed0 = boundary_edges(model, traj0.u[i0])
     control.assign(q1)
-    rest1 = boundary_segments(model.domain)
-    squeezed1 = boundary_segments(model.domain, traj1.u[i1], model.V)
+    rest1 = boundary_edges(model)
+    squeezed1 = boundary_edges(model, traj1.u[i1])
     if comm.rank != 0:
         return
     fig = plt.figure(figsize=(11, 6.6))
@@ -242,23 +205,18 @@ def plot(path, args, model, traj0, traj1, q0, q1, stress, result, control, comm)
     ax_s.legend(fontsize=8)
     ax_s.grid(alpha=0.3)
     ax_h = fig.add_subplot(grid[2:4, 1])
-    plot_history(ax_h, result, "J")
-    ax_h.set_title("objective: space-time L4 stress [Pa]", fontsize=9)
+    plot_history(ax_h, result, "J", "objective: space-time L4 stress [Pa]", fontsize=9)
     fig.suptitle(
         "load dropped on a cellular strip: hole shape "
         + ", ".join(f"{m} {v:+.3f}" for m, v in zip(MODES, q1, strict=True)),
         fontsize=10,
     )
-    fig.tight_layout()
     save_figure(fig, path, comm)
-    plt.close(fig)
 
 
 def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
-    args = parse_args(argv)
-    configure_logging(logging.INFO if args.verbose else logging.WARNING, comm)
-    t0 = time.perf_counter()
-    cpu0 = time.process_time()
+    run = parse_args(argv, comm)
+    args = run.args
     model, contact, sim = build_scene(args, comm)
     control = HoleShape(model)
     volume = collective_comm(comm).allreduce(
@@ -268,7 +226,6 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     power = time_integral(load_stress_power(model), "uniform") * (1.0 / (T * volume))
     objective = power ** (1.0 / P)
     rf = ReducedFunctional(sim, objective, control)
-    keeper = TrajectoryKeeper()
     options = LBFGSOptions(
         max_iterations=args.iterations,
         gradient_rtol=1e-4,
@@ -277,34 +234,21 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
         max_change=0.1,
     )
     q0 = np.zeros(control.size)
-    result = minimize(
-        rf,
-        q0,
-        options=options,
-        output_dir=args.out,
-        stop_conditions=[keeper],
-        plot_every=0,
-        write_parameters=True,
-    )
-    traj0, traj1 = keeper.first, keeper.last
-    history = StressHistory(model, volume)
-    # the stress of each run on its own design
-    control.assign(q0)
-    stress0 = history(traj0)
-    inverted0, intersecting0, gap0 = check_states(sim, contact, [traj0])
-    suffix = ".xdmf" if args.xdmf else ".bp"
-    files = [args.out / f"shock_initial{suffix}", args.out / f"shock_final{suffix}"]
-    write_states(model, traj0, files[0])
-    control.assign(result.q)
-    stress1 = history(traj1)
-    inverted1, intersecting1, gap1 = check_states(sim, contact, [traj1])
-    write_states(model, traj1, files[1])
+    result, keeper = run.optimise(rf, q0, options, write_parameters=True)
+    # the stress, the checks and the output of each run on its own design
+    files, stress, checks = [], [], []
+    for label, q, traj in (("initial", q0, keeper.first), ("final", result.q, keeper.last)):
+        control.assign(q)
+        stress.append(stress_history(sim, traj, volume))
+        checks.append(check_trajectories(sim, [traj], contact))
+        files += write_runs(model, {label: traj}, args, "shock")
     files += [args.out / "history.jsonl", args.out / "result.json"]
+    (traj0, traj1), (stress0, stress1) = (keeper.first, keeper.last), stress
 
-    report = report_from("shock_protection", args, result, t0)
+    report = run.report(result)
     reduction = 1.0 - report.final_objective / report.initial_objective
     peak_reduction = 1.0 - stress1.max() / stress0.max()
-    check_invariants(report, inverted0 + inverted1, intersecting0 + intersecting1, min(gap0, gap1))
+    check_invariants(report, *checks)
     if not args.tiny:
         report.check(
             "stress reduction (space-time L4)",
@@ -320,21 +264,6 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
             peak_reduction > 0.0,
             f"({stress0.max():.4g} -> {stress1.max():.4g} Pa)",
         )
-    if not args.no_plot:
-        plot(
-            args.out / "shock_protection.png",
-            args,
-            model,
-            traj0,
-            traj1,
-            q0,
-            result.q,
-            (stress0, stress1),
-            result,
-            control,
-            comm,
-        )
-        files.append(args.out / "shock_protection.png")
     figures = {
         "design": dict(zip(MODES, result.q.tolist(), strict=True)),
         "reduction": reduction,
@@ -349,7 +278,13 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
         f"({100 * reduction:.1f}% lower), peak per-step L4 {stress0.max():.4g} -> "
         f"{stress1.max():.4g} Pa"
     )
-    return finish_transient(report, args, comm, model, result, (t0, cpu0), files, figures, headline)
+
+    def figure(path):
+        plot(
+            path, args, model, traj0, traj1, q0, result.q, (stress0, stress1), result, control, comm
+        )
+
+    return finish_transient(run, report, model, result, files, figures, headline, figure)
 
 
 if __name__ == "__main__":

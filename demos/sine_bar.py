@@ -20,31 +20,20 @@ Mises stress, lambda and mu), ``history.jsonl`` and plots of the optimiser, ``si
 and ``result.json``.
 """
 
-import logging
-import time
-
 import numpy as np
 import ufl
-from common import DemoReport, demo_parser, finish, plot_history, report_from, run_demo, save_figure
-from material_common import (
-    TrajectoryGrabber,
-    cell_values,
-    cpu_seconds,
-    deformed_triangles,
-    min_volume_ratio,
-    write_states,
-)
+from common import DemoReport, DemoRun, plot_history, run_demo, save_figure
+from material_common import cell_values, check_invariants, finish_material
 from mpi4py import MPI
 
 import diffsolids as ds
 from diffsolids import forms
 from diffsolids.controls import ParameterControl
-from diffsolids.io import configure_logging
+from diffsolids.io import deformed_triangles
 from diffsolids.mesh import create_rectangle
-from diffsolids.objectives import Integral, MaterialSmoothing, final_value
-from diffsolids.objectives.library import boundary_graph_fit
+from diffsolids.objectives import Integral, MaterialSmoothing, boundary_graph_fit, final_value
 from diffsolids.objectives.terms import objective_terms
-from diffsolids.optimize import LBFGSOptions, minimize
+from diffsolids.optimize import LBFGSOptions, min_volume_ratio
 from diffsolids.reduced_functional import ReducedFunctional
 
 HALF_LENGTH, HALF_WIDTH, AMPLITUDE = 4.0, 0.3, 0.7
@@ -142,57 +131,32 @@ def plot(path, model, states, result, fit_values, comm) -> None:
         ax.set_title(f"{label}: fit error {fit_values[label]:.3g} (target dashed)")
         fig.colorbar(coll, ax=ax, label="log10 E", shrink=0.8)
     ax = fig.add_subplot(grid[:, 2])
-    plot_history(ax, result)
-    ax.set_title("objective")
+    plot_history(ax, result, title="objective")
     fig.suptitle("Sine bar: material optimisation (paper Fig. 16)")
-    fig.tight_layout()
     save_figure(fig, path, comm)
-    plt.close(fig)
 
 
 def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     """Optimise the material field of the bar; returns the report (printed on rank 0)."""
-    parser = demo_parser(__doc__.splitlines()[0], "sine_bar")
-    args = parser.parse_args(argv)
-    size = "tiny" if args.tiny else ("full" if args.full else "default")
-    config = SIZES[size]
-    configure_logging(logging.INFO if args.verbose else logging.WARNING, comm)
-    t0, c0 = time.perf_counter(), time.process_time()
+    run = DemoRun(DemoRun.parser(__doc__.splitlines()[0], "sine_bar"), argv, comm, SIZES)
+    args = run.args
 
-    model, rf, fit = build(comm, config["cells"])
+    model, rf, fit = build(comm, args.cells)
     fit_label = next(t.label for t in objective_terms(rf.objective) if t.node is fit)
     q0 = rf.initial_parameters()
-    grab = TrajectoryGrabber()
-    options = LBFGSOptions(
-        max_iterations=args.iterations or config["iterations"], gradient_rtol=1e-8
-    )
-    result = minimize(
-        rf,
-        options=options,
-        output_dir=args.out,
-        stop_conditions=[grab],
-        progress=False,
-        plot_every=0,
-    )
+    options = LBFGSOptions(max_iterations=args.iterations, gradient_rtol=1e-8)
+    result, keeper = run.optimise(rf, q0, options, progress=False)
     history = result.history
     fit_values = {"initial": history[0].terms[fit_label], "final": history[-1].terms[fit_label]}
-    states = {"initial": (q0, grab.initial), "final": (result.q, rf.trajectory)}
+    states = {"initial": (q0, keeper.first), "final": (result.q, rf.trajectory)}
 
-    report = report_from("sine_bar", args, result, t0)
+    report = run.report(result)
     boundary_length = 4 * HALF_LENGTH  # top and bottom edges at rest
     reduction = fit_values["initial"] / fit_values["final"]
     volumes = {k: min_volume_ratio(model, traj.u[-1]) for k, (_, traj) in states.items()}
-    report.check(
-        "objective decreased",
-        result.objective,
-        report.initial_objective,
-        result.objective < report.initial_objective,
-    )
-    report.check(
-        "no inverted element",
+    check_invariants(
+        report,
         min(volumes.values()),
-        0.0,
-        min(volumes.values()) > 0,
         "smallest deformed/rest cell area ratio, initial and final state",
     )
     report.check(
@@ -218,16 +182,11 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
             "num_forward": result.num_forward,
         }
     )
-    paths = write_states(
-        model, rf.controls, states, args.out, "sine_bar", args.xdmf, ["lmbda", "mu"]
-    )
-    rf.controls.assign(result.q)
-    if not args.no_plot:
-        plot(args.out / "sine_bar.png", model, states, result, fit_values, comm)
-    report.extra["files"] = [str(p) for p in paths]
-    report.extra["cpu_seconds"] = cpu_seconds(comm, c0)
-    report.wall_seconds = time.perf_counter() - t0
-    return finish(report, args, comm)
+
+    def figure(path):
+        plot(path, model, states, result, fit_values, comm)
+
+    return finish_material(run, report, rf, result, states, ["lmbda", "mu"], figure)
 
 
 if __name__ == "__main__":

@@ -19,39 +19,17 @@ and mu per iteration), ``history.jsonl`` and ``result.json``.
 Run ``python demos/sliding_friction.py`` or ``mpiexec -n 2 python demos/sliding_friction.py``.
 """
 
-import logging
-import time
-
 import numpy as np
-from common import (
-    MESHES,
-    DemoReport,
-    boundary_segments,
-    demo_parser,
-    plot_history,
-    report_from,
-    run_demo,
-    save_figure,
-    size_name,
-)
-from dynamic_common import (
-    CentreOfMass,
-    TrajectoryKeeper,
-    add_contact,
-    body_nodes,
-    check_invariants,
-    check_states,
-    finish_transient,
-    write_states,
-)
+from common import MESHES, DemoReport, DemoRun, plot_history, run_demo, save_figure
+from dynamic_common import add_contact, body_nodes, check_invariants, finish_transient, write_runs
 from mpi4py import MPI
 
 import diffsolids as ds
 from diffsolids.controls import FrictionControl
-from diffsolids.io import configure_logging
+from diffsolids.io import boundary_edges
 from diffsolids.mesh import from_geo
-from diffsolids.objectives import center_of_mass, final_value
-from diffsolids.optimize import LBFGSOptions, minimize
+from diffsolids.objectives import center_of_mass, final_value, series_values
+from diffsolids.optimize import LBFGSOptions, check_trajectories
 from diffsolids.reduced_functional import ReducedFunctional
 
 GEO = MESHES / "sliding.geo"
@@ -68,16 +46,12 @@ SIZES = {
 MU_RTOL = 0.02
 
 
-def parse_args(argv=None):
-    p = demo_parser(__doc__.splitlines()[0], "sliding_friction")
+def parse_args(argv, comm: MPI.Comm) -> DemoRun:
+    """The run with its arguments."""
+    p = DemoRun.parser(__doc__.splitlines()[0], "sliding_friction")
     p.add_argument("--mu-true", type=float, default=MU_TRUE, help="coefficient of the target")
     p.add_argument("--mu-start", type=float, default=MU_START, help="initial coefficient")
-    args = p.parse_args(argv)
-    size = SIZES[size_name(args)]
-    if args.iterations is None:
-        args.iterations = size["iterations"]
-    args.h, args.dt, args.steps = size["h"], size["dt"], size["steps"]
-    return args
+    return DemoRun(p, argv, comm, SIZES)
 
 
 def build_scene(args, comm):
@@ -118,23 +92,18 @@ def plot(path, args, model, traj0, traj1, paths, line, result, mus, comm) -> Non
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from dynamic_common import scene_figure
     from matplotlib.collections import LineCollection
 
     t = np.deg2rad(THETA)
     normal, top = np.array([np.sin(t), np.cos(t)]), 2.0 * np.sin(t)
     segs = []
     for u in (None, traj0.u[-1], traj1.u[-1]):
-        s = boundary_segments(model.domain, u, model.V if u is not None else None)
+        s = boundary_edges(model, u)
         segs.append(s[(s @ normal).max(axis=1) > top + 1e-7])  # the block's edges
     if comm.rank != 0:
         return
-    fig = plt.figure(figsize=(11, 6.0))
-    grid = fig.add_gridspec(2, 3, height_ratios=[1.3, 1])
-    ax = fig.add_subplot(grid[0, :])
-    ax_x = fig.add_subplot(grid[1, 0])
-    ax_h = fig.add_subplot(grid[1, 1])
-    ax_mu = fig.add_subplot(grid[1, 2])
+    fig, ax, (ax_x, ax_h, ax_mu) = scene_figure(6.0, (1.3, 1), None, 3)
     styles = [("0.55", "-", "rest"), ("tab:blue", "--", f"end, mu = {mus[0]:.3g}")]
     styles.append(("tab:red", "-", f"end, mu = {mus[-1]:.4g} (optimised)"))
     ax.fill([0, 2.0, 0], [0, 0, 2.0 * np.tan(t)], color="0.85", zorder=0, label="ramp")
@@ -162,62 +131,44 @@ def plot(path, args, model, traj0, traj1, paths, line, result, mus, comm) -> Non
     ax_x.set_ylabel("x of the centre of mass [m]")
     ax_x.legend(fontsize=8)
     ax_x.grid(alpha=0.3)
-    plot_history(ax_h, result, "J")
-    ax_h.set_title("objective (c_x(T) - x_line)^2", fontsize=9)
+    plot_history(ax_h, result, "J", "objective (c_x(T) - x_line)^2", fontsize=9)
     ax_mu.plot(range(len(mus)), mus, "o-", ms=3)
     ax_mu.axhline(args.mu_true, color="k", lw=1.0, ls="--", label=f"true mu = {args.mu_true:g}")
     ax_mu.set_xlabel("iteration")
     ax_mu.set_ylabel("friction coefficient")
     ax_mu.legend(fontsize=8)
     ax_mu.grid(alpha=0.3)
-    fig.tight_layout()
     save_figure(fig, path, comm)
-    plt.close(fig)
 
 
 def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
-    args = parse_args(argv)
-    configure_logging(logging.INFO if args.verbose else logging.WARNING, comm)
-    t0 = time.perf_counter()
-    cpu0 = time.process_time()
+    run = parse_args(argv, comm)
+    args = run.args
     model, contact, sim = build_scene(args, comm)
-    com = CentreOfMass(model, ["block"])
+    com = center_of_mass(model, "block")
     control = FrictionControl(contact, pairs=[("ramp", "block")], log=True)
 
     # the target: where the block ends with the true coefficient
     control.assign(np.log([args.mu_true]))
     target_traj = sim.run()
-    line = float(com.path("block", [target_traj.u[-1]])[0, 0])
+    line = float(series_values(sim, com[0], target_traj, steps=[-1])[0])
     control.assign(np.log([args.mu_start]))
 
-    c_x = center_of_mass(model, "block")[0]
-    rf = ReducedFunctional(sim, final_value((c_x - line) ** 2), control)
-    keeper = TrajectoryKeeper()
+    rf = ReducedFunctional(sim, final_value((com[0] - line) ** 2), control)
     options = LBFGSOptions(
         max_iterations=args.iterations, gradient_rtol=1e-6, initial_step=0.5, max_change=0.5
     )
-    result = minimize(
-        rf,
-        np.log([args.mu_start]),
-        options=options,
-        output_dir=args.out,
-        stop_conditions=[keeper],
-        plot_every=0,
-        write_parameters=True,
-    )
+    q0 = np.log([args.mu_start])
+    result, keeper = run.optimise(rf, q0, options, write_parameters=True)
     traj0, traj1 = keeper.first, keeper.last
-    paths = [com.path("block", traj0.u), com.path("block", traj1.u)]
-    suffix = ".xdmf" if args.xdmf else ".bp"
-    files = [args.out / f"sliding_initial{suffix}", args.out / f"sliding_final{suffix}"]
-    write_states(model, traj0, files[0])
-    write_states(model, traj1, files[1])
+    paths = [series_values(sim, com, traj) for traj in (traj0, traj1)]
+    files = write_runs(model, {"initial": traj0, "final": traj1}, args, "sliding")
     files += [args.out / "history.jsonl", args.out / "result.json"]
 
-    report = report_from("sliding_friction", args, result, t0)
+    report = run.report(result)
     mu = float(np.exp(result.q[0]))
     mus = [float(np.exp(r.q[0])) for r in result.history]
-    inverted, intersecting, gap = check_states(sim, contact, [traj0, traj1])
-    check_invariants(report, inverted, intersecting, gap)
+    check_invariants(report, check_trajectories(sim, [traj0, traj1], contact))
     error = abs(mu - args.mu_true) / args.mu_true
     if not args.tiny:
         report.check(
@@ -227,20 +178,6 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
             error < MU_RTOL,
             f"(mu {args.mu_start:g} -> {mu:.5f}, true {args.mu_true:g})",
         )
-    if not args.no_plot:
-        plot(
-            args.out / "sliding_friction.png",
-            args,
-            model,
-            traj0,
-            traj1,
-            paths,
-            line,
-            result,
-            mus,
-            comm,
-        )
-        files.append(args.out / "sliding_friction.png")
     figures = {
         "mu_start": args.mu_start,
         "mu_true": args.mu_true,
@@ -255,7 +192,11 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
         f"error {100 * error:.2f}%); the block ends {abs(paths[0][-1, 0] - line):.3f} m -> "
         f"{abs(paths[1][-1, 0] - line):.2e} m from the line"
     )
-    return finish_transient(report, args, comm, model, result, (t0, cpu0), files, figures, headline)
+
+    def figure(path):
+        plot(path, args, model, traj0, traj1, paths, line, result, mus, comm)
+
+    return finish_transient(run, report, model, result, files, figures, headline, figure)
 
 
 if __name__ == "__main__":

@@ -20,39 +20,22 @@ history), ``com_paths.csv``, the optimiser's ``history.jsonl`` and ``result.json
 Run ``python demos/throw.py`` or ``mpiexec -n 2 python demos/throw.py``.
 """
 
-import logging
-import time
-
 import numpy as np
-from common import (
-    MESHES,
-    DemoReport,
-    boundary_segments,
-    demo_parser,
-    plot_history,
-    report_from,
-    run_demo,
-    save_figure,
-    size_name,
-)
-from dynamic_common import (
-    CentreOfMass,
-    TrajectoryKeeper,
-    add_contact,
-    body_nodes,
-    check_invariants,
-    check_states,
-    finish_transient,
-    write_states,
-)
+from common import MESHES, DemoReport, DemoRun, plot_history, run_demo, save_figure
+from dynamic_common import add_contact, body_nodes, check_invariants, finish_transient, write_runs
 from mpi4py import MPI
 
 import diffsolids as ds
 from diffsolids.controls import RigidVelocity
-from diffsolids.io import configure_logging
+from diffsolids.io import boundary_edges
 from diffsolids.mesh import from_geo
-from diffsolids.objectives import center_of_mass_trajectory, final_value
-from diffsolids.optimize import LBFGSOptions, minimize
+from diffsolids.objectives import (
+    center_of_mass,
+    center_of_mass_trajectory,
+    final_value,
+    series_values,
+)
+from diffsolids.optimize import LBFGSOptions, check_trajectories
 from diffsolids.reduced_functional import ReducedFunctional
 
 # scene and run sizes: mesh size of the bodies (h) and of the ground (hg), time step, steps,
@@ -83,25 +66,22 @@ STOP_FRACTION = 0.5
 SNAPSHOT_TIMES = (0.1, 0.2, 0.3)
 
 
-def parse_args(argv=None):
-    p = demo_parser(__doc__.splitlines()[0], "throw")
+def parse_args(argv, comm: MPI.Comm) -> DemoRun:
+    """The run with its arguments: the initial throw and the target of the dimension."""
+    p = DemoRun.parser(__doc__.splitlines()[0], "throw")
     p.add_argument("--angular", action="store_true", help="also optimise the spin of A")
     p.add_argument("--v0", type=float, nargs="+", help="initial velocity of A (dim numbers)")
     p.add_argument("--target", type=float, nargs="+", help="target centre on the ground")
     p.add_argument("--radius", type=float, help="target radius (default 0.05 m)")
     p.add_argument("--steps", type=int, help="number of time steps")
     p.add_argument("--dt", type=float, help="time step")
-    args = p.parse_args(argv)
-    size = SIZES[size_name(args)]
-    for key in ("steps", "dt", "iterations"):
-        if getattr(args, key, None) is None:
-            setattr(args, key, size[key])
-    args.dim, args.h = size["dim"], size["h"]
+    run = DemoRun(p, argv, comm, SIZES)
+    args = run.args
     args.v0 = np.array(args.v0 if args.v0 is not None else THROW[args.dim], dtype=float)
     target, radius = TARGET[args.dim]
     args.target = np.array(args.target if args.target is not None else target, dtype=float)
     args.radius = args.radius if args.radius is not None else radius
-    return args
+    return run
 
 
 def build_scene(args, comm):
@@ -142,7 +122,7 @@ def settle(model, dt: float, options, steps: int = 20) -> np.ndarray:
 
 def body_segments(model, u=None) -> np.ndarray:
     """Boundary edges of the bodies A and B (2D, collective): the ground's are left out."""
-    segs = boundary_segments(model.domain, u, model.V if u is not None else None)
+    segs = boundary_edges(model, u)
     return segs[segs[:, :, 1].min(axis=1) > 1e-7]  # the ground lies in y <= 0
 
 
@@ -151,7 +131,7 @@ def plot(path, args, model, traj0, traj1, paths, q0, q1, result, comm) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from dynamic_common import scene_figure
     from matplotlib.collections import LineCollection
     from matplotlib.patches import Circle
 
@@ -164,11 +144,8 @@ def plot(path, args, model, traj0, traj1, paths, q0, q1, result, comm) -> None:
         snapshots = [body_segments(model, traj1.u[i]) for i in [*steps, args.steps]]
     if comm.rank != 0:
         return
-    fig = plt.figure(figsize=(11, 6.2))
-    grid = fig.add_gridspec(2, 2, height_ratios=[1.35, 1], width_ratios=[1.6, 1])
-    ax = fig.add_subplot(grid[0, :])
-    ax_x = fig.add_subplot(grid[1, 0])
-    ax_h = fig.add_subplot(grid[1, 1])
+    fig, ax, (ax_x, ax_h) = scene_figure(6.2, (1.35, 1), [1.6, 1], 2)
+    plot_history(ax_h, result, "J", "objective |c_B(T) - target|^2", fontsize=9)
     red, blue = "tab:red", "tab:blue"
     if dim == 2:
         ax.axhspan(-0.04, 0.0, color="0.88", zorder=0)
@@ -195,12 +172,12 @@ def plot(path, args, model, traj0, traj1, paths, q0, q1, result, comm) -> None:
         ax.plot(paths[key][:, 0], paths[key][:, 1], color=color, ls=ls, lw=1.4)
         ax.plot(*paths[key][-1, :2], "o", ms=3.5, color=color)
     scale = 0.06  # arrow length per m/s
-    start = paths["A0"][0, :2]
+    origin = paths["A0"][0, :2]
     for q, color in ((q0, blue), (q1, red)):
         ax.annotate(
             "",
-            xy=start + scale * q[:2],
-            xytext=start,
+            xy=origin + scale * q[:2],
+            xytext=origin,
             arrowprops={"arrowstyle": "->", "color": color, "lw": 1.6},
         )
     ax.plot([], [], color=blue, ls="--", label=f"initial throw v0 = {np.round(q0[:dim], 2)} m/s")
@@ -229,32 +206,26 @@ def plot(path, args, model, traj0, traj1, paths, q0, q1, result, comm) -> None:
     ax_x.set_ylabel("x of B's centre of mass [m]")
     ax_x.legend(fontsize=8, loc="upper left")
     ax_x.grid(alpha=0.3)
-    plot_history(ax_h, result, "J")
-    ax_h.set_title("objective |c_B(T) - target|^2", fontsize=9)
-    fig.tight_layout()
     save_figure(fig, path, comm)
-    plt.close(fig)
 
 
 def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
-    args = parse_args(argv)
-    configure_logging(logging.INFO if args.verbose else logging.WARNING, comm)
-    t0 = time.perf_counter()
-    cpu0 = time.process_time()
+    run = parse_args(argv, comm)
+    args = run.args
     model, contact, sim, control = build_scene(args, comm)
-    com = CentreOfMass(model, ["A", "B"])
-    rest_B = com.path("B", [np.zeros_like(sim.u0)])[0]
+    com = {body: center_of_mass(model, body) for body in ("A", "B")}
+    zero = np.zeros_like(sim.u0)
+    rest_B = series_values(sim, com["B"], ds.Trajectory([0.0], [zero], [zero]))[0]
     target = np.append(args.target, rest_B[-1])  # the circle lies on B's resting height
     objective = final_value(center_of_mass_trajectory(model, target, bodies="B"))
     rf = ReducedFunctional(sim, objective, control)
     q0 = np.concatenate([args.v0, np.zeros(control.size - len(args.v0))])
 
-    def target_reached(traj) -> bool:
+    def target_reached(record, optimizer) -> str | bool:
         # stop once B ends well inside the circle
-        distance = np.linalg.norm(com.path("B", [traj.u[-1]])[0] - target)
-        return bool(distance < STOP_FRACTION * args.radius)
-
-    keeper = TrajectoryKeeper(stop=target_reached, name="B ends inside the target circle")
+        end = series_values(sim, com["B"], optimizer.point.trajectory, steps=[-1])[0]
+        inside = np.linalg.norm(end - target) < STOP_FRACTION * args.radius
+        return "B ends inside the target circle" if inside else False
 
     options = LBFGSOptions(
         max_iterations=args.iterations,
@@ -262,30 +233,19 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
         initial_step=0.5,
         max_change=1.0,
     )
-    result = minimize(
-        rf,
-        q0,
-        options=options,
-        output_dir=args.out,
-        stop_conditions=[keeper],
-        plot_every=0,
-    )
+    result, keeper = run.optimise(rf, q0, options, stop_conditions=[target_reached])
     traj0, traj1 = keeper.first, keeper.last
     paths = {
-        "A0": com.path("A", traj0.u),
-        "B0": com.path("B", traj0.u),
-        "A1": com.path("A", traj1.u),
-        "B1": com.path("B", traj1.u),
+        f"{body}{k}": series_values(sim, com[body], traj)
+        for k, traj in enumerate((traj0, traj1))
+        for body in ("A", "B")
     }
-    suffix = ".xdmf" if args.xdmf else ".bp"
-    write_states(model, traj0, args.out / f"throw_initial{suffix}")
-    write_states(model, traj1, args.out / f"throw_final{suffix}")
+    files = write_runs(model, {"initial": traj0, "final": traj1}, args, "throw")
 
-    report = report_from("throw", args, result, t0)
+    report = run.report(result)
     distance0 = float(np.linalg.norm(paths["B0"][-1] - target))
     distance1 = float(np.linalg.norm(paths["B1"][-1] - target))
-    inverted, intersecting, gap = check_states(sim, contact, [traj0, traj1])
-    check_invariants(report, inverted, intersecting, gap)
+    check_invariants(report, check_trajectories(sim, [traj0, traj1], contact))
     if not args.tiny:
         report.check(
             "final distance of B to the target [m]",
@@ -294,7 +254,6 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
             distance1 < args.radius,
             f"(initial throw: {distance0:.3f} m)",
         )
-    files = [args.out / f"throw_initial{suffix}", args.out / f"throw_final{suffix}"]
     files += [args.out / "com_paths.csv", args.out / "history.jsonl", args.out / "result.json"]
     if comm.rank == 0:
         args.out.mkdir(parents=True, exist_ok=True)
@@ -305,9 +264,6 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
             delimiter=",",
             header=header,
         )
-    if not args.no_plot:
-        plot(args.out / "throw.png", args, model, traj0, traj1, paths, q0, result.q, result, comm)
-        files.append(args.out / "throw.png")
     names = ["v_x", "v_y", "v_z"][: args.dim]
     if args.angular:
         names += ["omega"] if args.dim == 2 else ["omega_x", "omega_y", "omega_z"]
@@ -321,13 +277,16 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
         "distance_final": distance1,
         "newton_iterations_final": traj1.newton_iterations(),
     }
+    throws = f"{np.round(q0, 3).tolist()} -> {np.round(result.q, 3).tolist()}"
     headline = (
-        f"throw: A's initial velocity ({', '.join(names)}) "
-        f"{np.round(q0, 3).tolist()} -> {np.round(result.q, 3).tolist()}; "
-        f"B ends {distance0:.3f} m -> {distance1:.3f} m from the target "
-        f"(radius {args.radius} m); output in {args.out}/"
+        f"throw: A's initial velocity ({', '.join(names)}) {throws}; B ends {distance0:.3f} m "
+        f"-> {distance1:.3f} m from the target (radius {args.radius} m); output in {args.out}/"
     )
-    return finish_transient(report, args, comm, model, result, (t0, cpu0), files, figures, headline)
+
+    def figure(path):
+        plot(path, args, model, traj0, traj1, paths, q0, result.q, result, comm)
+
+    return finish_transient(run, report, model, result, files, figures, headline, figure)
 
 
 if __name__ == "__main__":

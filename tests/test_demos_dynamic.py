@@ -5,35 +5,24 @@ invariants hold (no inverted element, no intersection in any reported state); th
 thresholds of the default size (e.g. the target circle reached) are not asserted here.
 """
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from demo_modules import load_demo
 from mpi4py import MPI
 
 from diffsolids.mesh import from_geo
 
 ROOT = Path(__file__).resolve().parents[1]
-DEMOS = ROOT / "demos"
 INVARIANTS = ["objective decreased", "no inverted element", "no intersection"]
 DEMO_NAMES = ["puzzle_initial_velocity", "shock_protection", "sliding_friction", "throw"]
 
 
-def _demo(name: str):
-    if str(DEMOS) not in sys.path:
-        sys.path.insert(0, str(DEMOS))  # the demos import their shared helpers
-    spec = importlib.util.spec_from_file_location(name, DEMOS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.mark.parametrize("name", DEMO_NAMES)
 def test_dynamic_demo_tiny(name, tmp_path):
-    report = _demo(name).main(["--tiny", "--out", str(tmp_path), "--no-plot"])
+    report = load_demo(name).main(["--tiny", "--out", str(tmp_path), "--no-plot"])
     outcomes = {o.name: o for o in report.outcomes}
     for required in INVARIANTS:
         assert outcomes[required].passed, outcomes[required]

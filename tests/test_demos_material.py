@@ -5,21 +5,19 @@ invariants hold (no inverted element; no intersection in the contact scenes); th
 thresholds of the default size (e.g. the 10-fold fit reduction) are not asserted here.
 """
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import scipy.sparse as sp
+from demo_modules import load_demo
 from mpi4py import MPI
 from scipy.sparse.csgraph import connected_components
 
 from diffsolids.mesh import from_geo
 
 ROOT = Path(__file__).resolve().parents[1]
-DEMOS = ROOT / "demos"
 INVARIANTS = {
     "sine_bar": ["objective decreased", "no inverted element"],
     "bridge_material": ["objective decreased", "no inverted element"],
@@ -28,18 +26,9 @@ INVARIANTS = {
 }
 
 
-def _demo(name: str):
-    if str(DEMOS) not in sys.path:
-        sys.path.insert(0, str(DEMOS))  # the demos import their shared helpers
-    spec = importlib.util.spec_from_file_location(name, DEMOS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.mark.parametrize("name", sorted(INVARIANTS))
 def test_material_demo_tiny(name, tmp_path):
-    report = _demo(name).main(["--tiny", "--out", str(tmp_path), "--no-plot"])
+    report = load_demo(name).main(["--tiny", "--out", str(tmp_path), "--no-plot"])
     outcomes = {o.name: o for o in report.outcomes}
     for required in INVARIANTS[name]:
         assert outcomes[required].passed, outcomes[required]

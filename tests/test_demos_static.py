@@ -6,22 +6,20 @@ the contact scene no intersecting rest or deformed configuration); the outcome t
 the default size (stress reductions, recovery error) are not asserted here.
 """
 
-import importlib.util
 import json
-import sys
 import textwrap
 from pathlib import Path
 
 import ipctk
 import numpy as np
 import pytest
+from demo_modules import load_demo
 from mpi4py import MPI
 
 from diffsolids.errors import InvertedElementError
 from diffsolids.mesh import from_geo
 
 ROOT = Path(__file__).resolve().parents[1]
-DEMOS = ROOT / "demos"
 INVARIANTS = {
     "bridge_fabricated": [
         "iterates with inverted cells",
@@ -35,15 +33,6 @@ INVARIANTS = {
         "iterates with intersecting deformed shapes",
     ],
 }
-
-
-def _module(name: str):
-    if str(DEMOS) not in sys.path:
-        sys.path.insert(0, str(DEMOS))  # the demos import their shared helpers
-    spec = importlib.util.spec_from_file_location(name, DEMOS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _area(domain, facet_tag) -> float:
@@ -62,7 +51,7 @@ def _area(domain, facet_tag) -> float:
 # -- the demos ---------------------------------------------------------------------------------
 @pytest.mark.parametrize("name", sorted(INVARIANTS))
 def test_static_demo_tiny(name, tmp_path):
-    report = _module(name).main(["--tiny", "--out", str(tmp_path), "--no-plot"])
+    report = load_demo(name).main(["--tiny", "--out", str(tmp_path), "--no-plot"])
     outcomes = {o.name: o for o in report.outcomes}
     assert outcomes["objective decreased"].passed
     for required in INVARIANTS[name]:
@@ -163,7 +152,7 @@ def test_interlocking_geo_keeps_the_gap(gap):
 
 
 def test_interlocking_tie_moves_the_interface_together():
-    demo = _module("interlocking")
+    demo = load_demo("interlocking")
     domain = from_geo(ROOT / "meshes" / "interlocking.geo", MPI.COMM_SELF, numbers={"h": 0.2})
     problem = demo.Problem()
     rf = problem(domain)
@@ -195,9 +184,10 @@ def test_interlocking_tie_moves_the_interface_together():
 def test_guard_refuses_a_shape_whose_parts_overlap():
     import scipy.sparse as sp
 
-    shape_tools = _module("shape_tools")
+    shape_tools = load_demo("shape_tools")
 
     from diffsolids.model import Model, NeoHookean
+    from diffsolids.optimize import BoundaryIntersection
 
     domain = from_geo(ROOT / "meshes" / "interlocking.geo", MPI.COMM_SELF, numbers={"h": 0.2})
     model = Model(domain, NeoHookean(E=1.0, nu=0.3))
@@ -208,16 +198,16 @@ def test_guard_refuses_a_shape_whose_parts_overlap():
     P = sp.csr_matrix((np.ones(len(top)), (2 * top + 1, np.zeros(len(top)))), shape=(2 * n, 1))
     control = shape_tools.GuardedShapeControl(model, linear_map=P)
     control.assign(np.array([0.005]))  # up by half the gap: fine
-    assert not shape_tools.BoundaryCheck(model).intersects()
+    assert not BoundaryIntersection(model).intersects()
     with pytest.raises(InvertedElementError, match="folds the boundary"):
         control.assign(np.array([-0.05]))  # down by five gaps: the parts overlap
     control.assign(np.array([0.0]))
-    assert not shape_tools.BoundaryCheck(model).intersects()
+    assert not BoundaryIntersection(model).intersects()
 
 
 # -- run_all ---------------------------------------------------------------------------------
 def test_run_all_discovers_the_optimisation_demos():
-    run_all = _module("run_all")
+    run_all = load_demo("run_all")
     names = run_all.discover()
     assert {"bridge_fabricated", "bridge_stress", "beam3d_stress", "interlocking"} <= set(names)
     assert not {"beam_swing", "common", "shape_tools", "run_all", "check_gradients"} & set(names)
@@ -260,7 +250,7 @@ def _fake_result(passed: bool) -> str:
 
 
 def test_run_all_reports_outcomes_failures_and_crashes(tmp_path, capsys):
-    run_all = _module("run_all")
+    run_all = load_demo("run_all")
     demos = tmp_path / "demos"
     demos.mkdir()
     bodies = {
@@ -289,7 +279,7 @@ def test_run_all_reports_outcomes_failures_and_crashes(tmp_path, capsys):
 
 # -- check_gradients ------------------------------------------------------------------------------
 def test_check_gradients_smoke(capsys):
-    module = _module("check_gradients")
+    module = load_demo("check_gradients")
     rows = module.main(["--scene", "static-shape", "--tiny"])
     printed = capsys.readouterr().out
     assert "all rows within tolerance" in printed
@@ -302,7 +292,7 @@ def test_check_gradients_smoke(capsys):
 
 
 def test_check_gradients_detects_a_wrong_gradient():
-    module = _module("check_gradients")
+    module = load_demo("check_gradients")
     rf, sizes = module.build_scene("static-shape", MPI.COMM_SELF, tiny=True)
     derivative = rf.derivative
     rf.derivative = lambda: 1.01 * derivative()  # 1 % too large

@@ -5,26 +5,15 @@ history (initial value, every accepted iterate) must agree to round-off, and the
 invariants must hold in both runs.
 """
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from demo_modules import load_demo
 from mpi4py import MPI
 
-DEMOS = Path(__file__).resolve().parents[2] / "demos"
 RTOL = 1e-7
-
-
-def _demo(name: str):
-    if str(DEMOS) not in sys.path:
-        sys.path.insert(0, str(DEMOS))
-    spec = importlib.util.spec_from_file_location(name, DEMOS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _history(out: Path) -> np.ndarray:
@@ -39,7 +28,7 @@ def test_dynamic_demo_world_equals_self(name, tmp_path):
     comm = MPI.COMM_WORLD
     assert comm.size > 1, "run with mpiexec -n 2"
     root = Path(comm.bcast(str(tmp_path), root=0))
-    main = _demo(name).main
+    main = load_demo(name).main
     histories = []
     for c, label in ((comm, "world"), (MPI.COMM_SELF, f"self{comm.rank}")):
         out = root / label

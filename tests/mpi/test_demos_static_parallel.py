@@ -5,32 +5,19 @@ contact-friction clamps the whole slab, so on 2 ranks one rank can hold only pre
 every rank (it used to skip them on that rank and deadlock in the first gradient).
 """
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
+from demo_modules import load_demo
 from mpi4py import MPI
 
-DEMOS = Path(__file__).resolve().parents[2] / "demos"
 RTOL = 1e-8
-
-
-def _check_gradients():
-    if str(DEMOS) not in sys.path:
-        sys.path.insert(0, str(DEMOS))
-    spec = importlib.util.spec_from_file_location("check_gradients", DEMOS / "check_gradients.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.mark.parametrize("scene", ["static-shape", "contact-friction"])
 def test_check_gradients_scene_world_equals_self(scene):
     comm = MPI.COMM_WORLD
     assert comm.size > 1, "run with mpiexec -n 2"
-    module = _check_gradients()
+    module = load_demo("check_gradients")
     results = []
     for c in (comm, MPI.COMM_SELF):
         rf, _ = module.build_scene(scene, c, tiny=True)
