@@ -18,3 +18,24 @@ def _collect_garbage():
     """Free the solvers of a module's tests (each holds MUMPS instances and MPI communicators)."""
     yield
     gc.collect()
+
+
+@pytest.fixture
+def cantilever():
+    """A Neo-Hookean beam [0, 4] x [0, 0.5]^2 (8 x 2 x 2 cells) clamped at x = 0, under gravity."""
+    import numpy as np
+    from mpi4py import MPI
+
+    from diffsolids import Model, NeoHookean
+    from diffsolids.mesh import create_box
+
+    dom = create_box(
+        MPI.COMM_WORLD,
+        [[0, 0, 0], [4, 0.5, 0.5]],
+        [8, 2, 2],
+        facets={1: lambda x: np.isclose(x[0], 0)},
+    )
+    model = Model(dom, NeoHookean(E=1e5, nu=0.3, density=100.0))
+    model.add_gravity(9.81)
+    model.add_dirichlet(1, 0.0)
+    return model

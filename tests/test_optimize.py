@@ -145,13 +145,8 @@ def test_initial_step_and_inner_product_shape_the_first_step(bar2):
         return np.linalg.solve(M, g)
 
     g0 = rf.gradient(q0)
-    result = minimize(
-        rf,
-        q0,
-        LBFGSOptions(initial_step=0.1, max_iterations=1),
-        inner_product=riesz,
-        write_parameters=True,
-    )
+    first_step = LBFGSOptions(initial_step=0.1, max_iterations=1)
+    result = minimize(rf, q0, first_step, inner_product=riesz, write_parameters=True)
     step = np.array(result.history[1].q) - q0
     d = -np.linalg.solve(M, g0)
     assert calls
@@ -464,47 +459,28 @@ class _CheckpointingRemesher(_RefiningRemesher):
         return bar_problem(MPI.COMM_WORLD, bodies=2, n=n)[0]
 
 
+def _remeshed_run(iterations, remesher, **kwargs):
+    """L-BFGS on a fresh two-body bar with a remesher (no gradient tolerance)."""
+    rf, _ = bar_problem(MPI.COMM_WORLD, bodies=2)
+    options = LBFGSOptions(max_iterations=iterations, gradient_rtol=0.0)
+    return LBFGS(rf, options, remesher=remesher, **kwargs).run()
+
+
 def test_resume_after_remesh_uses_the_remesher_hooks(tmp_path, caplog):
-    options = {"gradient_rtol": 0.0}
-    rf, _ = bar_problem(MPI.COMM_WORLD, bodies=2)
-    first = LBFGS(
-        rf,
-        LBFGSOptions(max_iterations=4, **options),
-        remesher=_CheckpointingRemesher(),
-        checkpoint_dir=tmp_path,
-        write_parameters=True,
-    ).run()
+    hooks = {"checkpoint_dir": tmp_path, "write_parameters": True}
+    first = _remeshed_run(4, _CheckpointingRemesher(), **hooks)
     assert first.history[2].remeshed
-    rf, _ = bar_problem(MPI.COMM_WORLD, bodies=2)
-    resumed = LBFGS(
-        rf,
-        LBFGSOptions(max_iterations=7, **options),
-        remesher=_CheckpointingRemesher(),
-        checkpoint_dir=tmp_path,
-        write_parameters=True,
-    ).run()
+    resumed = _remeshed_run(7, _CheckpointingRemesher(), **hooks)
     assert resumed.resumed_from == 4
     assert resumed.functional.model.domain.mesh.topology.index_map(2).size_global == 128
-    rf, _ = bar_problem(MPI.COMM_WORLD, bodies=2)
-    reference = LBFGS(
-        rf,
-        LBFGSOptions(max_iterations=7, **options),
-        remesher=_CheckpointingRemesher(),
-        write_parameters=True,
-    ).run()
+    reference = _remeshed_run(7, _CheckpointingRemesher(), write_parameters=True)
     Ja = np.array([r.objective for r in resumed.history])
     Jb = np.array([r.objective for r in reference.history])
     assert np.all(np.abs(Ja - Jb) <= 1e-10 * np.abs(Jb))
     # a remesher without the hooks: the checkpoint cannot be resumed, and that is said
     other = tmp_path / "plain"
-    rf, _ = bar_problem(MPI.COMM_WORLD, bodies=2)
     with caplog.at_level(logging.WARNING, logger="diffsolids"):
-        LBFGS(
-            rf,
-            LBFGSOptions(max_iterations=3, **options),
-            remesher=_RefiningRemesher(),
-            checkpoint_dir=other,
-        ).run()
+        _remeshed_run(3, _RefiningRemesher(), checkpoint_dir=other)
     assert any("save_checkpoint" in r.getMessage() for r in caplog.records)
     rf, _ = bar_problem(MPI.COMM_WORLD, bodies=2)
     with pytest.raises(OptimizationError, match="load_checkpoint"):

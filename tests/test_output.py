@@ -28,6 +28,13 @@ def _domain(dim, comm=MPI.COMM_SELF):
     return create_box(comm, [[0, 0, 0], [1, 1, 2]], [2, 2, 3])
 
 
+def _written(tmp_path, dim: int, degree: int, name: str):
+    """The model whose affine motion ``write_affine`` wrote to ``tmp_path / name``."""
+    model = model_on(_domain(dim), degree)
+    write_affine(model, tmp_path / name)
+    return model
+
+
 def _num_cells(domain):
     imap = domain.mesh.topology.index_map(domain.mesh.topology.dim)
     return imap.size_global
@@ -36,9 +43,7 @@ def _num_cells(domain):
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("degree", [1, 2, 3])
 def test_xdmf_round_trip(tmp_path, dim, degree):
-    dom = _domain(dim)
-    model = model_on(dom, degree)
-    write_affine(model, tmp_path / "run.xdmf")
+    dom = _written(tmp_path, dim, degree, "run.xdmf").domain
     data = read_xdmf(tmp_path / "run.xdmf")
 
     x = data["geometry"]
@@ -63,9 +68,8 @@ def test_xdmf_round_trip(tmp_path, dim, degree):
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("degree", [1, 2, 3])
 def test_vtx_round_trip(tmp_path, dim, degree):
-    dom = _domain(dim)
-    model = model_on(dom, degree)
-    write_affine(model, tmp_path / "run.bp")
+    model = _written(tmp_path, dim, degree, "run.bp")
+    dom = model.domain
     for name in ("run.bp", "run_cells.bp"):
         assert (tmp_path / name / "md.idx").exists()
         assert (tmp_path / name / "data.0").stat().st_size > 0

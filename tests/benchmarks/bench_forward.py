@@ -17,7 +17,6 @@ on a shared machine). Works under ``mpiexec -n 2``. The
 last line printed is a JSON object with the numbers.
 """
 
-import argparse
 import json
 import os
 import sys
@@ -26,12 +25,11 @@ import time
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+from beam_args import beam_parser
+
 
 def _parse(argv):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--cells", type=int, nargs=3, default=[80, 10, 10], help="box cells")
-    p.add_argument("--steps", type=int, default=20, help="BDF2 steps")
-    p.add_argument("--dt", type=float, default=0.01, help="time step")
+    p = beam_parser(__doc__.splitlines()[0], steps=20)
     p.add_argument("--rtol", type=float, default=1e-9, help="residual tolerance")
     p.add_argument(
         "--repeat",
@@ -45,7 +43,6 @@ def _parse(argv):
         help="line search of the bare solver (basic = full Newton steps; bt backtracks on the "
         "residual norm, which stalls on this problem)",
     )
-    p.add_argument("--cold", action="store_true", help="compile into an empty FFCx cache first")
     return p.parse_args(argv)
 
 

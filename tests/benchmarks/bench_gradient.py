@@ -17,7 +17,6 @@ into an empty FFCx cache and reports the set-up time; ``--profile`` prints a cPr
 gradient). Works under ``mpiexec -n 2``. The last line printed is a JSON object.
 """
 
-import argparse
 import json
 import os
 import sys
@@ -26,12 +25,11 @@ import time
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+from beam_args import beam_parser
+
 
 def _parse(argv):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--cells", type=int, nargs=3, default=[80, 10, 10], help="box cells")
-    p.add_argument("--steps", type=int, default=50, help="BDF2 steps")
-    p.add_argument("--dt", type=float, default=0.01, help="time step")
+    p = beam_parser(__doc__.splitlines()[0], steps=50)
     p.add_argument("--rtol", type=float, default=1e-9, help="Newton tolerance of the timed runs")
     p.add_argument("--fd-rtol", type=float, default=1e-12, help="Newton tolerance of FD runs")
     p.add_argument("--fd-params", type=int, default=1, help="largest-gradient entries checked")
@@ -61,7 +59,6 @@ def _parse(argv):
     p.add_argument(
         "--only", choices=["static", "dynamic"], default=None, help="run one scenario only"
     )
-    p.add_argument("--cold", action="store_true", help="compile into an empty FFCx cache first")
     p.add_argument("--profile", action="store_true", help="cProfile one gradient per case")
     p.add_argument("--skip-fd", action="store_true", help="timings only")
     p.add_argument("--skip-timing", action="store_true", help="finite differences only")
