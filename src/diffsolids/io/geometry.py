@@ -80,10 +80,10 @@ def deformed_triangles(
         x += nodal_displacement(model, u)
     tris = x[mesh.geometry.dofmaps[0][:owned, :3]]
     comm = collective_comm(mesh.comm)
-    tris = np.concatenate(comm.allgather(tris))
+    tris = np.concatenate(collective_comm(comm).allgather(tris))
     if values is None:
         return tris, None
-    return tris, np.concatenate(comm.allgather(np.asarray(values)))
+    return tris, np.concatenate(collective_comm(comm).allgather(np.asarray(values)))
 
 
 def silhouette_edges(model, axes: Sequence[int] = (1, 2)) -> list[np.ndarray]:

@@ -79,7 +79,9 @@ def series_values(
             f.u.x.array[:] = trajectory.u[i]
             f.v.x.array[:] = trajectory.v[i]
             for leaf, form in forms.items():
-                table[leaf][i] = comm.allreduce(fem.assemble_scalar(form), op=MPI.SUM)
+                table[leaf][i] = collective_comm(comm).allreduce(
+                    fem.assemble_scalar(form), op=MPI.SUM
+                )
     finally:
         f.u.x.array[:] = saved_u
         f.v.x.array[:] = saved_v
