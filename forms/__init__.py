@@ -8,6 +8,10 @@ shape, state and parameter derivatives all come from ``ufl.derivative``.
 from diffsolids.forms.damping import damping_potential, green_strain_rate
 from diffsolids.forms.elasticity import (
     STRAIN_ENERGIES,
+    LinearElasticEnergy,
+    NeoHookeanEnergy,
+    StrainEnergy,
+    StVenantKirchhoffEnergy,
     cauchy_stress,
     first_piola_kirchhoff,
     lame_parameters,
@@ -16,6 +20,7 @@ from diffsolids.forms.elasticity import (
     plane_strain_normal_stress,
     st_venant_kirchhoff_energy,
     strain_energy,
+    strain_law,
     von_mises,
     von_mises_tensor,
 )
@@ -34,6 +39,10 @@ from diffsolids.forms.objectives import (
 
 __all__ = [
     "STRAIN_ENERGIES",
+    "LinearElasticEnergy",
+    "NeoHookeanEnergy",
+    "StVenantKirchhoffEnergy",
+    "StrainEnergy",
     "body_force_potential",
     "cauchy_stress",
     "damping_potential",
@@ -52,6 +61,7 @@ __all__ = [
     "small_strain",
     "st_venant_kirchhoff_energy",
     "strain_energy",
+    "strain_law",
     "stress_norm",
     "stress_norm_power",
     "stress_penalty",

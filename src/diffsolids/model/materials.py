@@ -4,7 +4,7 @@ import math
 from dataclasses import dataclass
 
 from diffsolids.errors import ParameterError
-from diffsolids.forms.elasticity import STRAIN_ENERGIES
+from diffsolids.forms.elasticity import StrainEnergy, strain_law
 
 __all__ = ["LinearElastic", "Material", "NeoHookean", "StVenantKirchhoff"]
 
@@ -17,7 +17,8 @@ class Material:
     as Lamé parameters (``lmbda``, ``mu``).
 
     Attributes:
-        law: "linear", "st_venant_kirchhoff" or "neo_hookean".
+        law: The constitutive law: a ``forms.StrainEnergy`` (any subclass), or the name of a
+            built-in one ("linear", "st_venant_kirchhoff", "neo_hookean"), stored as the law.
         E: Young's modulus.
         nu: Poisson's ratio.
         lmbda: First Lamé parameter.
@@ -27,7 +28,7 @@ class Material:
         damping_phi: Bulk viscous damping phi >= 0.
     """
 
-    law: str
+    law: StrainEnergy | str
     E: float | None = None
     nu: float | None = None
     lmbda: float | None = None
@@ -37,10 +38,10 @@ class Material:
     damping_phi: float = 0.0
 
     def __post_init__(self):
-        if self.law not in STRAIN_ENERGIES:
-            raise ParameterError(
-                f"unknown constitutive law {self.law!r}; choose from {sorted(STRAIN_ENERGIES)}"
-            )
+        try:
+            object.__setattr__(self, "law", strain_law(self.law))
+        except KeyError as error:
+            raise ParameterError(error.args[0]) from None
         young = self.E is not None or self.nu is not None
         lame = self.lmbda is not None or self.mu is not None
         if (

@@ -205,7 +205,7 @@ class Model:
         return lmbda, mu
 
     def _elastic_terms(self) -> list[Term]:
-        laws: dict[str, list[int]] = {}
+        laws: dict[forms.StrainEnergy, list[int]] = {}
         for body, mat in self.materials.items():
             laws.setdefault(mat.law, []).append(body)
         single = len(laws) == 1

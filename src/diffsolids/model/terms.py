@@ -68,11 +68,13 @@ class Term:
         name: Human-readable name.
         dynamic_only: Only part of time-dependent (BDF) steps (inertia, damping).
         quadratic: The energy is quadratic in u (its Hessian does not depend on u).
+        finite_strain: The energy sees det F: the solver bounds steps so no element inverts.
     """
 
     name: str = "term"
     dynamic_only: bool = False
     quadratic: bool = False
+    finite_strain: bool = False
 
     def energy(self, f: StepFields) -> ufl.Form:
         """The term's incremental potential as a scalar UFL form."""
@@ -101,24 +103,25 @@ class ElasticEnergy(_DensityTerm):
     """Strain energy of the bodies using one constitutive law.
 
     Args:
-        law: Key of ``forms.STRAIN_ENERGIES``.
+        law: The constitutive law (a ``forms.StrainEnergy``).
         bodies: Body ids using the law, or None for the whole mesh.
         lame: Callable returning (lambda, mu) UFL expressions from the step fields.
     """
 
-    def __init__(self, law: str, bodies: Sequence[int] | None, lame: Callable):
+    def __init__(self, law: forms.StrainEnergy, bodies: Sequence[int] | None, lame: Callable):
         self.law, self.bodies, self.lame = law, bodies, lame
-        self.name = f"elastic[{law}]"
-        self.quadratic = law == "linear"
+        self.name = f"elastic[{law.name}]"
+        self.quadratic = law.small_strain
+        self.finite_strain = not law.small_strain
 
     @override
     def energy_density(self, f: StepFields):
         lmbda, mu = self.lame(f)
-        return forms.strain_energy(self.law, f.u, lmbda, mu)
+        return self.law.energy(f.u, lmbda, mu)
 
     @override
     def magnitude(self, f: StepFields) -> ufl.Form:
-        if self.law == "linear":
+        if self.law.small_strain:
             return super().magnitude(f)
         # Near F = I the finite-strain densities cancel addends of size mu (tr F^T F + d)
         # (e.g. Neo-Hookean tr C - d - 2 ln J): their roundoff scales with those addends.

@@ -98,7 +98,7 @@ class NewtonSolver:
         self.x = fem_petsc.create_vector(V)
         self._work = fem_petsc.create_vector(V)
         self.step_bounds: list = []
-        finite_strain = any(getattr(t, "law", "linear") != "linear" for t in model.terms)
+        finite_strain = any(t.finite_strain for t in model.terms)
         if self.options.prevent_inversion and finite_strain:
             # Only finite-strain energies see det F (small-strain elasticity has no inversion).
             # Steps bounded at or beyond 1 / step_safety are taken in full: no need to know more.
