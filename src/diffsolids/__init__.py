@@ -14,36 +14,69 @@ with contextlib.suppress(ImportError):
     import dolfinx_solver  # noqa: F401
 
 from diffsolids import errors
+
+# Everything a problem script needs is importable from here (the modules stay the reference).
+from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
+from diffsolids.controls import (
+    DirichletControl,
+    FrictionControl,
+    InitialCondition,
+    ParameterControl,
+    RigidVelocity,
+    ShapeControl,
+)
 from diffsolids.errors import (
     ConvergenceError,
     DiffsolidsError,
+    IntersectionError,
     InvertedElementError,
     MeshError,
     NewtonConvergenceError,
     ParameterError,
+    PortabilityError,
     TagError,
 )
 from diffsolids.integrators import BDF, Integrator, Static, bdf_coefficients
-from diffsolids.mesh import Domain
+from diffsolids.mesh import Domain, combine_meshes, create_domain, read_mesh, select_facets
 from diffsolids.model import (
     DirichletCondition,
     LinearElastic,
     Material,
     Model,
     NeoHookean,
+    NumericTerm,
     StVenantKirchhoff,
 )
+from diffsolids.objectives import (
+    Integral,
+    center_of_mass,
+    final_value,
+    series_values,
+    stress_lp_norm,
+    target_displacement,
+    time_integral,
+)
+from diffsolids.optimize import LBFGSOptions, minimize
+from diffsolids.reduced_functional import ReducedFunctional
 from diffsolids.simulation import Simulation, Trajectory
 from diffsolids.solvers import NewtonSolver, SolverOptions
+from diffsolids.verification import check_reproducible, finite_difference_check, taylor_test
 
 __all__ = [
     "BDF",
+    "ContactTerm",
     "ConvergenceError",
     "DiffsolidsError",
     "DirichletCondition",
+    "DirichletControl",
     "Domain",
+    "FrictionControl",
+    "InitialCondition",
+    "Integral",
     "Integrator",
+    "IntersectionError",
     "InvertedElementError",
+    "LBFGSOptions",
     "LinearElastic",
     "Material",
     "MeshError",
@@ -51,7 +84,13 @@ __all__ = [
     "NeoHookean",
     "NewtonConvergenceError",
     "NewtonSolver",
+    "NumericTerm",
+    "ParameterControl",
     "ParameterError",
+    "PortabilityError",
+    "ReducedFunctional",
+    "RigidVelocity",
+    "ShapeControl",
     "Simulation",
     "SolverOptions",
     "StVenantKirchhoff",
@@ -59,5 +98,20 @@ __all__ = [
     "TagError",
     "Trajectory",
     "bdf_coefficients",
+    "center_of_mass",
+    "check_reproducible",
+    "combine_meshes",
+    "create_domain",
     "errors",
+    "final_value",
+    "finite_difference_check",
+    "minimize",
+    "read_mesh",
+    "select_facets",
+    "series_values",
+    "stress_lp_norm",
+    "suggest_barrier_stiffness",
+    "target_displacement",
+    "taylor_test",
+    "time_integral",
 ]

@@ -4,6 +4,8 @@ Usable from pytest and from users' scripts; every function returns a result obje
 readable report (``print(result)``).
 """
 
+import contextlib
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -56,6 +58,18 @@ class TaylorResult:
         return "\n".join(lines)
 
 
+@contextlib.contextmanager
+def _parameters_restored(rf, q: np.ndarray) -> Iterator[None]:
+    """Put a ReducedFunctional's controls back at q after the perturbed evaluations."""
+    from diffsolids.reduced_functional import ReducedFunctional
+
+    try:
+        yield
+    finally:
+        if isinstance(rf, ReducedFunctional):
+            rf.controls.assign(q)
+
+
 def taylor_test(
     rf, q, dq, h0: float | None = None, num: int = 4, factor: float = 0.5
 ) -> TaylorResult:
@@ -68,9 +82,16 @@ def taylor_test(
         h0: Largest step (default 1e-2 * (1 + |q|) / |dq|).
         num: Number of steps.
         factor: Ratio of consecutive steps.
+
+    The parameters of a ReducedFunctional are restored to ``q`` afterwards.
     """
     q = np.asarray(q, dtype=float)
     dq = np.asarray(dq, dtype=float)
+    with _parameters_restored(rf, q):
+        return _taylor(rf, q, dq, h0, num, factor)
+
+
+def _taylor(rf, q, dq, h0, num, factor) -> TaylorResult:
     J0 = rf(q)
     g = rf.gradient(q)
     dJ = float(g @ dq)
@@ -141,9 +162,16 @@ def finite_difference_check(rf, q, dq, steps=None, gradient=None) -> FiniteDiffe
         dq: Direction.
         steps: Step sizes (default: 1e-2 .. 1e-7 relative to (1 + |q|) / |dq|).
         gradient: Precomputed gradient at q (else computed).
+
+    The parameters of a ReducedFunctional are restored to ``q`` afterwards.
     """
     q = np.asarray(q, dtype=float)
     dq = np.asarray(dq, dtype=float)
+    with _parameters_restored(rf, q):
+        return _central_differences(rf, q, dq, steps, gradient)
+
+
+def _central_differences(rf, q, dq, steps, gradient) -> FiniteDifferenceResult:
     g = rf.gradient(q) if gradient is None else gradient
     dJ = float(g @ dq)
     if steps is None:

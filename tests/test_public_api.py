@@ -1,0 +1,46 @@
+"""The public entry point: a problem script with one import, and checks that leave q as it was."""
+
+import numpy as np
+from mpi4py import MPI
+
+import diffsolids as ds
+
+
+def test_every_public_name_exists():
+    missing = [name for name in ds.__all__ if not hasattr(ds, name)]
+    assert not missing
+
+
+def _script():
+    """A 2D block under gravity on a clamped slab with contact, a UFL objective, shape control."""
+    slab = ds.mesh.simplex_box([[0, 0], [1, 0.1]], [8, 1])
+    block = ds.mesh.simplex_box([[0.3, 0.1 + 5e-4], [0.6, 0.3]], [3, 2])
+    domain = ds.combine_meshes(MPI.COMM_WORLD, [slab, block], names={"slab": 1, "block": 2})
+    model = ds.Model(domain, ds.NeoHookean(E=2e4, nu=0.3, density=100.0))
+    model.add_gravity(9.81)
+    model.add_dirichlet(lambda x: x[1] < 0.05, 0.0)
+    probe = ds.ContactTerm(model, dhat=1e-3, stiffness=1.0)
+    integrator = ds.BDF(1, 0.01, 3)
+    kappa = ds.suggest_barrier_stiffness(probe, integrator)
+    model.add_numeric_term(ds.ContactTerm(model, dhat=1e-3, stiffness=kappa))
+    sim = ds.Simulation(model, integrator, ds.SolverOptions(rtol=1e-12), progress=False)
+    height = ds.Integral(lambda f: (f.X[1] + f.u[1]) * f.dx(2), "height of block")
+    rf = ds.ReducedFunctional(sim, ds.final_value(height), [ds.ShapeControl(model, "boundary")])
+    return rf
+
+
+def test_a_one_import_script_and_checks_that_restore_the_parameters():
+    rf = _script()
+    q0 = rf.initial_parameters()
+    x0 = rf.model.domain.mesh.geometry.x.copy()
+    rng = np.random.default_rng(0)
+    d = 1e-3 * rng.standard_normal(len(q0))
+    g = rf.gradient(q0)
+    along = 1e-3 * g / np.abs(g).max()
+    for direction in (d, along):
+        result = ds.finite_difference_check(rf, q0, direction, [1e-2, 1e-3], gradient=g)
+        assert result.relative_error <= 1e-6, str(result)
+    assert ds.taylor_test(rf, q0, d, h0=0.2, num=3).min_rate >= 1.9
+    # the perturbed evaluations left the model at q0
+    assert np.array_equal(rf.initial_parameters(), q0)
+    assert np.array_equal(rf.model.domain.mesh.geometry.x, x0)
