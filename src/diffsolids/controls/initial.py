@@ -71,7 +71,9 @@ class RigidVelocity(Control):
     """Initial velocity of one body as a rigid motion v(x) = v + omega x (x - c).
 
     Parameters: the translation velocity (dim) and, with ``angular``, the angular velocity
-    (1 component in 2D, 3 in 3D) about the body's rest centroid c.
+    (1 component in 2D, 3 in 3D) about the body's rest centroid c. Nodes with a Dirichlet
+    condition keep their prescribed motion: the rigid velocity is the free nodes' initial
+    velocity.
     """
 
     def __init__(self, simulation, body, angular: bool = True):
@@ -94,6 +96,8 @@ class RigidVelocity(Control):
         self.center = (
             collective_comm(comm).allreduce(x[owned_nodes].sum(axis=0), op=MPI.SUM) / count
         )
+        prescribed = np.unique(model.dirichlet_dofs() // self.dim)
+        self.nodes = np.setdiff1d(self.nodes, prescribed)
         self.r = x[self.nodes] - self.center
         self.comm = comm
         self.q = np.zeros(self.size)

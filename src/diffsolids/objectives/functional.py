@@ -354,9 +354,9 @@ def step_weights(spec, grid: TimeGrid) -> np.ndarray:
     """Weights w_0..w_N of a time reduction.
 
     Args:
-        spec: "uniform" (w_0 = 0, w_i = dt), "trapezoidal", "final" (w_N = 1), a sequence of step
-            indices (weight 1 each; negative indices count from the end) or an array of N + 1
-            weights.
+        spec: "uniform" (w_0 = 0, w_i = dt), "sum" (w_0 = 0, w_i = 1: a plain sum over the
+            computed steps), "trapezoidal", "final" (w_N = 1), a sequence of step indices
+            (weight 1 each; negative indices count from the end) or an array of N + 1 weights.
         grid: The simulation's steps.
     """
     n = grid.num_steps
@@ -364,6 +364,8 @@ def step_weights(spec, grid: TimeGrid) -> np.ndarray:
     if isinstance(spec, str):
         if spec == "uniform":
             w[1:] = grid.dt
+        elif spec == "sum":
+            w[1:] = 1.0
         elif spec == "trapezoidal":
             w[:] = grid.dt
             w[0] = w[-1] = grid.dt / 2
@@ -414,7 +416,7 @@ class TimeIntegral(Objective):
 
 
 def time_integral(series: Series, weights: str | Sequence = "uniform") -> Objective:
-    """Reduce a series with time weights ("uniform", "trapezoidal", "final", steps, array)."""
+    """Reduce a series with time weights ("uniform", "sum", "trapezoidal", "final", steps, ...)."""
     if not isinstance(series, Series):
         raise ObjectiveError("time_integral expects a Series (e.g. an Integral)")
     return TimeIntegral(series, weights)
