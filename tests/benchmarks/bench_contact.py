@@ -14,6 +14,12 @@ vertices, a log Young's modulus per cell and the friction coefficient, timed on 
 of contact work in a Newton iteration (``contact_share``: contact operations plus the solver's
 pattern check; goal <= 0.30).
 
+Last, the paper's fig1 scene (two bunnies thrown into a coarse pool whose faces are up to 3.2 m
+long, BDF1, the paper's material and dhat; data in ``$DIFFSOLIDS_DATA/diffipc/fig1_bunnies``)
+and the same bunnies on a fine slab of about the same size: seconds per Newton iteration and the
+vertex pairs the contact sparsity pattern holds (``coarse_obstacle_*`` and ``fine_obstacle_*``;
+a coarse obstacle must cost about what the scene's size suggests).
+
 Run ``python tests/benchmarks/bench_contact.py [--cells N]`` (also under ``mpiexec -n 2``).
 The last line printed is a JSON object with the numbers.
 """
@@ -23,6 +29,7 @@ import json
 import os
 import sys
 import time
+from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
@@ -32,7 +39,98 @@ def _parse(argv):
     p.add_argument("--cells", type=int, default=12, help="cells per side of the upper box")
     p.add_argument("--steps", type=int, default=8, help="BDF2 steps")
     p.add_argument("--dt", type=float, default=0.004, help="time step")
+    p.add_argument("--scene-steps", type=int, default=3, help="fig1 BDF1 steps (0: skip)")
     return p.parse_args(argv)
+
+
+FIG1 = (
+    Path(os.environ.get("DIFFSOLIDS_DATA", Path(__file__).parents[3] / "shared" / "data"))
+    / "diffipc"
+    / "fig1_bunnies"
+)
+
+
+def bunnies_scene(comm, obstacle: str = "pool", steps: int = 3, stiffness: float | None = None):
+    """Fig1 of the paper (run.json): a pool and two bunnies, the first thrown at (2, 0.5, 0) m/s.
+
+    Args:
+        comm: Communicator.
+        obstacle: "pool" (the paper's flat-pool.msh, 195 vertices, 3.2 m edges) or "fine" (a
+            slab under the bunnies with about as many vertices, 0.1-0.2 m edges).
+        steps: BDF1 steps of dt = 0.05.
+        stiffness: Barrier stiffness (default: :func:`suggest_barrier_stiffness`).
+
+    Returns:
+        (simulation, contact term).
+    """
+    from dolfinx import fem
+    from mpi4py import MPI
+
+    import diffsolids as ds
+    from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
+    from diffsolids.mesh import combine_meshes, read_mesh
+    from diffsolids.mesh.scene import simplex_box
+
+    bunny = FIG1 / "stanford-bunny.obj_.msh"
+    if obstacle == "pool":
+        ground = read_mesh(FIG1 / "flat-pool.msh", MPI.COMM_SELF)
+    else:
+        ground = simplex_box([[-0.8, 0.05, -0.5], [1.6, 0.15, 0.5]], [20, 1, 8])
+    meshes = [ground] + [
+        read_mesh(bunny, MPI.COMM_SELF, scale=6.0, translation=t) for t in ([0, 0, 0], [1, 0, 0])
+    ]
+    domain = combine_meshes(comm, meshes)
+    model = ds.Model(domain, ds.NeoHookean(E=1e6, nu=0.48, density=1240.0))
+    model.add_gravity(9.81, axis=1)
+    model.add_dirichlet(lambda x: x[1] < 0.17, 0.0)  # the ground (bunnies start at y > 0.199)
+    integ = ds.BDF(1, 0.05, steps)
+    if stiffness is None:
+        stiffness = suggest_barrier_stiffness(ContactTerm(model, dhat=1e-3, stiffness=1.0), integ)
+    contact = ContactTerm(model, dhat=1e-3, stiffness=stiffness)
+    model.add_numeric_term(contact)
+    v0 = fem.Function(model.V)
+    thrown = model.V.dofmap.list[domain.cell_tags.find(2)]
+    v0.x.array.reshape(-1, 3)[thrown] = [2.0, 0.5, 0.0]
+    return ds.Simulation(model, integ, ds.SolverOptions(rtol=1e-8), v0=v0.x.array), contact
+
+
+def newton_cost(comm, obstacle: str, steps: int, stiffness: float | None = None) -> dict:
+    """Seconds per Newton iteration and contact pattern pairs of :func:`bunnies_scene`."""
+    import numpy as np
+    from petsc4py import PETSc
+
+    sim, contact = bunnies_scene(comm, obstacle, steps, stiffness)
+    t0, c0 = time.perf_counter(), time.process_time()
+    traj = sim.run()
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    its = max(traj.newton_iterations(), 1)
+    surf = contact.surface
+    nv = surf.num_vertices
+    free = ~surf.static
+    pairs, free_pairs = [], []
+    for i in range(1, steps + 1):  # each step's pattern again, as the run made it
+        contact.begin_step(i, traj, sim.integrator.coefficients(i))
+        a, b = np.divmod(contact._reach_pattern(), nv)
+        pairs.append(int(np.count_nonzero(a < b)))
+        free_pairs.append(int(np.count_nonzero((a < b) & free[a] & free[b])))
+    patterns = sim.solver.patterns
+    return {
+        "stiffness": contact.stiffness,
+        "dofs": sim.model.V.dofmap.index_map.size_global * 3,
+        "surface_vertices": nv,
+        "surface_vertex_pairs": nv * (nv - 1) // 2,
+        "newton_iterations": [r.iterations for r in traj.records],
+        "newton_s": wall / its,
+        "newton_cpu_s": cpu / its,
+        "pattern_pairs": max(pairs),
+        "pattern_pairs_per_step": pairs,
+        "pattern_free_pairs": max(free_pairs),
+        "pattern_check_s": patterns.seconds / its,
+        "pattern_misses": getattr(patterns, "misses", None),
+        "pattern_rebuilds": patterns.rebuilds,
+        "matrix_nonzeros": int(sim.solver.A.getInfo(PETSc.Mat.InfoType.GLOBAL_SUM)["nz_used"]),
+        "contact_s": {k: v["seconds"] for k, v in contact.timing_summary().items()},
+    }
 
 
 def main(argv=None) -> dict:
@@ -189,6 +287,11 @@ def main(argv=None) -> dict:
         "adjoint_contact_ms_per_step": adjoint_contact_ms,
         "adjoint_stats": {k: v for k, v in rf.adjoint_stats.items() if k != "krylov_per_step"},
     }
+    if args.scene_steps > 0 and FIG1.is_dir():  # fig1: a coarse pool, then a fine slab
+        coarse = newton_cost(comm, "pool", args.scene_steps)
+        fine = newton_cost(comm, "fine", args.scene_steps, coarse["stiffness"])
+        result.update({f"coarse_obstacle_{k}": v for k, v in coarse.items()})
+        result.update({f"fine_obstacle_{k}": v for k, v in fine.items()})
     if comm.rank == 0:
         print(json.dumps(result))
     return result

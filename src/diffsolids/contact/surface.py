@@ -27,6 +27,7 @@ from petsc4py import PETSc
 from diffsolids.errors import MeshError
 from diffsolids.parallel import collective_comm
 from diffsolids.portability import ensure_ipctk_runs
+from diffsolids.solvers.sparsity import sorted_unique
 
 __all__ = ["CollisionSurface"]
 
@@ -353,4 +354,4 @@ def block_pattern(*matrices: sp.spmatrix, dim: int, num_vertices: int) -> np.nda
         coo = H.tocoo()
         nz = coo.data != 0
         keys.append((coo.row[nz] // dim).astype(np.int64) * num_vertices + coo.col[nz] // dim)
-    return np.unique(np.concatenate(keys))
+    return sorted_unique(*keys)

@@ -17,6 +17,7 @@ add only the rows they own.
 
 import contextlib
 import functools
+import itertools
 import logging
 import os
 import time
@@ -29,13 +30,14 @@ import scipy.sparse as sp
 from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
-from scipy.spatial import cKDTree
 
+from diffsolids.contact.reach import reach_blocks
 from diffsolids.contact.shape import barrier_shape_derivative
-from diffsolids.contact.surface import CollisionSurface, block_pattern
+from diffsolids.contact.surface import CollisionSurface, _contains, block_pattern
 from diffsolids.errors import IntersectionError, ParameterError
 from diffsolids.model.numeric import NumericTerm
 from diffsolids.parallel import collective_comm
+from diffsolids.solvers.sparsity import sorted_unique
 
 __all__ = ["ContactRecord", "ContactTerm"]
 
@@ -45,6 +47,8 @@ logger = logging.getLogger("diffsolids")
 _CCD_REACH = 2.0
 # the matrix pattern of a step covers the pairs within this many dhat at u^{i-1} (plus motion)
 _PATTERN_REACH = 2.0
+# ... when no vertex moves farther than this times the step's estimate (ContactTerm._step_motion)
+_MOTION_FACTOR = 1.0
 
 
 def _timed_kernel(name: str):
@@ -240,6 +244,7 @@ class ContactTerm(NumericTerm):
         hist = [surf.gather(traj.u[i - j]) for j in range(1, len(coeffs.alpha) + 1)]
         beta_dt = coeffs.beta_dt
         v_offset = sum(a * U for a, U in zip(coeffs.alpha, hist, strict=True)) / beta_dt
+        motion, deformation = self._step_motion(i, traj, coeffs)
         self._step = {
             "index": i,
             "alpha": tuple(coeffs.alpha),
@@ -247,6 +252,8 @@ class ContactTerm(NumericTerm):
             "history": hist,
             "v_offset": v_offset,
             "lagged": hist[0],
+            "motion": motion,
+            "deformation": deformation,
         }
         self._token += 1
         self._eval = None
@@ -258,6 +265,36 @@ class ContactTerm(NumericTerm):
             self.records = []
             self.check_configuration(hist[0], step=i - 1)
         self._forward_step = i if forward else None
+
+    def _step_motion(self, i: int, traj, coeffs) -> tuple[np.ndarray, np.ndarray]:
+        """How far each collision vertex may move in step ``i`` (collective).
+
+        The last step's displacement p = dt v^{i-1} plus its change c = dt (v^{i-1} - v^{i-2})
+        (from displacements when the trajectory holds no velocities): |p| + |c| is what the
+        vertex travels if its acceleration stays as large, in any direction.
+
+        Returns:
+            (motion, deformation): per vertex, |p| + |c|, and the same for p and c relative to
+            a translation of the vertex's body (the middle of the body's range of each).
+        """
+        surf = self.surface
+        if len(traj.v) >= i:  # velocities are displacements per time (static steps too)
+            steps = [coeffs.dt * surf.gather(traj.v[j]) for j in range(i - 1, max(i - 3, -1), -1)]
+        else:
+            states = [surf.gather(traj.u[j]) for j in range(i - 1, max(i - 4, -1), -1)]
+            steps = [a - b for a, b in itertools.pairwise(states)]
+        nv, nb = surf.num_vertices, len(self.body_ids)
+        moves = [steps[0], steps[0] - steps[1]] if len(steps) > 1 else steps
+        motion, deformation = np.zeros(nv), np.zeros(nv)
+        for d in moves:
+            lo = np.full((nb, self.dim), np.inf)
+            hi = np.full((nb, self.dim), -np.inf)
+            np.minimum.at(lo, surf.body_index, d)
+            np.maximum.at(hi, surf.body_index, d)
+            translation = 0.5 * (lo + hi)[surf.body_index]
+            motion += np.linalg.norm(d, axis=1)
+            deformation += np.linalg.norm(d - translation, axis=1)
+        return motion, deformation
 
     def _update_static(self) -> None:
         if self._free_mask(self.model.dirichlet_dofs(), static=True):
@@ -437,7 +474,11 @@ class ContactTerm(NumericTerm):
         setattr(ev, attr, sp.csc_matrix(H))
 
     def _blocks(self, ev: _Evaluation) -> np.ndarray:
-        """Vertex-block pattern of the Newton matrix at ev (exact Hessian + friction stencils)."""
+        """Vertex-block pattern of the Newton matrix at ev (exact Hessian + friction stencils).
+
+        The step's :meth:`_reach_pattern` itself (the same array) while it holds them all, so
+        that the matrix pattern stays the same object and the solver's check is free.
+        """
         if ev.blocks is None:
             parts = [self._hessian(ev)]
             T = ev.extras["friction"]
@@ -449,43 +490,44 @@ class ContactTerm(NumericTerm):
                         T, self.surface.mesh, zero
                     )
                 parts.append(self._step["friction_pattern"])
-            ev.blocks = np.union1d(
-                block_pattern(*parts, dim=self.dim, num_vertices=self.surface.num_vertices),
-                self._reach_pattern(),
-            )
+            surf = self.surface
+            needed = block_pattern(*parts, dim=self.dim, num_vertices=surf.num_vertices)
+            if surf.static is not None:  # blocks of static vertices have no matrix entries
+                a, b = np.divmod(needed, surf.num_vertices)
+                needed = needed[~(surf.static[a] | surf.static[b])]
+            reach = self._reach_pattern()
+            inside = _contains(reach, needed)
+            ev.blocks = reach if inside.all() else sorted_unique(reach, needed[~inside])
         return ev.blocks
 
     def _reach_pattern(self) -> np.ndarray:
-        """Vertex blocks of pairs within reach at u^{i-1}: a superset for the whole step.
+        """Vertex blocks of the pairs that can meet in the step: a superset for the whole step.
 
-        Any pair of primitives within ``reach`` has all its vertex pairs within ``reach + h``
-        (h the longest surface edge), so those vertex pairs cover every contact stencil of the
-        step as long as no vertex moves more than about twice as far as in the previous step;
-        a new contact then rarely needs a larger matrix (a rebuild and a new symbolic
-        factorisation). Pairs of the same body that are that close at rest are left out (they
-        are neighbours on the surface, not contacts), as are static-static pairs.
+        The stencils of the pairs of primitives whose boxes at u^{i-1}, each grown by
+        ``_PATTERN_REACH / 2`` dhat plus how far its vertices may move in the step
+        (:meth:`_step_motion`; relative to their body for pairs of one body), overlap
+        (:func:`~diffsolids.contact.reach.reach_blocks`). So a new contact rarely needs a
+        larger matrix (a rebuild and a new symbolic factorisation), and the pattern follows
+        the pairs that are near, not the size of the primitives (a coarse obstacle). Left out:
+        pairs of one body that are neighbours on the surface at rest (not contacts), and blocks
+        of static vertices (no matrix entries; a pair with a static primitive adds none but the
+        other primitive's own, which are always in).
         """
         step = self._step
         if "reach" not in step:
             with self._timed("reach_pattern"):
                 surf = self.surface
-                hist = step["history"]
-                motion = 0.0
-                if len(hist) > 1:
-                    motion = float(np.linalg.norm(hist[0] - hist[1], axis=1).max(initial=0.0))
-                x = surf.rest_positions + step["lagged"]
-                h = float(np.linalg.norm(np.diff(x[surf.edges], axis=1), axis=-1).max())
-                reach = _PATTERN_REACH * self.dhat + 2.0 * motion + h
-                a, b = cKDTree(x).query_pairs(reach, output_type="ndarray").T
-                X = surf.rest_positions
-                keep = (surf.body[a] != surf.body[b]) | (
-                    np.linalg.norm(X[a] - X[b], axis=1) > reach
+                step["reach"] = reach_blocks(
+                    surf.rest_positions + step["lagged"],
+                    surf.rest_positions,
+                    surf.edges,
+                    surf.faces,
+                    surf.body,
+                    0.5 * _PATTERN_REACH * self.dhat,
+                    _MOTION_FACTOR * step["motion"],
+                    _MOTION_FACTOR * step["deformation"],
+                    surf.static,
                 )
-                if surf.static is not None:
-                    keep &= ~(surf.static[a] & surf.static[b])
-                a, b = a[keep].astype(np.int64), b[keep].astype(np.int64)
-                nv = surf.num_vertices
-                step["reach"] = np.unique(np.concatenate([a * nv + b, b * nv + a]))
         return step["reach"]
 
     # -- numeric-term interface (forward) -----------------------------------------------------
@@ -564,7 +606,8 @@ class ContactTerm(NumericTerm):
         free = self._free_mask(bc_dofs)
         memo = self._pattern_memo
         # the same arrays while the pattern is unchanged: the solver then skips its checks
-        if memo is not None and memo[1] == self._free_key and np.array_equal(memo[0], blocks):
+        same = memo is not None and (memo[0] is blocks or np.array_equal(memo[0], blocks))
+        if same and memo[1] == self._free_key:
             return memo[2]
         with self._timed("pattern"):
             entries = self.surface.matrix_entries(blocks, free)
