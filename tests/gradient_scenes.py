@@ -23,6 +23,7 @@ from diffsolids.controls import (
     RigidVelocity,
     ShapeControl,
 )
+from diffsolids.controls.maps import Affine, Compose, Log, Power, Simp
 from diffsolids.mesh import create_box, create_rectangle
 from diffsolids.objectives import (
     Integral,
@@ -216,6 +217,14 @@ CONTROLS = {
     "rigid-velocity": lambda sim: RigidVelocity(sim, 2, angular=True),
     "dirichlet": lambda sim: DirichletControl(sim, sim.model.dirichlet[0]),
     "dirichlet-per-step": lambda sim: DirichletControl(sim, sim.model.dirichlet[0], per_step=True),
+    # parameter maps (diffsolids.controls.maps)
+    "young-field-simp": lambda sim: ParameterControl(
+        sim.model, "E", "field", map=Simp(100.0, 1000.0, 3.0)
+    ),
+    "mu-bodies-log-affine": lambda sim: ParameterControl(
+        sim.model, "mu", "bodies", map=Compose(Affine(0.5, 1.0), Log())
+    ),
+    "gravity-power": lambda sim: ParameterControl(sim.model, "gravity", "scale", map=Power(2.0)),
 }
 
 # norm of a block of the perturbation at unit step (absolute for displacement-like controls,

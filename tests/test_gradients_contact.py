@@ -34,9 +34,13 @@ import diffsolids.contact.shape as contact_shape
 from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
 from diffsolids.contact.shape import _mollified_pairs
 from diffsolids.controls import (
+    Affine,
+    Compose,
     FrictionControl,
     InitialCondition,
+    Log,
     ParameterControl,
+    Power,
     ShapeControl,
 )
 from diffsolids.mesh.scene import combine_meshes, simplex_box
@@ -232,6 +236,17 @@ def test_friction_coefficient(order):
     _, contact, sim, objective = incline_scene(1, order)
     control = FrictionControl(contact, pairs=[("slab", "block")])
     rf = ReducedFunctional(sim, objective, control)
+    check_gradient(rf, contact, np.array([0.05]), taylor_h0=0.2)
+    assert _friction_active(contact)
+
+
+@pytest.mark.parametrize("friction_map", [Log(), Compose(Power(2.0), Affine(0.5))], ids=str)
+def test_friction_coefficient_through_a_map(friction_map):
+    _, contact, sim, objective = incline_scene(1, 1)
+    control = FrictionControl(contact, pairs=[("slab", "block")], map=friction_map)
+    rf = ReducedFunctional(sim, objective, control)
+    mu = contact.friction_coefficients[control.index]
+    assert np.allclose(friction_map.forward(control.value()), mu, rtol=1e-12)
     check_gradient(rf, contact, np.array([0.05]), taylor_h0=0.2)
     assert _friction_active(contact)
 

@@ -33,6 +33,13 @@ CASES = {
         "com",
         "shape-linear-map mu-field-log phi-field density-field initial-v0 dirichlet",
     ),
+    "bdf2-2d-p1-maps": (
+        "2d-p1-lin-damped-lame",
+        ds.BDF(2, 0.05, 3),
+        "target",
+        "mu-bodies-log-affine gravity-power shape-all",
+    ),
+    "static-2d-p1-simp": ("2d-p1-lin-cg1-ps", ds.Static(), "stress", "young-field-simp"),
 }
 
 

@@ -4,20 +4,36 @@ from diffsolids.controls.base import Control, ControlError, ControlSet
 from diffsolids.controls.contact import FrictionControl
 from diffsolids.controls.dirichlet import DirichletControl
 from diffsolids.controls.initial import InitialCondition, RigidVelocity
+from diffsolids.controls.maps import (
+    Affine,
+    Compose,
+    Identity,
+    Log,
+    ParameterMap,
+    Power,
+    Simp,
+)
 from diffsolids.controls.ordering import CanonicalLayout
 from diffsolids.controls.parameters import ParameterControl
 from diffsolids.controls.shape import ShapeControl, boundary_vertices
 
 __all__ = [
+    "Affine",
     "CanonicalLayout",
+    "Compose",
     "Control",
     "ControlError",
     "ControlSet",
     "DirichletControl",
     "FrictionControl",
+    "Identity",
     "InitialCondition",
+    "Log",
     "ParameterControl",
+    "ParameterMap",
+    "Power",
     "RigidVelocity",
     "ShapeControl",
+    "Simp",
     "boundary_vertices",
 ]

@@ -6,6 +6,7 @@ import numpy as np
 
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.controls.base import Control, ControlError
+from diffsolids.controls.maps import Identity, ParameterMap, as_map
 
 __all__ = ["FrictionControl"]
 
@@ -19,12 +20,15 @@ class FrictionControl(Control):
     Args:
         contact: The ContactTerm (added to the simulation's model).
         pairs: Pairs of bodies ``(a, b)`` (ids or names) to control; default all pairs.
-        log: Parametrise by the logarithm (mu = exp(q)).
+        log: Parametrise by the logarithm (mu = exp(q)); the same as ``map=Log()``.
+        map: Change of variables mu = map(q) (see :mod:`diffsolids.controls.maps`).
     """
 
-    def __init__(self, contact, pairs=None, log: bool = False):
+    def __init__(
+        self, contact, pairs=None, log: bool = False, map: ParameterMap | None = None
+    ) -> None:
         self.contact = contact
-        self.log = log
+        self.map = as_map(map, log)
         all_pairs = contact.friction_pairs
         if pairs is None:
             self.index = np.arange(len(all_pairs))
@@ -32,9 +36,11 @@ class FrictionControl(Control):
             self.index = np.array([contact.pair_index(a, b) for a, b in pairs], dtype=int)
         if len(self.index) == 0:
             raise ControlError("the contact term has no pair of bodies to control")
-        self.name = "friction" + ("[log]" if log else "")
-        if log and np.any(contact.friction_coefficients[self.index] <= 0):
-            raise ControlError("log parametrisation of friction needs positive coefficients")
+        self.name = "friction" + ("" if map is None and not log else f"[{self.map.name}]")
+        try:
+            self.map.inverse(contact.friction_coefficients[self.index])
+        except ControlError as err:
+            raise ControlError(f"friction coefficients cannot be parametrised: {err}") from None
 
     @override
     def check(self, simulation) -> None:
@@ -52,12 +58,11 @@ class FrictionControl(Control):
 
     @override
     def value(self) -> np.ndarray:
-        mu = self.contact.friction_coefficients[self.index]
-        return np.log(mu) if self.log else mu.copy()
+        return self.map.inverse(self.contact.friction_coefficients[self.index])
 
     @override
     def assign(self, q: np.ndarray) -> None:
-        mu_new = np.exp(q) if self.log else np.asarray(q, dtype=float)
+        mu_new = self.map.forward(np.asarray(q, dtype=float))
         if np.any(mu_new < 0) or not np.all(np.isfinite(mu_new)):
             raise ControlError(f"friction coefficients {mu_new} must be finite and >= 0")
         mu = self.contact.friction_coefficients
@@ -71,12 +76,9 @@ class FrictionControl(Control):
     @override
     def pullback(self, sens: Sensitivities) -> np.ndarray:
         g = np.asarray(sens.contact.get("friction", np.zeros(len(self.contact.friction_pairs))))
-        g = g[self.index]
-        if self.log:
-            g = g * self.contact.friction_coefficients[self.index]
-        return g
+        return self.map.pullback(self.value(), g[self.index])
 
     @override
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        lower = np.full(self.size, -np.inf if self.log else 0.0)
-        return lower, np.full(self.size, np.inf)
+        low, high = (0.0, np.inf) if isinstance(self.map, Identity) else self.map.bounds()
+        return np.full(self.size, low), np.full(self.size, high)

@@ -7,6 +7,7 @@ from mpi4py import MPI
 
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.controls.base import Control, ControlError
+from diffsolids.controls.maps import ParameterMap, as_map
 from diffsolids.controls.ordering import CanonicalLayout
 from diffsolids.parallel import collective_comm
 
@@ -26,9 +27,12 @@ class ParameterControl(Control):
             component, DG0 coefficients), "uniform" (one value per component everywhere) or
             "scale" (one factor multiplying the current field, e.g. a load magnitude).
         bodies: Bodies of mode "bodies" (default: all).
-        log: Parametrise by the logarithm (value = exp(q)), for positive parameters.
-        lower: Lower bound of q (scalar or array).
+        log: Parametrise by the logarithm (value = exp(q)), for positive parameters; the same
+            as ``map=Log()``.
+        lower: Lower bound of q (scalar or array), intersected with the map's own bounds.
         upper: Upper bound of q.
+        map: Change of variables value = map(q) (:mod:`diffsolids.controls.maps`: Log, Affine,
+            Power, Simp, Compose, or a user ParameterMap). In mode "scale" it maps the factor.
     """
 
     def __init__(
@@ -40,6 +44,7 @@ class ParameterControl(Control):
         log: bool = False,
         lower=-np.inf,
         upper=np.inf,
+        map: ParameterMap | None = None,
     ):
         if name not in model.coefficients:
             raise ControlError(
@@ -47,8 +52,9 @@ class ParameterControl(Control):
             )
         if mode not in _MODES:
             raise ControlError(f"unknown parameter mode {mode!r}; choose from {_MODES}")
-        self.model, self.coefficient_name, self.mode, self.log = model, name, mode, log
-        self.name = f"{name}[{mode}{', log' if log else ''}]"
+        self.model, self.coefficient_name, self.mode = model, name, mode
+        self.map = as_map(map, log)
+        self.name = f"{name}[{mode}{'' if map is None and not log else ', ' + self.map.name}]"
         self.function = model.coefficients[name]
         V = self.function.function_space
         self.bs = V.dofmap.index_map_bs
@@ -65,8 +71,10 @@ class ParameterControl(Control):
             ids = model.domain.body_ids if bodies is None else bodies
             self.bodies = [model.domain.body_id(b) for b in ids]
             self._cells = [model.domain.cells_of(b) for b in self.bodies]
-        if log and np.any(self._physical_values() <= 0):
-            raise ControlError(f"log parametrisation of {name!r} needs positive values")
+        try:
+            self.map.inverse(self._physical_values())
+        except ControlError as err:
+            raise ControlError(f"coefficient {name!r} cannot be parametrised: {err}") from None
 
     @override
     def check(self, simulation) -> None:
@@ -89,9 +97,6 @@ class ParameterControl(Control):
             return len(self.bodies) * self.bs
         return self.bs if self.mode == "uniform" else 1
 
-    def _to_physical(self, q):
-        return np.exp(q) if self.log else q
-
     def _physical_values(self) -> np.ndarray:
         arr = self.function.x.array.reshape(-1, self.bs)
         if self.mode == "field":
@@ -112,12 +117,11 @@ class ParameterControl(Control):
 
     @override
     def value(self) -> np.ndarray:
-        phys = self._physical_values()
-        return np.log(phys) if self.log else phys.copy()
+        return self.map.inverse(self._physical_values())
 
     @override
     def assign(self, q: np.ndarray) -> None:
-        p = self._to_physical(np.asarray(q, dtype=float))
+        p = self.map.forward(np.asarray(q, dtype=float))
         arr = self.function.x.array
         if self.mode == "field":
             self.layout.scatter(p, self.function)
@@ -157,13 +161,12 @@ class ParameterControl(Control):
                     )
                 ]
             )
-        if self.log:
-            g = g * np.exp(self.value())
-        return g
+        return self.map.pullback(self.value(), g)
 
     @override
     def bounds(self):
+        low, high = self.map.bounds()
         return (
-            np.broadcast_to(self._lower, self.size).astype(float),
-            np.broadcast_to(self._upper, self.size).astype(float),
+            np.maximum(np.broadcast_to(self._lower, self.size).astype(float), low),
+            np.minimum(np.broadcast_to(self._upper, self.size).astype(float), high),
         )
