@@ -1,0 +1,742 @@
+"""PolyFEM scene JSON files read into a diffsolids Domain, Model, ContactTerm and integrator.
+
+:func:`read_polyfem_scene` reads a PolyFEM ``run.json``-style scene (the paper's data repository
+ships one per experiment) into a :class:`PolyFEMScene` that holds the numbers as written and
+builds the diffsolids objects from them:
+
+- ``geometry[]``: each entry a mesh file (relative paths against the JSON's folder, any format
+  :func:`~diffsolids.mesh.read_mesh` reads) with ``transformation`` (``scale``, ``rotation`` in
+  degrees, ``translation``: x' = R (s x) + t), ``volume_selection`` (its body id: the cell tag)
+  and ``surface_selection`` (an id given to every boundary facet of that mesh, or a list of
+  PolyFEM selections ``{"id", "box" | "axis"/"position" | "center"/"radius" |
+  "normal"/"point", "relative"}`` tested on facet barycentres against that mesh's bounding box;
+  a later selection wins). Body order follows ``geometry[]``.
+- ``materials``: one dict for all bodies or a list of dicts with ``id`` (a body id): ``type``
+  ``NeoHookean`` or ``LinearElasticity``, ``E``, ``nu``, ``rho``, optional damping ``phi``,
+  ``psi``. 2D scenes are plane stress (PolyFEM's 2D convention).
+- ``time``: ``t0`` (0), ``tend``, ``dt`` or ``time_steps``, ``integrator`` ("BDF1".."BDF6",
+  "ImplicitEuler", or ``{"type": "BDF", "steps": k}``; default BDF1).
+- ``contact``: ``enabled``, ``dhat``, ``epsv``, ``friction_coefficient``;
+  ``solver.contact.barrier_stiffness`` (see :mod:`diffsolids.contact.polyfem` for how PolyFEM's
+  kappa maps to ours: as written, with ``area_weighting=False``).
+- ``boundary_conditions``: ``rhs`` (minus the body force per unit mass: ``[0, 9.8]`` is
+  gravity along -y), ``dirichlet_boundary`` and ``neumann_boundary`` entries ``{"id": surface
+  id, "value": [numbers], "dimension": [bools]}``.
+- ``initial_conditions``: ``velocity`` and ``solution`` (displacement) entries ``{"id": body id,
+  "value": [numbers]}``; ``acceleration`` is not needed by BDF and must be zero.
+
+Ignored as harmless (they change how PolyFEM solves or writes, not the problem): ``output``,
+``solver.linear``, ``solver.nonlinear``, ``solver.max_threads``, ``solver.advanced``,
+``solver.contact.CCD``, ``space.advanced`` (``quadrature_order``: diffsolids integrates
+mass terms at 2 x degree and strain terms at 2 x degree - 2, exact for P1),
+``geometry[].advanced.normalize_mesh = false``, ``n_refs = 0``. Any other key raises
+:class:`~diffsolids.errors.ParameterError` naming it (with its path in the JSON), so a scene
+is never read with part of its meaning dropped.
+
+Obstacles (``is_obstacle: true``) are not kinematic yet: with ``obstacles="clamp"`` the obstacle's
+mesh becomes a body whose boundary is clamped (a warning says so); the default refuses them.
+"""
+
+import json
+import math
+import os
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import dolfinx
+import numpy as np
+from mpi4py import MPI
+
+from diffsolids.errors import ParameterError
+from diffsolids.mesh import Domain, read_mesh
+from diffsolids.mesh.scene import combine_meshes
+from diffsolids.mesh.selections import (
+    AxisPlaneSelection,
+    BoxSelection,
+    PlaneSelection,
+    Selection,
+    SphereSelection,
+)
+
+__all__ = [
+    "PolyFEMBoundaryValue",
+    "PolyFEMGeometry",
+    "PolyFEMMaterial",
+    "PolyFEMScene",
+    "PolyFEMSetup",
+    "read_polyfem_scene",
+]
+
+_TOP = {
+    "geometry",
+    "space",
+    "time",
+    "contact",
+    "solver",
+    "boundary_conditions",
+    "initial_conditions",
+    "materials",
+    "output",
+}
+_GEOMETRY = {
+    "mesh",
+    "transformation",
+    "volume_selection",
+    "surface_selection",
+    "n_refs",
+    "advanced",
+    "is_obstacle",
+    "enabled",
+    "type",
+}
+_TRANSFORM = {"translation", "rotation", "rotation_mode", "scale"}
+_TIME = {"t0", "tend", "dt", "time_steps", "integrator"}
+_CONTACT = {"enabled", "dhat", "epsv", "friction_coefficient", "use_convergent_formulation"}
+_SOLVER_IGNORED = {"linear", "nonlinear", "max_threads", "advanced"}
+_SOLVER_CONTACT = {"barrier_stiffness", "CCD", "friction_iterations"}
+_BCS = {"rhs", "dirichlet_boundary", "neumann_boundary"}
+_ICS = {"velocity", "solution", "acceleration"}
+_MATERIAL = {"id", "type", "E", "nu", "rho", "phi", "psi"}
+_LAWS = {"NeoHookean": "neo_hookean", "LinearElasticity": "linear"}
+
+
+def _check_keys(section: Mapping, known: set, where: str) -> None:
+    if not isinstance(section, Mapping):
+        raise ParameterError(f"{where} must be a JSON object, got {section!r}")
+    unknown = sorted(set(section) - known)
+    if unknown:
+        raise ParameterError(
+            f"PolyFEM scene: unsupported key(s) {', '.join(f'{where}.{k}' for k in unknown)} "
+            f"(supported here: {sorted(known)})"
+        )
+
+
+def _numbers(value, where: str, size: int | None = None) -> np.ndarray:
+    if isinstance(value, str) or (
+        isinstance(value, Sequence) and any(isinstance(v, str | Mapping) for v in value)
+    ):
+        raise ParameterError(f"{where} = {value!r}: only numbers are supported (no expressions)")
+    arr = np.atleast_1d(np.asarray(value, dtype=float))
+    if not np.all(np.isfinite(arr)) or (size is not None and arr.shape != (size,)):
+        raise ParameterError(f"{where} = {value!r}: needs {size or 'finite'} finite numbers")
+    return arr
+
+
+@dataclass(frozen=True)
+class PolyFEMGeometry:
+    """One ``geometry[]`` entry.
+
+    Attributes:
+        mesh: The mesh file (resolved against the scene's folder).
+        body_id: ``volume_selection``: the cell tag of its cells.
+        surface: ``surface_selection``: an id for all its boundary facets, a list of
+            ``(id, Selection)`` tested on facet barycentres, or None (untagged).
+        scale: Scale factor(s).
+        rotation: Rotation in degrees (an angle in 2D, Euler x, y, z in 3D) or None.
+        translation: Translation or None.
+        is_obstacle: PolyFEM's ``is_obstacle``.
+    """
+
+    mesh: Path
+    body_id: int
+    surface: int | list[tuple[int, Selection]] | None
+    scale: float | tuple[float, ...] = 1.0
+    rotation: float | tuple[float, ...] | None = None
+    translation: tuple[float, ...] | None = None
+    is_obstacle: bool = False
+
+
+@dataclass(frozen=True)
+class PolyFEMMaterial:
+    """A material entry: ``law`` is diffsolids' name ("neo_hookean", "linear")."""
+
+    law: str
+    E: float
+    nu: float
+    rho: float
+    phi: float = 0.0
+    psi: float = 0.0
+
+    def material(self, **overrides):
+        """The diffsolids Material (``overrides``: e.g. ``E=...``, ``nu=...``)."""
+        from diffsolids.model.materials import Material
+
+        params = {
+            "E": self.E,
+            "nu": self.nu,
+            "density": self.rho,
+            "damping_phi": self.phi,
+            "damping_psi": self.psi,
+        }
+        params.update(overrides)
+        return Material(self.law, **params)
+
+
+@dataclass(frozen=True)
+class PolyFEMBoundaryValue:
+    """A Dirichlet/Neumann entry (``id``: a surface id) or an initial value (``id``: a body id).
+
+    Attributes:
+        id: The selection id.
+        value: The vector value.
+        components: Components it applies to (Dirichlet ``dimension``; None: all).
+    """
+
+    id: int
+    value: tuple[float, ...]
+    components: tuple[int, ...] | None = None
+
+
+@dataclass
+class PolyFEMSetup:
+    """What :meth:`PolyFEMScene.build` makes: the pieces of a simulation of the scene."""
+
+    domain: Domain
+    model: Any
+    integrator: Any
+    contact: Any
+    simulation: Any
+
+
+@dataclass
+class PolyFEMScene:
+    """A PolyFEM scene as read from its JSON (numbers as written, SI units).
+
+    Attributes:
+        path: The JSON file.
+        geometry: The ``geometry[]`` entries in order.
+        materials: Material per body id.
+        degree: ``space.discr_order``.
+        t0: Start time.
+        dt: Time step.
+        num_steps: Number of steps (``time_steps``, or round((tend - t0) / dt)).
+        bdf_order: BDF order of ``time.integrator``.
+        rhs: ``boundary_conditions.rhs`` (minus the body force per unit mass), or None.
+        dirichlet: Dirichlet entries (ids: surface ids).
+        neumann: Neumann entries (tractions; ids: surface ids).
+        initial_velocity: Initial velocity entries (ids: body ids).
+        initial_displacement: Initial displacement entries (ids: body ids).
+        contact_enabled: ``contact.enabled``.
+        raw: The JSON as a dict (for :func:`~diffsolids.contact.polyfem.polyfem_contact_options`).
+    """
+
+    path: Path
+    geometry: list[PolyFEMGeometry]
+    materials: dict[int, PolyFEMMaterial]
+    degree: int
+    t0: float
+    dt: float
+    num_steps: int
+    bdf_order: int
+    rhs: tuple[float, ...] | None
+    dirichlet: list[PolyFEMBoundaryValue] = field(default_factory=list)
+    neumann: list[PolyFEMBoundaryValue] = field(default_factory=list)
+    initial_velocity: list[PolyFEMBoundaryValue] = field(default_factory=list)
+    initial_displacement: list[PolyFEMBoundaryValue] = field(default_factory=list)
+    contact_enabled: bool = False
+    raw: dict = field(default_factory=dict)
+
+    # -- derived numbers ----------------------------------------------------------------
+    @property
+    def body_ids(self) -> list[int]:
+        """Body ids in ``geometry[]`` order (repeated ids appear once)."""
+        return list(dict.fromkeys(g.body_id for g in self.geometry))
+
+    @property
+    def tend(self) -> float:
+        """Final time."""
+        return self.t0 + self.num_steps * self.dt
+
+    @property
+    def contact(self) -> dict:
+        """``contact`` and ``solver.contact`` sections as written."""
+        return {
+            **self.raw.get("contact", {}),
+            **self.raw.get("solver", {}).get("contact", {}),
+        }
+
+    @property
+    def barrier_stiffness(self) -> float | str:
+        """``solver.contact.barrier_stiffness`` ("adaptive" if absent)."""
+        return self.raw.get("solver", {}).get("contact", {}).get("barrier_stiffness", "adaptive")
+
+    # -- builders ---------------------------------------------------------------------
+    def domain(self, comm: MPI.Comm = MPI.COMM_WORLD) -> Domain:
+        """The scene's meshes, placed and combined into one Domain (collective).
+
+        Cells are tagged by ``volume_selection``, boundary facets by ``surface_selection``.
+        """
+        meshes = [
+            read_mesh(
+                g.mesh,
+                MPI.COMM_SELF,
+                scale=g.scale,
+                rotation=g.rotation,
+                translation=g.translation,
+            )
+            for g in self.geometry
+        ]
+        dims = {m.dim for m in meshes}
+        if len(dims) != 1:
+            raise ParameterError(f"{self.path}: meshes of dimensions {sorted(dims)} in one scene")
+        boxes = [m.bounding_box() for m in meshes]
+        # combine with the geometry index + 1 as a provisional tag: the facet selections belong
+        # to an entry, and two entries may share a body id
+        domain = combine_meshes(comm, meshes, bodies=list(range(1, len(meshes) + 1)))
+        mesh = domain.mesh
+        tdim = mesh.topology.dim
+        fdim = tdim - 1
+        entry = np.zeros(_num_cells(mesh), dtype=np.int32)
+        entry[domain.cell_tags.indices] = domain.cell_tags.values - 1
+        body_of_entry = np.array([g.body_id for g in self.geometry], dtype=np.int32)
+        cell_tags = dolfinx.mesh.meshtags(
+            mesh,
+            tdim,
+            np.arange(len(entry), dtype=np.int32),
+            body_of_entry[entry],
+        )
+        mesh.topology.create_connectivity(fdim, tdim)
+        boundary = dolfinx.mesh.exterior_facet_indices(mesh.topology)
+        f2c = mesh.topology.connectivity(fdim, tdim)
+        facet_entry = entry[f2c.array[f2c.offsets[boundary]]]
+        centres = dolfinx.mesh.compute_midpoints(mesh, fdim, boundary)[:, : domain.dim]
+        values = np.zeros(len(boundary), dtype=np.int32)
+        for k, g in enumerate(self.geometry):
+            mine = facet_entry == k
+            if isinstance(g.surface, int):
+                values[mine] = g.surface
+            elif g.surface is not None:
+                for tag, selection in g.surface:
+                    hit = selection.inside(centres[mine], boxes[k])
+                    idx = np.flatnonzero(mine)[hit]
+                    values[idx] = tag
+        keep = values > 0
+        order = np.argsort(boundary[keep], kind="stable")
+        facet_tags = dolfinx.mesh.meshtags(
+            mesh, fdim, boundary[keep][order].astype(np.int32), values[keep][order]
+        )
+        return Domain(mesh, cell_tags, facet_tags, {})
+
+    def model(self, domain: Domain, materials: Mapping[int, Any] | None = None, **kwargs):
+        """The Model: materials per body, plane stress in 2D, loads and Dirichlet conditions.
+
+        Args:
+            domain: From :meth:`domain`.
+            materials: Optional Materials replacing the scene's, by body id.
+            **kwargs: Further arguments of :class:`~diffsolids.Model`.
+        """
+        from diffsolids.model.model import Model
+
+        mats = {b: m.material() for b, m in self.materials.items()}
+        mats.update(materials or {})
+        model = Model(domain, mats, degree=self.degree, plane_stress=domain.dim == 2, **kwargs)
+        self._check_dim(domain.dim)
+        if self.rhs is not None and any(self.rhs):
+            model.add_body_force(-np.asarray(self.rhs), name="gravity")
+        for n in self.neumann:
+            model.add_traction(n.id, np.asarray(n.value))
+        clamped = set()
+        for d in self.dirichlet:
+            comps = None if d.components is None else list(d.components)
+            model.add_dirichlet(d.id, np.asarray(d.value), comps)
+            if comps is None and not any(d.value):
+                clamped.add(d.id)
+        for g in self.geometry:
+            if g.is_obstacle and isinstance(g.surface, int) and g.surface not in clamped:
+                model.add_dirichlet(g.surface, 0.0)
+                clamped.add(g.surface)
+        return model
+
+    def _check_dim(self, dim: int) -> None:
+        for what, entries in (
+            ("dirichlet_boundary", self.dirichlet),
+            ("neumann_boundary", self.neumann),
+            ("initial_conditions.velocity", self.initial_velocity),
+            ("initial_conditions.solution", self.initial_displacement),
+        ):
+            for e in entries:
+                if len(e.value) != dim:
+                    raise ParameterError(
+                        f"{self.path}: {what} id {e.id} value {list(e.value)} for a {dim}D scene"
+                    )
+        if self.rhs is not None and len(self.rhs) != dim:
+            raise ParameterError(f"{self.path}: rhs {list(self.rhs)} for a {dim}D scene")
+
+    def integrator(self):
+        """The BDF integrator of ``time``."""
+        from diffsolids.integrators import BDF
+
+        return BDF(self.bdf_order, self.dt, self.num_steps)
+
+    def contact_term(self, model, integrator=None, stiffness: float | None = None, **kwargs):
+        """The ContactTerm with the scene's contact parameters, added to the model.
+
+        Args:
+            model: From :meth:`model`.
+            integrator: Needed when the barrier stiffness is "adaptive" (or ``stiffness`` is
+                "suggest"): :func:`~diffsolids.contact.suggest_barrier_stiffness` then sets it.
+            stiffness: Replace the scene's barrier stiffness (a number, or "suggest").
+            **kwargs: Further ContactTerm arguments (e.g. ``narrow_phase``).
+
+        Returns:
+            The ContactTerm, or None when the scene has no contact.
+        """
+        from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
+        from diffsolids.contact.polyfem import polyfem_contact_options
+
+        if not self.contact_enabled:
+            return None
+        options = polyfem_contact_options(self.raw, model.domain)
+        if stiffness is not None:
+            options["stiffness"] = None if stiffness == "suggest" else float(stiffness)
+        options.update(kwargs)
+        if options["stiffness"] is None:
+            probe = ContactTerm(model, **{**options, "stiffness": 1.0})
+            options["stiffness"] = suggest_barrier_stiffness(probe, integrator)
+        contact = ContactTerm(model, **options)
+        model.add_numeric_term(contact)
+        return contact
+
+    def nodal_values(self, model, entries: Sequence[PolyFEMBoundaryValue]) -> np.ndarray:
+        """A local nodal array (V's layout) holding each body's value (Dirichlet nodes: 0)."""
+        dim = model.dim
+        out = np.zeros(
+            (model.V.dofmap.index_map.size_local + model.V.dofmap.index_map.num_ghosts, dim)
+        )
+        for e in entries:
+            nodes = np.unique(model.V.dofmap.list[model.domain.cells_of(e.id)])
+            out[nodes] = e.value
+        prescribed = np.unique(model.dirichlet_dofs() // dim)
+        out[prescribed] = 0.0
+        return out.ravel()
+
+    def simulation(self, model, integrator, solver_options=None, **kwargs):
+        """The Simulation with the scene's initial displacement and velocity."""
+        from diffsolids.simulation import Simulation
+
+        kwargs.setdefault("progress", False)
+        return Simulation(
+            model,
+            integrator,
+            solver_options,
+            u0=self.nodal_values(model, self.initial_displacement),
+            v0=self.nodal_values(model, self.initial_velocity),
+            **kwargs,
+        )
+
+    def build(
+        self,
+        comm: MPI.Comm = MPI.COMM_WORLD,
+        solver_options=None,
+        stiffness: float | str | None = None,
+        simulation_class=None,
+        **simulation_kwargs,
+    ) -> PolyFEMSetup:
+        """Domain, model, integrator, contact term and simulation of the scene in one call.
+
+        Args:
+            comm: Communicator of the mesh.
+            solver_options: Newton options of the Simulation.
+            stiffness: Replace the scene's barrier stiffness (see :meth:`contact_term`).
+            simulation_class: A Simulation subclass to use (default Simulation).
+            **simulation_kwargs: Further Simulation arguments.
+        """
+        domain = self.domain(comm)
+        model = self.model(domain)
+        integrator = self.integrator()
+        contact = self.contact_term(model, integrator, stiffness)
+        if simulation_class is None:
+            sim = self.simulation(model, integrator, solver_options, **simulation_kwargs)
+        else:
+            simulation_kwargs.setdefault("progress", False)
+            sim = simulation_class(
+                model,
+                integrator,
+                solver_options,
+                u0=self.nodal_values(model, self.initial_displacement),
+                v0=self.nodal_values(model, self.initial_velocity),
+                **simulation_kwargs,
+            )
+        return PolyFEMSetup(domain, model, integrator, contact, sim)
+
+    def same_geometry(self, other: "PolyFEMScene") -> bool:
+        """Whether another scene (e.g. a target) places the same meshes the same way."""
+        return self.geometry == other.geometry
+
+
+def _num_cells(mesh) -> int:
+    imap = mesh.topology.index_map(mesh.topology.dim)
+    return imap.size_local + imap.num_ghosts
+
+
+def read_polyfem_scene(path: str | os.PathLike, obstacles: str = "error") -> PolyFEMScene:
+    """Read a PolyFEM scene JSON file.
+
+    Args:
+        path: The JSON file; mesh paths in it are relative to its folder.
+        obstacles: What to do with ``is_obstacle`` geometry: "error" (default) or "clamp"
+            (a body whose boundary is clamped; a warning says so).
+
+    Raises:
+        ParameterError: A missing file, invalid JSON, an unsupported key (named with its path),
+            or a malformed value.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ParameterError(f"PolyFEM scene {path} does not exist")
+    try:
+        raw = json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise ParameterError(f"PolyFEM scene {path} is not valid JSON: {error}") from None
+    if obstacles not in ("error", "clamp"):
+        raise ParameterError(f"obstacles={obstacles!r}: 'error' or 'clamp'")
+    _check_keys(raw, _TOP, "scene")
+    geometry = _geometry(raw.get("geometry"), path.parent, obstacles)
+    space = raw.get("space", {})
+    _check_keys(space, {"discr_order", "advanced"}, "space")
+    degree = int(space.get("discr_order", 1))
+    t0, dt, num_steps, order = _time(raw.get("time"))
+    solver = raw.get("solver", {})
+    _check_keys(solver, _SOLVER_IGNORED | {"contact"}, "solver")
+    _check_keys(solver.get("contact", {}), _SOLVER_CONTACT, "solver.contact")
+    if int(solver.get("contact", {}).get("friction_iterations", 1)) != 1:
+        raise ParameterError(
+            "solver.contact.friction_iterations other than 1 is not supported (diffsolids lags "
+            "the friction normal forces and tangent bases once per step, as PolyFEM's default)"
+        )
+    contact = raw.get("contact", {})
+    _check_keys(contact, _CONTACT, "contact")
+    bcs = raw.get("boundary_conditions", {})
+    _check_keys(bcs, _BCS, "boundary_conditions")
+    ics = raw.get("initial_conditions", {})
+    _check_keys(ics, _ICS, "initial_conditions")
+    for entry in _values(ics.get("acceleration", []), "initial_conditions.acceleration"):
+        if any(entry.value):
+            raise ParameterError(
+                "initial_conditions.acceleration: a non-zero initial acceleration is not "
+                "supported (BDF does not use one)"
+            )
+    rhs = bcs.get("rhs")
+    scene = PolyFEMScene(
+        path=path,
+        geometry=geometry,
+        materials=_materials(raw.get("materials"), [g.body_id for g in geometry]),
+        degree=degree,
+        t0=t0,
+        dt=dt,
+        num_steps=num_steps,
+        bdf_order=order,
+        rhs=None if rhs is None else tuple(_numbers(rhs, "boundary_conditions.rhs").tolist()),
+        dirichlet=_values(bcs.get("dirichlet_boundary", []), "dirichlet_boundary", True),
+        neumann=_values(bcs.get("neumann_boundary", []), "neumann_boundary"),
+        initial_velocity=_values(ics.get("velocity", []), "initial_conditions.velocity"),
+        initial_displacement=_values(ics.get("solution", []), "initial_conditions.solution"),
+        contact_enabled=bool(contact.get("enabled", False)),
+        raw=raw,
+    )
+    bodies = set(scene.body_ids)
+    for what, entries in (
+        ("initial_conditions.velocity", scene.initial_velocity),
+        ("initial_conditions.solution", scene.initial_displacement),
+    ):
+        for e in entries:
+            if e.id not in bodies:
+                raise ParameterError(f"{path}: {what} id {e.id} is not a body id {sorted(bodies)}")
+    return scene
+
+
+def _geometry(entries, folder: Path, obstacles: str) -> list[PolyFEMGeometry]:
+    if not isinstance(entries, list) or not entries:
+        raise ParameterError("PolyFEM scene: 'geometry' must be a non-empty list")
+    out = []
+    for k, g in enumerate(entries):
+        where = f"geometry[{k}]"
+        _check_keys(g, _GEOMETRY, where)
+        if g.get("type", "mesh") != "mesh":
+            raise ParameterError(f"{where}.type = {g['type']!r}: only 'mesh' is supported")
+        if not g.get("enabled", True):
+            continue
+        if int(g.get("n_refs", 0)) != 0:
+            raise ParameterError(f"{where}.n_refs = {g['n_refs']}: refinement is not supported")
+        advanced = g.get("advanced", {})
+        _check_keys(advanced, {"normalize_mesh"}, f"{where}.advanced")
+        if advanced.get("normalize_mesh", False):
+            raise ParameterError(f"{where}.advanced.normalize_mesh = true is not supported")
+        if "mesh" not in g:
+            raise ParameterError(f"{where} has no 'mesh'")
+        mesh = Path(g["mesh"])
+        mesh = mesh if mesh.is_absolute() else folder / mesh
+        t = g.get("transformation", {})
+        _check_keys(t, _TRANSFORM, f"{where}.transformation")
+        if t.get("rotation_mode", "xyz") != "xyz":
+            raise ParameterError(
+                f"{where}.transformation.rotation_mode = {t['rotation_mode']!r}: only 'xyz'"
+            )
+        scale = _numbers(t.get("scale", 1.0), f"{where}.transformation.scale")
+        rotation = t.get("rotation")
+        rotation = None if rotation is None else _numbers(rotation, f"{where}.rotation")
+        translation = t.get("translation")
+        translation = None if translation is None else _numbers(translation, f"{where}.translation")
+        if "volume_selection" not in g or not isinstance(g["volume_selection"], int):
+            raise ParameterError(
+                f"{where}.volume_selection must be an integer body id, got "
+                f"{g.get('volume_selection')!r}"
+            )
+        obstacle = bool(g.get("is_obstacle", False))
+        if obstacle:
+            if obstacles == "error":
+                raise ParameterError(
+                    f"{where}.is_obstacle: kinematic obstacles are not supported yet; read the "
+                    "scene with obstacles='clamp' to make the obstacle a body with a clamped "
+                    "boundary"
+                )
+            warnings.warn(
+                f"{where} ({mesh.name}) is an obstacle: simulated as a body with a clamped "
+                "boundary (its dofs stay in the system)",
+                stacklevel=3,
+            )
+        out.append(
+            PolyFEMGeometry(
+                mesh=mesh,
+                body_id=int(g["volume_selection"]),
+                surface=_surface(g.get("surface_selection"), where),
+                scale=float(scale[0]) if scale.size == 1 else tuple(scale.tolist()),
+                rotation=None
+                if rotation is None
+                else (float(rotation[0]) if rotation.size == 1 else tuple(rotation.tolist())),
+                translation=None if translation is None else tuple(translation.tolist()),
+                is_obstacle=obstacle,
+            )
+        )
+    return out
+
+
+def _surface(value, where: str):
+    if value is None or isinstance(value, int):
+        return value
+    if not isinstance(value, list):
+        raise ParameterError(f"{where}.surface_selection = {value!r}: an id or a list")
+    out = []
+    for k, s in enumerate(value):
+        w = f"{where}.surface_selection[{k}]"
+        if not isinstance(s, Mapping) or not isinstance(s.get("id"), int):
+            raise ParameterError(f"{w} = {s!r}: a selection with an integer 'id'")
+        rel = bool(s.get("relative", False))
+        keys = set(s) - {"id", "relative"}
+        if keys == {"box"}:
+            lo, hi = s["box"]
+            sel = BoxSelection(tuple(lo), tuple(hi), rel)
+        elif keys == {"axis", "position"}:
+            sel = AxisPlaneSelection(s["axis"], float(s["position"]), rel)
+        elif keys == {"center", "radius"}:
+            sel = SphereSelection(tuple(s["center"]), float(s["radius"]), rel)
+        elif keys == {"normal", "point"}:
+            sel = PlaneSelection(tuple(s["normal"]), tuple(s["point"]), rel)
+        else:
+            raise ParameterError(f"{w}: unsupported selection keys {sorted(keys)}")
+        out.append((int(s["id"]), sel))
+    return out
+
+
+def _time(time) -> tuple[float, float, int, int]:
+    if time is None:
+        raise ParameterError("PolyFEM scene: no 'time' section (static scenes are not supported)")
+    _check_keys(time, _TIME, "time")
+    t0 = float(time.get("t0", 0.0))
+    if t0 != 0.0:
+        raise ParameterError(f"time.t0 = {t0}: only scenes starting at t = 0 are supported")
+    if "tend" not in time:
+        raise ParameterError("time.tend is missing")
+    tend = float(time["tend"])
+    if "time_steps" in time:
+        num_steps = int(time["time_steps"])
+        dt = (tend - t0) / num_steps
+    elif "dt" in time:
+        dt = float(time["dt"])
+        if not (math.isfinite(dt) and dt > 0):
+            raise ParameterError(f"time.dt = {dt} must be positive")
+        num_steps = max(1, round((tend - t0) / dt))
+    else:
+        raise ParameterError("time needs 'dt' or 'time_steps'")
+    integrator = time.get("integrator", "BDF1")
+    if isinstance(integrator, Mapping):
+        _check_keys(integrator, {"type", "steps"}, "time.integrator")
+        if integrator.get("type") != "BDF":
+            raise ParameterError(f"time.integrator.type = {integrator.get('type')!r}: only BDF")
+        order = int(integrator.get("steps", 1))
+    elif integrator == "ImplicitEuler":
+        order = 1
+    elif isinstance(integrator, str) and integrator.startswith("BDF") and integrator[3:].isdigit():
+        order = int(integrator[3:])
+    else:
+        raise ParameterError(
+            f"time.integrator = {integrator!r}: BDF1..BDF6 or ImplicitEuler only "
+            "(Newmark / ImplicitNewmark are not supported)"
+        )
+    if not 1 <= order <= 6:
+        raise ParameterError(f"time.integrator: BDF order {order} outside 1..6")
+    return t0, dt, num_steps, order
+
+
+def _values(entries, where: str, dirichlet: bool = False) -> list[PolyFEMBoundaryValue]:
+    if not isinstance(entries, list):
+        raise ParameterError(f"{where} must be a list of {{'id', 'value'}} entries")
+    out = []
+    for k, e in enumerate(entries):
+        w = f"{where}[{k}]"
+        _check_keys(e, {"id", "value", "dimension"} if dirichlet else {"id", "value"}, w)
+        if not isinstance(e.get("id"), int):
+            raise ParameterError(f"{w}.id = {e.get('id')!r}: an integer id (selections by id only)")
+        value = _numbers(e.get("value"), f"{w}.value")
+        comps = None
+        if "dimension" in e:
+            mask = [bool(b) for b in e["dimension"]]
+            comps = tuple(i for i, b in enumerate(mask) if b)
+            if len(comps) == len(mask):
+                comps = None
+        out.append(PolyFEMBoundaryValue(int(e["id"]), tuple(value.tolist()), comps))
+    return out
+
+
+def _materials(value, body_ids: list[int]) -> dict[int, PolyFEMMaterial]:
+    if isinstance(value, Mapping):
+        entries, default = [value], True
+    elif isinstance(value, list) and value:
+        entries, default = value, False
+    else:
+        raise ParameterError("PolyFEM scene: 'materials' must be an object or a non-empty list")
+    out = {}
+    for k, m in enumerate(entries):
+        w = "materials" if default else f"materials[{k}]"
+        _check_keys(m, _MATERIAL, w)
+        law = m.get("type")
+        if law not in _LAWS:
+            raise ParameterError(f"{w}.type = {law!r}: supported {sorted(_LAWS)}")
+        for key in ("E", "nu", "rho"):
+            if key not in m:
+                raise ParameterError(f"{w}.{key} is missing")
+        mat = PolyFEMMaterial(
+            _LAWS[law],
+            float(m["E"]),
+            float(m["nu"]),
+            float(m["rho"]),
+            float(m.get("phi", 0.0)),
+            float(m.get("psi", 0.0)),
+        )
+        if default:
+            if "id" in m:
+                raise ParameterError("materials: a single material has no 'id'")
+            return dict.fromkeys(dict.fromkeys(body_ids), mat)
+        ids = m.get("id")
+        ids = ids if isinstance(ids, list) else [ids]
+        for i in ids:
+            if not isinstance(i, int):
+                raise ParameterError(f"{w}.id = {m.get('id')!r}: integer body id(s)")
+            out[i] = mat
+    missing = sorted(set(body_ids) - set(out))
+    if missing:
+        raise ParameterError(f"materials: bodies {missing} have no material")
+    return {b: out[b] for b in dict.fromkeys(body_ids)}
