@@ -10,6 +10,7 @@ import ufl
 __all__ = [
     "deformed_position",
     "graph_misfit",
+    "log_barrier",
     "penalty",
     "stress_norm",
     "stress_norm_power",
@@ -65,3 +66,14 @@ def graph_misfit(x, function, axis: int = -1):
     others = [x[k] for k in range(d) if k != axis]
     r = x[axis] - function(*others)
     return r * r
+
+
+def log_barrier(z, z_hat):
+    """IPC's clamped log barrier b(z) = -(z - z_hat)^2 log(z / z_hat) for z < z_hat, else 0.
+
+    Keeps a quantity z positive: b grows without bound as z -> 0+, vanishes with its first two
+    derivatives at z = z_hat (so it is C^2 in z) and is not defined for z <= 0 (the value is then
+    NaN, which the objective reports with the step where it happened). ``z_hat`` > 0 is the
+    activation distance (IPC's d-hat).
+    """
+    return ufl.conditional(ufl.lt(z, z_hat), -((z - z_hat) ** 2) * ufl.ln(z / z_hat), 0)

@@ -1,5 +1,11 @@
 """Objectives: per-step UFL integrals combined by time weights and the chain rule."""
 
+from diffsolids.objectives.barriers import (
+    inversion_barrier,
+    scalar_log_barrier,
+    sdf_barrier,
+    series_barrier,
+)
 from diffsolids.objectives.functional import (
     Integral,
     Objective,
@@ -23,7 +29,16 @@ from diffsolids.objectives.library import (
     target_positions,
     volume_penalty,
 )
+from diffsolids.objectives.reductions import SoftMin, min_distance_target, soft_min
 from diffsolids.objectives.regularisers import BoundarySmoothing, MaterialSmoothing
+from diffsolids.objectives.targets import (
+    TrajectoryTarget,
+    compliance,
+    node_target,
+    sdf_target,
+    step_selector,
+    target_trajectory,
+)
 from diffsolids.objectives.values import series_values
 
 __all__ = [
@@ -34,19 +49,32 @@ __all__ = [
     "ObjectiveError",
     "Regulariser",
     "Series",
+    "SoftMin",
     "StepValues",
     "TimeGrid",
+    "TrajectoryTarget",
     "boundary_graph_fit",
     "center_of_mass",
     "center_of_mass_trajectory",
+    "compliance",
     "final_value",
     "height_objective",
+    "inversion_barrier",
+    "min_distance_target",
+    "node_target",
+    "scalar_log_barrier",
+    "sdf_barrier",
+    "sdf_target",
+    "series_barrier",
     "series_values",
+    "soft_min",
+    "step_selector",
     "step_weights",
     "stress_bound_penalty",
     "stress_lp_norm",
     "target_displacement",
     "target_positions",
+    "target_trajectory",
     "time_integral",
     "volume_penalty",
 ]

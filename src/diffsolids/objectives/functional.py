@@ -26,7 +26,9 @@ __all__ = [
     "Regulariser",
     "Series",
     "TimeGrid",
+    "check_finite_steps",
     "final_value",
+    "series_name",
     "time_integral",
 ]
 
@@ -350,6 +352,27 @@ Objective._kind = Objective
 Objective._binary_node, Objective._mapped_node = BinaryObjective, MappedObjective
 
 
+def series_name(series: Series) -> str:
+    """A short name of a series for messages (the Integral's or node's name, else its type)."""
+    return str(getattr(series, "name", None) or type(series).__name__)
+
+
+def check_finite_steps(series: Series, values: np.ndarray, steps) -> None:
+    """Raise if the series is not finite at one of the steps an objective uses.
+
+    Raises:
+        ObjectiveError: Naming the series, the first offending steps and their values.
+    """
+    steps = np.asarray(steps, dtype=int)
+    bad = steps[~np.isfinite(values[steps])]
+    if bad.size:
+        shown = ", ".join(f"step {i}: {values[i]}" for i in bad[:5])
+        raise ObjectiveError(
+            f"the series {series_name(series)!r} is not finite at {bad.size} step(s) the "
+            f"objective uses ({shown}{', ...' if bad.size > 5 else ''})"
+        )
+
+
 def step_weights(spec, grid: TimeGrid) -> np.ndarray:
     """Weights w_0..w_N of a time reduction.
 
@@ -402,7 +425,8 @@ class TimeIntegral(Objective):
     @override
     def value(self, table, reg, grid):
         w = step_weights(self.spec, grid)
-        s = self.series.values(table)
+        s = np.broadcast_to(self.series.values(table), w.shape)
+        check_finite_steps(self.series, s, np.flatnonzero(w))
         return float(np.sum(np.where(w != 0.0, w * np.where(w != 0.0, s, 0.0), 0.0)))
 
     @override

@@ -61,8 +61,19 @@ class StepValues(DataSeries):
 
     def __init__(self, values, name: str = "step values"):
         self.array = np.asarray(values, dtype=float)
-        if self.array.ndim != 1 or not np.all(np.isfinite(self.array)):
-            raise ObjectiveError(f"{name}: expected a finite 1D array of per-step values")
+        if self.array.ndim != 1:
+            raise ObjectiveError(
+                f"{name}: expected a finite 1D array of per-step values (one per state 0..N), "
+                f"got shape {self.array.shape}"
+            )
+        bad = np.flatnonzero(~np.isfinite(self.array))
+        if bad.size:
+            shown = ", ".join(f"state {i}: {self.array[i]}" for i in bad[:5])
+            raise ObjectiveError(
+                f"{name}: per-step values must be finite, {bad.size} are not ({shown}); a state "
+                "the objective gives zero time weight (e.g. state 0 with 'uniform') may hold "
+                "any finite number such as 0"
+            )
         self.name = name
 
     @override

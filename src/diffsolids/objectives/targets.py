@@ -1,0 +1,378 @@
+"""Targets of a PolyFEM / paper scene: a stored trajectory, nodes, a signed distance, loads.
+
+Per-step :class:`~diffsolids.objectives.Series` (one value per state 0..N) to be reduced with
+time weights (``time_integral(series, "uniform")``, a list of steps, ``final_value``):
+
+* :func:`target_trajectory`: the deformed state matched node by node to a stored
+  :class:`~diffsolids.simulation.Trajectory` of the same mesh at every step (PolyFEM's
+  ``target`` objective with ``"matching": "exact"``, used by the puzzle and kangaroo scenes:
+  ``int ||X + u^i - (X^trg + u^trg,i)||^2`` over a surface or the volume).
+* :func:`node_target`: the displacement or position of selected mesh vertices (PolyFEM's
+  ``node-target``), an exact sum over the vertices.
+* :func:`sdf_target`: ``int sdf(X + u)^2`` of a user signed-distance function written in UFL
+  (PolyFEM's ``sdf-target``); its gradient is UFL's.
+* :func:`compliance`: the work ``f . u`` of the model's tractions and body forces per step.
+
+The per-step values of any of them along a trajectory are ``series_values(simulation, series,
+trajectory)`` (e.g. ``rf.trajectory`` after a forward run).
+"""
+
+import itertools
+from collections.abc import Callable, Sequence
+from typing import override
+
+import dolfinx.la
+import numpy as np
+import ufl
+from dolfinx import fem
+from mpi4py import MPI
+
+from diffsolids import forms
+from diffsolids.errors import ParameterError
+from diffsolids.model.terms import BodyForce, Traction
+from diffsolids.objectives.functional import Integral, ObjectiveError, Series
+from diffsolids.objectives.library import Tags, _data, _facet_measure, _volume_measure
+from diffsolids.parallel import collective_comm
+
+__all__ = [
+    "TrajectoryTarget",
+    "compliance",
+    "node_target",
+    "sdf_target",
+    "step_selector",
+    "target_trajectory",
+]
+
+_MATCHES = ("positions", "displacement")
+
+
+def _measure(model, f, facets: Tags, bodies: Tags):
+    if facets is not None and bodies is not None:
+        raise ParameterError("give facets (boundary target) or bodies (volume target), not both")
+    if facets is not None:
+        return _facet_measure(model, f, facets)
+    return _volume_measure(model, f, bodies)
+
+
+def step_selector(t, times: Sequence[float]) -> list:
+    """UFL indicators chi_i(t), 1 when t is (nearest to) the time t_i of state i, else 0.
+
+    The states' times split the line at their midpoints: chi_i = 1 on [m_{i-1}, m_i) (the
+    first and last intervals end half a step outside t_0 and t_N), so exactly one indicator is
+    1 at each time of the run. With them a form holds per-step data ``sum_i chi_i(t) d_i``: the
+    step's data are picked by the model's time constant, set for every step by the forward run,
+    the objective evaluation and the adjoint sweep alike.
+
+    Args:
+        t: The model's UFL time (``model.fields.t``).
+        times: Increasing times t_0 < ... < t_N.
+    """
+    times = np.asarray(times, dtype=float)
+    if times.size > 1 and not np.all(np.diff(times) > 0):
+        raise ParameterError("the states' times must increase")
+    half = 0.5 * np.min(np.diff(times)) if times.size > 1 else 0.5
+    edges = np.concatenate([[times[0] - half], 0.5 * (times[1:] + times[:-1]), [times[-1] + half]])
+    return [
+        ufl.conditional(ufl.And(ufl.ge(t, float(lo)), ufl.lt(t, float(hi))), 1.0, 0.0)
+        for lo, hi in itertools.pairwise(edges)
+    ]
+
+
+class TrajectoryTarget(Integral):
+    """An Integral of per-state data: refuses a run with another number of states."""
+
+    def __init__(self, integrand: Callable, name: str, num_states: int):
+        super().__init__(integrand, name)
+        self.num_states = num_states
+
+    @override
+    def values(self, table):
+        values = table[self]
+        if len(values) != self.num_states:
+            raise ObjectiveError(
+                f"{self.name}: the target has {self.num_states} states but the run has "
+                f"{len(values)} (0..{len(values) - 1})"
+            )
+        return values
+
+
+def _target_states(simulation, target) -> list[np.ndarray]:
+    """The target's displacement arrays, checked against the run's steps, times and layout."""
+    integ = simulation.integrator
+    V = simulation.model.V
+    states = list(target.u if hasattr(target, "u") else target)
+    n = integ.num_steps + 1
+    if len(states) != n:
+        raise ObjectiveError(
+            f"target trajectory has {len(states)} states but the simulation has {n} "
+            f"(steps 0..{integ.num_steps})"
+        )
+    size = len(fem.Function(V).x.array)
+    for i, u in enumerate(states):
+        u = np.asarray(u)
+        if u.shape != (size,):
+            raise ObjectiveError(
+                f"target trajectory, state {i}: {u.shape} values, expected ({size},) (the local "
+                "displacement array of a run on the same mesh and partition)"
+            )
+        if not np.all(np.isfinite(u)):
+            raise ObjectiveError(f"target trajectory, state {i}: non-finite displacements")
+    times = getattr(target, "times", None)
+    if times is not None and len(times) == n:
+        expected = np.array([integ.time(i) for i in range(n)])
+        off = np.flatnonzero(~np.isclose(times, expected, rtol=0.0, atol=1e-9 * integ.dt))
+        if off.size:
+            i = int(off[0])
+            raise ObjectiveError(
+                f"target trajectory, state {i}: time {times[i]} but the simulation's step {i} "
+                f"is at t = {expected[i]} (a target run with another time step?)"
+            )
+    return states
+
+
+def target_trajectory(
+    simulation,
+    target,
+    facets: Tags = None,
+    bodies: Tags = None,
+    match: str = "positions",
+    weight=1.0,
+    rest_positions=None,
+) -> Series:
+    """Per-step distance of the deformed state from a stored trajectory, node matched.
+
+    s_i = int w ||X + u^i - (X^trg + u^trg,i)||^2 over tagged facets (a surface) or bodies (a
+    volume) — PolyFEM's ``target`` objective with exact matching (paper figs. 14, 20: a target
+    run of the same mesh with other parameters). With ``match="displacement"`` it is
+    int w ||u^i - u^trg,i||^2. Node matched: u^trg,i is interpolated with the same basis as u,
+    so the integrand vanishes exactly when the nodal states agree. The states of the target are
+    picked by the step's time (:func:`step_selector`); reduce with time weights, e.g.
+    ``time_integral(s, "uniform")`` or a subset of steps ``time_integral(s, [10, 20, 40])``.
+
+    Args:
+        simulation: The Simulation the objective is evaluated on (its steps and times).
+        target: A Trajectory of a run on the same mesh and partition (or a sequence of N + 1
+            local displacement arrays).
+        facets: Facet tag(s) of the surface selection (PolyFEM ``surface_selection``).
+        bodies: Body tag(s) of the volume selection (default: every body, when no facets).
+        match: "positions" (X + u against X^trg + u^trg) or "displacement" (u against u^trg).
+        weight: Weight w (number, callable of rest positions, UFL).
+        rest_positions: X^trg, the target run's rest positions (a callable of x, or a local
+            nodal array of the displacement space); default: the mesh's rest positions now
+            (so a later shape change is penalised too).
+
+    Raises:
+        ObjectiveError: The target has another number of states, other times, another layout
+            or non-finite values (naming the state).
+        ParameterError: An unknown match, facets and bodies both given.
+        TagError: Unknown facet tags or bodies.
+    """
+    if match not in _MATCHES:
+        raise ParameterError(f"unknown match {match!r}; choose from {_MATCHES}")
+    model = simulation.model
+    V = model.V
+    states = _target_states(simulation, target)
+    targets = []
+    for i, u in enumerate(states):
+        fn = fem.Function(V, name=f"target state {i}")
+        fn.x.array[:] = u
+        targets.append(fn)
+    positions = match == "positions"
+    X_trg = None
+    if positions:
+        X_trg = fem.Function(V, name="target rest positions")
+        if rest_positions is None:
+            X_trg.interpolate(lambda x: x[: model.dim])
+        elif callable(rest_positions):
+            X_trg.interpolate(rest_positions)
+        else:
+            arr = np.asarray(rest_positions, dtype=float)
+            if arr.shape != X_trg.x.array.shape or not np.all(np.isfinite(arr)):
+                raise ObjectiveError(
+                    f"target rest positions: expected {X_trg.x.array.shape} finite values, got "
+                    f"{arr.shape}"
+                )
+            X_trg.x.array[:] = arr
+    w = _data(model, weight, (), "target trajectory weight")
+    times = [simulation.integrator.time(i) for i in range(len(states))]
+
+    def form(f):
+        chi = step_selector(f.t, times)
+        u_trg = sum(
+            (c * fn for c, fn in zip(chi[1:], targets[1:], strict=True)), chi[0] * targets[0]
+        )
+        if positions:
+            x, x_trg = forms.deformed_position(f.X, f.u), X_trg + u_trg
+        else:
+            x, x_trg = f.u, u_trg
+        return forms.weighted_squared_distance(x, x_trg, w) * _measure(model, f, facets, bodies)
+
+    form(model.fields)  # unknown tags fail here
+    return TrajectoryTarget(form, "target trajectory", len(states))
+
+
+# -- node targets ------------------------------------------------------------------------------
+def _vertex_nodes(model, nodes) -> tuple[fem.FunctionSpace, np.ndarray, np.ndarray | None]:
+    """The P1 space and the local dofs (owned and ghost) of the selected vertices.
+
+    For a list of indices also the position of each selected dof in that list (else None).
+    """
+    mesh = model.domain.mesh
+    Q = fem.functionspace(mesh, ("Lagrange", 1))
+    comm = collective_comm(mesh.comm)
+    imap = Q.dofmap.index_map
+    owned = imap.size_local
+    if callable(nodes):
+        dofs = fem.locate_dofs_geometrical(Q, nodes)
+        order = None
+        if comm.allreduce(int(np.sum(dofs < owned)), op=MPI.SUM) == 0:
+            raise ParameterError("node target: the locator selects no mesh vertex")
+        return Q, dofs, order
+    wanted = np.asarray(nodes, dtype=np.int64).ravel()
+    if wanted.size == 0 or len(np.unique(wanted)) != wanted.size:
+        raise ParameterError("node target: give distinct vertex indices (at least one)")
+    q_to_node = np.empty(owned + imap.num_ghosts, dtype=np.int64)
+    q_to_node[Q.dofmap.list.ravel()] = mesh.geometry.dofmaps[0].ravel()
+    ids = mesh.geometry.input_global_indices[q_to_node].astype(np.int64)
+    hit = np.isin(ids, wanted)
+    dofs = np.flatnonzero(hit).astype(np.int32)
+    found = comm.allgather(ids[:owned][hit[:owned]])
+    missing = np.setdiff1d(wanted, np.concatenate(found))
+    if missing.size:
+        raise ParameterError(
+            f"node target: no mesh vertex has the input index {missing[:5].tolist()} (vertex "
+            f"indices count 0..{mesh.geometry.index_map().size_global - 1} in the mesh file)"
+        )
+    order = np.searchsorted(np.sort(wanted), ids[dofs])
+    order = np.argsort(wanted)[order]
+    return Q, dofs, order
+
+
+def node_target(model, nodes, target, match: str = "positions", weight: float = 1.0) -> Series:
+    """Per-step squared distance of selected mesh vertices from their targets.
+
+    s_i = w sum_n ||x_n^i - x_n^trg||^2 over the selected vertices n, with x_n = X_n + u_n
+    (``match="positions"``, PolyFEM's ``node-target``) or x_n = u_n (``"displacement"``). The
+    sum is exact: the integral int w chi |d|^2 / (c |det J|) dx with the vertex quadrature
+    rule, where chi selects the vertices and c counts the cells around each vertex (so neither
+    depends on the shape and the shape derivative is that of the sum). Vertices only: the edge
+    nodes of P2 are not selectable.
+
+    Args:
+        model: The Model.
+        nodes: A locator ``x -> bool mask`` of rest vertex coordinates (shape (3, n)), or input
+            (mesh file) vertex indices.
+        target: A vector (the same target for every node), a callable of rest positions (shape
+            (dim, n) -> (dim, n)), or for indices an array (number of indices, dim) in their
+            order.
+        match: "positions" or "displacement".
+        weight: The factor w > 0.
+
+    Raises:
+        ParameterError: No vertex selected, unknown indices, a malformed target.
+    """
+    if match not in _MATCHES:
+        raise ParameterError(f"unknown match {match!r}; choose from {_MATCHES}")
+    if not (np.isfinite(weight) and weight > 0):
+        raise ParameterError(f"node target weight must be positive, got {weight}")
+    mesh = model.domain.mesh
+    dim = model.dim
+    Q, dofs, order = _vertex_nodes(model, nodes)
+    vertex_dx = ufl.Measure(
+        "dx", domain=mesh, metadata={"quadrature_rule": "vertex", "quadrature_degree": 1}
+    )
+    detJ = abs(ufl.JacobianDeterminant(mesh))
+    # c_n: the reference-cell vertex weights summed over the cells around n (topological)
+    count = fem.Function(Q)
+    vec = fem.assemble_vector(fem.form(ufl.TestFunction(Q) / detJ * vertex_dx))
+    vec.scatter_reverse(dolfinx.la.InsertMode.add)
+    count.x.array[:] = vec.array
+    count.x.scatter_forward()
+    chi = fem.Function(Q, name="node target weights")
+    chi.x.array[dofs] = weight / count.x.array[dofs]
+    T = fem.Function(fem.functionspace(mesh, ("Lagrange", 1, (dim,))), name="node targets")
+    values = T.x.array.reshape(-1, dim)
+    if callable(target):
+        T.interpolate(target)
+    else:
+        arr = np.asarray(target, dtype=float)
+        if arr.shape == (dim,):
+            values[:] = arr
+        elif order is not None and arr.shape == (len(np.asarray(nodes).ravel()), dim):
+            values[dofs] = arr[order]
+        else:
+            raise ParameterError(
+                f"node target has shape {arr.shape}; expected ({dim},), a callable, or "
+                f"(number of indices, {dim}) with vertex indices"
+            )
+    if not np.all(np.isfinite(values[dofs])):
+        raise ParameterError("node target has non-finite values")
+    positions = match == "positions"
+
+    def form(f):
+        x = forms.deformed_position(f.X, f.u) if positions else f.u
+        return forms.weighted_squared_distance(x, T, chi) / detJ * vertex_dx
+
+    return Integral(form, "node target")
+
+
+# -- signed distance -------------------------------------------------------------------------
+def sdf_target(
+    model, sdf: Callable, facets: Tags = None, bodies: Tags = None, deformed: bool = True
+) -> Series:
+    """Per-step int sdf(x)^2 of a signed-distance function of the deformed position x = X + u.
+
+    PolyFEM's ``sdf-target``: the surface (or volume) is driven onto the zero level set of sdf.
+    ``sdf`` maps a UFL position vector to a UFL scalar, e.g. a circle of radius r about c:
+    ``lambda x: ufl.sqrt(ufl.dot(x - c, x - c)) - r``; its gradient comes from UFL.
+
+    Args:
+        model: The Model.
+        sdf: The signed distance (UFL vector -> UFL scalar).
+        facets: Facet tag(s) of the surface (default: the volume of ``bodies``).
+        bodies: Body tag(s) of the volume (default: every body, when no facets).
+        deformed: Evaluate at X + u (default); False: at the rest position X (shape design).
+    """
+
+    def form(f):
+        x = forms.deformed_position(f.X, f.u) if deformed else f.X
+        d = sdf(x)
+        if not isinstance(d, ufl.core.expr.Expr) or d.ufl_shape != ():
+            raise ParameterError("sdf must map a UFL position vector to a UFL scalar")
+        return d * d * _measure(model, f, facets, bodies)
+
+    form(model.fields)
+    return Integral(form, "sdf target")
+
+
+# -- loads -----------------------------------------------------------------------------------
+def compliance(model, loads: Sequence[str] | None = None) -> Series:
+    """Per-step compliance, the work of the dead loads on the displacement.
+
+    s_i = sum over body forces int rho g . u^i dx + sum over tractions int t . u^i ds (for a
+    static linear problem, the strain energy stored times two: minimising it stiffens the
+    structure; PolyFEM's ``compliance``). Time-dependent loads enter with their value at the
+    step.
+
+    Args:
+        model: The Model (its add_body_force / add_gravity / add_traction loads).
+        loads: Names of the loads (e.g. "gravity", "traction_2"; default: every load).
+
+    Raises:
+        ParameterError: The model has no such load (or no load at all).
+    """
+    terms = [t for t in model.terms if isinstance(t, BodyForce | Traction)]
+    available = [t.name for t in terms]
+    if loads is not None:
+        unknown = [name for name in loads if name not in available]
+        if unknown:
+            raise ParameterError(f"compliance: no load named {unknown}; loads are {available}")
+        terms = [t for t in terms if t.name in loads]
+    if not terms:
+        raise ParameterError("compliance: the model has no body force or traction")
+
+    def form(f):
+        parts = [-t.energy_density(f) * t.measure(f) for t in terms]
+        return sum(parts[1:], parts[0])
+
+    return Integral(form, "compliance")

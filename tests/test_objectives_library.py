@@ -1,0 +1,367 @@
+"""The objective library a ported paper scene needs (issue 13): target trajectories, node
+targets, soft minima over steps, signed-distance targets, compliance and barriers. Values by
+hand on known states, gradients against central differences of the whole simulation along a
+random direction per control block and along the gradient, errors naming the offending step."""
+
+import numpy as np
+import pytest
+import ufl
+from diffsolids.forms.objectives import log_barrier
+from dolfinx import fem
+from gradient_scenes import CONTROLS, simulation
+
+from diffsolids.objectives import (
+    Integral,
+    ObjectiveError,
+    StepValues,
+    TimeGrid,
+    compliance,
+    final_value,
+    height_objective,
+    inversion_barrier,
+    min_distance_target,
+    node_target,
+    scalar_log_barrier,
+    sdf_barrier,
+    sdf_target,
+    series_barrier,
+    series_values,
+    soft_min,
+    step_selector,
+    target_positions,
+    target_trajectory,
+    time_integral,
+)
+from diffsolids.reduced_functional import ReducedFunctional
+from diffsolids.verification import finite_difference_check
+
+FD_TOLERANCE = 1e-6
+SCENE = "2d-p1-nh-damped"  # [0, 2] x [0, 0.5], 4 x 2 cells, clamped at x = 0 (facet 1)
+SIZES = {"shape-all": 0.02, "initial-v0": 0.1}  # absolute; parameters: 5 % of |q|
+STEPS = np.array([1e-2, 1e-3, 1e-4])
+
+
+def _fd_check(sim, objective, keys, seed=0):
+    """FD of each control block along a random direction and of all along the gradient."""
+    rf = ReducedFunctional(sim, objective, [CONTROLS[k](sim) for k in keys])
+    q0 = rf.initial_parameters()
+    try:
+        J0, g = rf.value_and_gradient(q0)
+        assert np.isfinite(J0)
+        rng = np.random.default_rng(seed)
+        offsets = rf.controls.offsets
+        blocks = []
+        for key, a, b in zip(keys, offsets[:-1], offsets[1:], strict=True):
+            size = SIZES.get(key, 0.05 * max(np.linalg.norm(q0[a:b]), 1e-3 * np.sqrt(b - a)))
+            blocks.append((size, a, b))
+            d = np.zeros_like(q0)
+            r = rng.standard_normal(b - a)
+            d[a:b] = size * r / np.linalg.norm(r)
+            res = finite_difference_check(rf, q0, d, STEPS, gradient=g)
+            assert abs(res.adjoint) > 1e-12, (key, res)
+            assert res.relative_error <= FD_TOLERANCE, (key, res)
+        h = min(size / max(np.linalg.norm(g[a:b]), 1e-300) for size, a, b in blocks)
+        res = finite_difference_check(rf, q0, h * g, STEPS, gradient=g)
+        assert res.relative_error <= FD_TOLERANCE, res
+        return J0, g
+    finally:
+        rf.controls.assign(q0)
+
+
+def _copy(traj):
+    """A trajectory's states as plain lists (the simulation reuses nothing of them)."""
+    return type(traj)(list(traj.times), [u.copy() for u in traj.u], [v.copy() for v in traj.v])
+
+
+def _run(sim):
+    return _copy(sim.run())
+
+
+def _target_run(sim, factor):
+    """A run of the scene with E scaled by ``factor`` (the target of the puzzle and kangaroo)."""
+    E = sim.model.coefficients["E"]
+    saved = E.x.array.copy()
+    E.x.array[:] *= factor
+    try:
+        return _run(sim)
+    finally:
+        E.x.array[:] = saved
+
+
+# -- per-step data by time --------------------------------------------------------------------
+def test_step_selector_picks_one_state_per_time():
+    model = simulation(SCENE, "bdf2").model
+    times = [0.0, 0.05, 0.1, 0.15]
+    chi = step_selector(model.fields.t, times)
+    one = fem.form(sum(c * (i + 1) for i, c in enumerate(chi)) * model.fields.dx)
+    area = 1.0
+    for i, t in enumerate(times):
+        model.fields.t.value = t
+        assert fem.assemble_scalar(one) == pytest.approx((i + 1) * area, rel=1e-13)
+    model.fields.t.value = 1.0  # no state there
+    assert fem.assemble_scalar(one) == 0.0
+    model.fields.t.value = 0.0
+
+
+# -- target trajectory ---------------------------------------------------------------------------
+def test_target_trajectory_values():
+    """Own trajectory: zero at every state; shifted by c: |c|^2 times the area / facet length."""
+    sim = simulation(SCENE, "bdf2")
+    own = _run(sim)
+    for match in ("positions", "displacement"):
+        s = target_trajectory(sim, own, match=match)
+        assert np.abs(series_values(sim, s, own)).max() < 1e-24
+    c = np.array([0.03, -0.02])
+    shifted = _copy(own)
+    for u in shifted.u:
+        u.reshape(-1, 2)[:] += c
+    volume = series_values(sim, target_trajectory(sim, shifted), own)
+    assert volume == pytest.approx(np.full(4, c @ c * 1.0), rel=1e-12)
+    body = series_values(sim, target_trajectory(sim, shifted, bodies=[2], weight=3.0), own)
+    assert body == pytest.approx(np.full(4, 3.0 * c @ c * 0.5), rel=1e-12)
+    surface = series_values(sim, target_trajectory(sim, shifted, facets=[2, 3]), own)
+    assert surface == pytest.approx(np.full(4, c @ c * (0.5 + 2.0)), rel=1e-12)
+    # the right state at each step: the own trajectory against the target run, step by step
+    other = _target_run(sim, 1.3)
+    values = series_values(sim, target_trajectory(sim, other, match="displacement"), own)
+    V = sim.model.V
+    for i in range(4):
+        e = fem.Function(V)
+        e.x.array[:] = own.u[i] - other.u[i]
+        by_hand = fem.assemble_scalar(fem.form(ufl.dot(e, e) * sim.model.fields.dx))
+        assert values[i] == pytest.approx(by_hand, rel=1e-12, abs=1e-30)
+    assert values[-1] > 1e-8
+
+
+@pytest.mark.parametrize(
+    "where", [{"facets": [2, 3]}, {"bodies": [2]}], ids=["surface", "volume-body2"]
+)
+def test_target_trajectory_gradient(where):
+    """PolyFEM's target objective of the puzzle/kangaroo: the run of other parameters."""
+    sim = simulation(SCENE, "bdf2")
+    target = _target_run(sim, 1.4)
+    s = target_trajectory(sim, target, **where)
+    _fd_check(sim, 10.0 * time_integral(s, "uniform"), ["young-field-log", "shape-all"])
+
+
+def test_target_trajectory_subset_of_steps_initial_velocity():
+    sim = simulation(SCENE, "bdf2")
+    target = _target_run(sim, 0.8)
+    s = target_trajectory(sim, target, facets=2, match="displacement")
+    _fd_check(sim, time_integral(s, [1, 3]), ["initial-v0"])
+
+
+def test_target_trajectory_errors_name_the_state():
+    sim = simulation(SCENE, "bdf2")
+    own = _run(sim)
+    with pytest.raises(ObjectiveError, match=r"3 states but the simulation has 4"):
+        target_trajectory(sim, own.u[:3])
+    bad = _copy(own)
+    bad.u[2][5] = np.nan
+    with pytest.raises(ObjectiveError, match="state 2: non-finite"):
+        target_trajectory(sim, bad)
+    bad = _copy(own)
+    bad.times[3] = 0.2
+    with pytest.raises(ObjectiveError, match=r"state 3: time 0.2 but the simulation's step 3"):
+        target_trajectory(sim, bad)
+    with pytest.raises(ObjectiveError, match=r"state 0: .* values, expected"):
+        target_trajectory(sim, [u[:-2] for u in own.u])
+    s = target_trajectory(sim, own)
+    with pytest.raises(ObjectiveError, match="the target has 4 states but the run has 3"):
+        s.values({s: np.zeros(3)})
+
+
+# -- node target -----------------------------------------------------------------------------
+def _right_end(x):
+    return np.isclose(x[0], 2.0)
+
+
+def test_node_target_values_exact_sum():
+    """At rest: sum over the selected vertices of |X_n + 0 - x_n^trg|^2, by locator or index."""
+    sim = simulation(SCENE, "bdf2")
+    model = sim.model
+    own = _run(sim)
+    d = np.array([0.1, -0.2])
+    s = node_target(model, _right_end, d, match="displacement")
+    assert series_values(sim, s, own, steps=[0]) == pytest.approx([3 * d @ d], rel=1e-12)
+    # by input index: the vertices of the right end, targets one per index
+    x = model.domain.mesh.geometry.x
+    ids = model.domain.mesh.geometry.input_global_indices
+    right = np.flatnonzero(np.isclose(x[:, 0], 2.0))
+    targets = x[right, :2] + np.array([[0.0, 0.1], [0.2, 0.0], [0.0, -0.3]])
+    s = node_target(model, ids[right], targets, weight=2.0)
+    assert series_values(sim, s, own, steps=[0]) == pytest.approx([2.0 * 0.14], rel=1e-12)
+    # later states: the nodal displacements themselves
+    u = own.u[-1].reshape(-1, 2)
+    V = model.V
+    dof_x = V.tabulate_dof_coordinates()[:, 0]
+    by_hand = np.sum((u[np.isclose(dof_x, 2.0)] - d) ** 2)
+    s = node_target(model, _right_end, d, match="displacement")
+    assert series_values(sim, s, own, steps=[-1]) == pytest.approx([by_hand], rel=1e-12)
+
+
+def test_node_target_gradient_with_another_quadrature():
+    """Shape, E and v0 gradients; combined with a default-quadrature target in one objective."""
+    sim = simulation(SCENE, "bdf2")
+    model = sim.model
+    nodes = node_target(model, _right_end, lambda x: x[:2] + np.array([[0.02], [-0.05]]))
+    other = target_positions(model, lambda x: 1.01 * x[:2], facets=3)
+    J = time_integral(nodes, [2, 3]) + 0.5 * final_value(other)
+    _fd_check(sim, J, ["young-field-log", "shape-all", "initial-v0"])
+
+
+def test_node_target_errors():
+    model = simulation(SCENE, "bdf2").model
+    with pytest.raises(Exception, match="selects no mesh vertex"):
+        node_target(model, lambda x: x[0] > 5.0, [0.0, 0.0])
+    with pytest.raises(Exception, match=r"no mesh vertex has the input index \[1000\]"):
+        node_target(model, [0, 1000], [0.0, 0.0])
+    with pytest.raises(Exception, match="node target has shape"):
+        node_target(model, _right_end, [0.0, 0.0, 0.0])
+
+
+# -- soft minimum over steps -------------------------------------------------------------------
+def _leaf(name):
+    return Integral(lambda f: None, name)
+
+
+GRID = TimeGrid(num_steps=5, dt=0.1, dynamic=True)
+
+
+@pytest.mark.parametrize("kind", ["logsumexp", "harmonic"])
+def test_soft_min_value_bounds_and_chain_rule(kind):
+    a = _leaf("a")
+    rng = np.random.default_rng(4)
+    table = {a: rng.uniform(0.5, 2.0, 6)}
+    table[a][0] = np.nan  # not evaluated: not among the steps
+    steps = [1, 2, 4, -1]
+    J = soft_min(a**2, steps, alpha=8.0, kind=kind)
+    s = table[a][[1, 2, 4, 5]] ** 2
+    value = J.value(table, {}, GRID)
+    if kind == "logsumexp":
+        assert s.min() - np.log(4) / 8.0 <= value <= s.min()
+        assert value == pytest.approx(-np.log(np.sum(np.exp(-8.0 * s))) / 8.0, rel=1e-13)
+    else:
+        assert value == pytest.approx(1.0 / np.sum(1.0 / s), rel=1e-13)
+    assert J.requirements(GRID) == {a: {1, 2, 4, 5}}
+    out = {}
+    J.backward(table, {}, GRID, 1.0, out, {})
+    assert out[a][0] == 0.0 and out[a][3] == 0.0
+    for i in (1, 2, 4, 5):
+        h = 1e-6
+        plus, minus = dict(table), dict(table)
+        plus[a], minus[a] = table[a].copy(), table[a].copy()
+        plus[a][i] += h
+        minus[a][i] -= h
+        fd = (J.value(plus, {}, GRID) - J.value(minus, {}, GRID)) / (2 * h)
+        assert out[a][i] == pytest.approx(fd, rel=1e-7, abs=1e-9)
+
+
+def test_soft_min_sharp_limit_and_errors():
+    a = _leaf("a")
+    table = {a: np.array([np.nan, 3.0, 1.0, 2.0, 5.0, 4.0])}
+    assert soft_min(a, alpha=1e4).value(table, {}, GRID) == pytest.approx(1.0, abs=1e-12)
+    table[a][3] = np.inf
+    with pytest.raises(ObjectiveError, match=r"'a' is not finite at 1 step\(s\).*step 3: inf"):
+        soft_min(a).value(table, {}, GRID)
+    table[a][3] = -1.0
+    with pytest.raises(ObjectiveError, match=r"step 3 has -1\.0"):
+        soft_min(a, kind="harmonic").value(table, {}, GRID)
+    with pytest.raises(Exception, match="alpha > 0"):
+        soft_min(a, alpha=0.0)
+    with pytest.raises(ObjectiveError, match="refers to steps"):
+        soft_min(a, [7]).requirements(GRID)
+
+
+@pytest.mark.parametrize("kind", ["harmonic", "logsumexp"])
+def test_min_distance_target_gradient(kind):
+    """PolyFEM's min-dist-target: the centre of mass should pass through a point."""
+    sim = simulation(SCENE, "bdf2")
+    J = min_distance_target(sim.model, [1.3, 0.3], steps=[1, 2, 3], kind=kind, alpha=200.0)
+    _fd_check(sim, J, ["initial-v0", "young-field-log", "shape-all"])
+
+
+# -- signed distance ---------------------------------------------------------------------------
+def test_sdf_target_value_and_gradient():
+    sim = simulation(SCENE, "bdf2")
+    model = sim.model
+    own = _run(sim)
+    # at rest: int_[0,2]x[0,0.5] (y - 0.25)^2 = 2 * 2 * 0.25^3 / 3
+    s = sdf_target(model, lambda x: x[1] - 0.25)
+    assert series_values(sim, s, own, steps=[0]) == pytest.approx([0.25**3 * 4 / 3], rel=1e-12)
+    c = ufl.as_vector([1.0, 1.5])
+    circle = sdf_target(model, lambda x: ufl.sqrt(ufl.dot(x - c, x - c)) - 1.2, facets=[2, 3])
+    _fd_check(sim, time_integral(circle, "uniform"), ["young-field-log", "shape-all"])
+    with pytest.raises(Exception, match="UFL scalar"):
+        sdf_target(model, lambda x: x)
+
+
+# -- compliance ----------------------------------------------------------------------------------
+def test_compliance_is_twice_the_strain_energy_of_a_linear_static_solve():
+    """Clapeyron: at a linear static equilibrium f . u = a(u, u) = 2 W."""
+    sim = simulation("2d-p1-lin-cg1-ps", "static")
+    model = sim.model
+    traj = _run(sim)
+    elastic = [t for t in model.terms if type(t).__name__ == "ElasticEnergy"]
+    energy = Integral(lambda f: sum(t.energy_density(f) * t.measure(f) for t in elastic), "W")
+    W, work = series_values(sim, [energy, compliance(model)], traj, steps=[-1])[0]
+    assert work > 0 and work == pytest.approx(2 * W, rel=1e-10)
+    gravity = series_values(sim, compliance(model, ["gravity"]), traj, steps=[-1])
+    traction = series_values(sim, compliance(model, ["traction_2"]), traj, steps=[-1])
+    assert gravity + traction == pytest.approx([work], rel=1e-12)
+    with pytest.raises(Exception, match=r"no load named \['wind'\]"):
+        compliance(model, ["wind"])
+
+
+def test_compliance_gradient():
+    sim = simulation("2d-p1-lin-cg1-ps", "static")
+    _fd_check(sim, final_value(compliance(sim.model)), ["young-field-log", "shape-all"])
+
+
+# -- barriers ------------------------------------------------------------------------------------
+def test_log_barrier_matches_the_scalar_one():
+    mesh = simulation(SCENE, "bdf2").model.domain.mesh
+    for z in (0.01, 0.3, 0.5, 0.7):
+        c = fem.Constant(mesh, z)
+        expr = fem.Expression(log_barrier(c, 0.5), np.zeros((1, 2)))
+        value = expr.eval(mesh, np.array([0], dtype=np.int32)).ravel()[0]
+        assert value == pytest.approx(float(scalar_log_barrier(z, 0.5)), rel=1e-13, abs=0.0)
+    assert float(scalar_log_barrier(0.5, 0.5)) == 0.0
+    assert np.isnan(scalar_log_barrier(-0.1, 0.5))
+
+
+def test_sdf_barrier_deformed_gradient_and_rest_gradient():
+    sim = simulation(SCENE, "bdf2")
+    model = sim.model
+    floor = sdf_barrier(model, lambda x: x[1] + 0.5, 0.6, facets=[2])  # below the bar
+    _fd_check(sim, time_integral(floor, "uniform"), ["young-field-log", "shape-all"])
+    rest = sdf_barrier(model, lambda x: 2.3 - x[0], 0.5, bodies=[2], deformed=False)
+    value, _ = _fd_check(sim, rest, ["shape-all"])
+    assert value > 0
+
+
+def test_inversion_barriers_gradient_and_the_step_of_an_inverted_state():
+    sim = simulation(SCENE, "bdf2")
+    model = sim.model
+    squash = inversion_barrier(model, 0.3, 0.8)  # det F ~ 1: active
+    rest = inversion_barrier(model, 0.5, 0.6, deformed=False)  # ratio 1 at the initial design
+    J = time_integral(squash, "uniform") + rest
+    _fd_check(sim, J, ["young-field-log", "shape-all"])
+    impossible = inversion_barrier(model, 1.5, 0.1)
+    rf = ReducedFunctional(sim, time_integral(impossible, [2, 3]), [CONTROLS["initial-v0"](sim)])
+    message = r"'inversion barrier' is not finite at 2 step.*step 2"
+    with pytest.raises(ObjectiveError, match=message):
+        rf(rf.initial_parameters())
+
+
+def test_series_barrier_on_the_height():
+    sim = simulation(SCENE, "bdf2")
+    height = -height_objective(sim.model)
+    J = time_integral(series_barrier(height, 0.2, 0.1), "uniform")
+    value, _ = _fd_check(sim, J, ["initial-v0", "young-field-log"])
+    assert value > 0
+
+
+def test_step_values_name_the_non_finite_state():
+    with pytest.raises(ObjectiveError, match=r"1 are not \(state 0: nan\)"):
+        StepValues([np.nan, 1.0, 2.0], "height")
