@@ -1,6 +1,7 @@
 # diffsolids: two commands do everything on a fresh machine.
 #   make demo   create .venv when missing, install, run the flagship demo
 #   make test   same setup, then ruff, the serial tests and the MPI tests (2 ranks)
+#   make docs   the HTML documentation in docs/_build/html (Sphinx, fails on any warning)
 # PYTHON=/path/to/python3.12 overrides the interpreter used to create the venv.
 
 VENV ?= .venv
@@ -9,7 +10,7 @@ STAMP := $(VENV)/.diffsolids-installed
 NPROC ?= 2
 export PYTHON
 
-.PHONY: setup demo demos test test-serial test-mpi lint bench clean
+.PHONY: setup demo demos docs test test-serial test-mpi lint bench clean
 
 $(STAMP): pyproject.toml
 	@set -e; \
@@ -19,7 +20,7 @@ $(STAMP): pyproject.toml
 	  "$$interp" -m venv "$(VENV)"; \
 	fi
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[dolfinx,test]"
+	$(PY) -m pip install --quiet -e ".[dolfinx,test,docs]"
 	$(PY) -m diffsolids_mpi_first --install
 	@touch $(STAMP)
 
@@ -30,6 +31,10 @@ demo: $(STAMP)
 
 demos: $(STAMP)
 	$(PY) demos/run_all.py
+
+docs: $(STAMP)
+	$(VENV)/bin/sphinx-build -W --keep-going -q -b html docs docs/_build/html
+	@echo "open docs/_build/html/index.html"
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff format --check .
@@ -47,4 +52,4 @@ bench: $(STAMP)
 	@set -e; for f in tests/benchmarks/bench_*.py; do echo "== $$f"; $(PY) $$f; done
 
 clean:
-	rm -rf output .pytest_cache build src/*.egg-info
+	rm -rf output .pytest_cache build src/*.egg-info docs/_build docs/api
