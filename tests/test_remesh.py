@@ -7,7 +7,7 @@ from dolfinx import fem
 from mpi4py import MPI
 
 import diffsolids as ds
-from diffsolids.controls import InitialCondition, ParameterControl
+from diffsolids.controls import InitialCondition, ParameterControl, Simp
 from diffsolids.errors import MeshError
 from diffsolids.mesh import (
     Domain,
@@ -272,7 +272,7 @@ def test_remesh_transfers_controlled_fields():
         model.add_gravity(1.0)
         sim = ds.Simulation(model, ds.Static(), ds.SolverOptions(rtol=1e-12))
         controls = [
-            ParameterControl(model, "E", "field"),
+            ParameterControl(model, "E", "field", map=Simp(50.0, 500.0)),
             ParameterControl(model, "density", "field"),
             ParameterControl(model, "nu", "bodies"),
             MeshMotionControl(model, "boundary", exclude_facets=["bottom"]),

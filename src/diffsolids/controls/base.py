@@ -60,6 +60,27 @@ class Control(ABC):
         """Lower and upper bounds of the parameters (default unbounded)."""
         return np.full(self.size, -np.inf), np.full(self.size, np.inf)
 
+    def transfer(self, old: "Control", block: np.ndarray) -> np.ndarray:
+        """Parameters of this control equal to ``old``'s ``block`` on the mesh before a remesh.
+
+        ``self`` is the same kind of control built on the new mesh (collective). The default
+        copies parameters that do not depend on the mesh (same size); controls of mesh fields
+        interpolate, shape controls restart at their new reference (zeros).
+
+        Raises:
+            ControlError: ``old`` is another kind of control, or its size depends on the mesh
+                and the control does not say how to transfer it.
+        """
+        if type(old) is not type(self):
+            raise ControlError(f"cannot transfer control {old.name} to {self.name}")
+        block = np.asarray(block, dtype=float)
+        if block.size != self.size:
+            raise ControlError(
+                f"cannot transfer control {self.name} ({block.size} -> {self.size} parameters) "
+                "to the new mesh"
+            )
+        return block.copy()
+
 
 def _check_disjoint(controls: Sequence[Control]) -> None:
     seen: dict[tuple, Control] = {}

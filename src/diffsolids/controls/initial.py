@@ -9,6 +9,7 @@ from mpi4py import MPI
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.controls.base import Control, ControlError
 from diffsolids.controls.ordering import CanonicalLayout
+from diffsolids.controls.transfer import interpolate_nonmatching
 from diffsolids.parallel import collective_comm
 
 __all__ = ["InitialCondition", "RigidVelocity"]
@@ -65,6 +66,16 @@ class InitialCondition(Control):
     @override
     def pullback(self, sens: Sensitivities) -> np.ndarray:
         return self.layout.gather(sens.u0 if self.which == "displacement" else sens.v0)
+
+    @override
+    def transfer(self, old: Control, block: np.ndarray) -> np.ndarray:
+        if not isinstance(old, InitialCondition) or old.which != self.which:
+            return super().transfer(old, block)
+        old.assign(block)
+        old._f.x.array[:] = old._array()
+        interpolate_nonmatching(old._f, self._f)
+        self._array()[:] = self._f.x.array
+        return self.value()
 
 
 class RigidVelocity(Control):

@@ -9,6 +9,7 @@ from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.controls.base import Control, ControlError
 from diffsolids.controls.maps import ParameterMap, as_map
 from diffsolids.controls.ordering import CanonicalLayout
+from diffsolids.controls.transfer import interpolate_nonmatching
 from diffsolids.parallel import collective_comm
 
 __all__ = ["ParameterControl"]
@@ -162,6 +163,14 @@ class ParameterControl(Control):
                 ]
             )
         return self.map.pullback(self.value(), g)
+
+    @override
+    def transfer(self, old: Control, block: np.ndarray) -> np.ndarray:
+        if self.mode != "field" or not isinstance(old, ParameterControl):
+            return super().transfer(old, block)
+        old.assign(block)
+        interpolate_nonmatching(old.function, self.function)
+        return self.value()
 
     @override
     def bounds(self):

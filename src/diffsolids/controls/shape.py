@@ -146,6 +146,12 @@ class ShapeControl(Control):
     def targets(self) -> Targets:
         return Targets(shape=True)
 
+    @override
+    def transfer(self, old: Control, block: np.ndarray) -> np.ndarray:
+        if not isinstance(old, ShapeControl):
+            return super().transfer(old, block)
+        return np.zeros(self.size)  # the new mesh is the rest shape at the old iterate
+
     def vertex_gradient(self, sens: Sensitivities) -> np.ndarray:
         """dJ/dX per vertex (num_vertices x dim, canonical order, identical on all ranks)."""
         g = sens.shape[: self._s_owned * self.dim].reshape(-1, self.dim)

@@ -31,10 +31,10 @@ from pathlib import Path
 import dolfinx
 import numpy as np
 import scipy.sparse as sp
-from dolfinx import fem
 from mpi4py import MPI
 
-from diffsolids.controls import InitialCondition, ParameterControl, ShapeControl
+from diffsolids.controls import ControlError, ShapeControl
+from diffsolids.controls.transfer import interpolate_nonmatching
 from diffsolids.errors import MeshError
 from diffsolids.mesh import Domain, gmsh_session, min_scaled_jacobian
 from diffsolids.mesh.arrays import MeshArrays, domain_from_arrays
@@ -677,28 +677,13 @@ class Remesher:
                 f"{[c.name for c in new]} instead of {[c.name for c in old]}"
             )
         for name in self.transfer_fields:
-            _interpolate(rf.model.coefficients[name], new_rf.model.coefficients[name])
+            interpolate_nonmatching(rf.model.coefficients[name], new_rf.model.coefficients[name])
         blocks = []
         for c_old, c_new, block in zip(old, new, rf.controls.split(q), strict=True):
-            if isinstance(c_new, ShapeControl):
-                blocks.append(np.zeros(c_new.size))
-            elif isinstance(c_new, ParameterControl) and c_new.mode == "field":
-                _interpolate(c_old.function, c_new.function)
-                blocks.append(c_new.value())
-            elif isinstance(c_new, InitialCondition):
-                src = fem.Function(c_old.sim.model.V)
-                src.x.array[:] = c_old._array()
-                dst = fem.Function(c_new.sim.model.V)
-                _interpolate(src, dst)
-                c_new._array()[:] = dst.x.array
-                blocks.append(c_new.value())
-            elif c_new.size == block.size:
-                blocks.append(block.copy())
-            else:
-                raise MeshError(
-                    f"cannot transfer control {c_new.name} ({block.size} -> {c_new.size} "
-                    "parameters) to the new mesh"
-                )
+            try:
+                blocks.append(c_new.transfer(c_old, block))
+            except ControlError as err:
+                raise MeshError(str(err)) from None
         return np.concatenate(blocks)
 
     # -- checkpoints ---------------------------------------------------------------------------
@@ -732,19 +717,3 @@ class Remesher:
         self._trigger = float(info.get("trigger", self.threshold))
         self._restored = int(info.get("remeshes", 0)) - len(self.history)
         return self.build(domain)
-
-
-def _interpolate(src: fem.Function, dst: fem.Function) -> None:
-    """Interpolate between functions on non-matching meshes covering the same domain."""
-    V = dst.function_space
-    mesh = V.mesh
-    tdim = mesh.topology.dim
-    imap = mesh.topology.index_map(tdim)
-    cells = np.arange(imap.size_local + imap.num_ghosts, dtype=np.int32)
-    x = mesh.geometry.x
-    extent = np.ptp(x, axis=0) if len(x) else np.zeros(3)
-    # new boundary vertices may lie up to 2^-32 of the extent outside (snapped coordinates)
-    padding = 1e-8 * collective_comm(mesh.comm).allreduce(float(np.linalg.norm(extent)), op=MPI.MAX)
-    data = fem.create_interpolation_data(V, src.function_space, cells, padding)
-    dst.interpolate_nonmatching(src, cells, data)
-    dst.x.scatter_forward()
