@@ -307,6 +307,9 @@ def node_target(model, nodes, target, match: str = "positions", weight: float = 
             )
     if not np.all(np.isfinite(values[dofs])):
         raise ParameterError("node target has non-finite values")
+    # the owners' values on the ghosts (a locator may see a ghost vertex differently)
+    chi.x.scatter_forward()
+    T.x.scatter_forward()
     positions = match == "positions"
 
     def form(f):
