@@ -7,8 +7,12 @@ readable report (``print(result)``).
 import contextlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from diffsolids.reduced_functional import ReducedFunctional
 
 __all__ = [
     "FiniteDifferenceResult",
@@ -59,7 +63,7 @@ class TaylorResult:
 
 
 @contextlib.contextmanager
-def _parameters_restored(rf, q: np.ndarray) -> Iterator[None]:
+def _parameters_restored(rf: "ReducedFunctional", q: np.ndarray) -> Iterator[None]:
     """Put a ReducedFunctional's controls back at q after the perturbed evaluations."""
     from diffsolids.reduced_functional import ReducedFunctional
 
@@ -71,7 +75,7 @@ def _parameters_restored(rf, q: np.ndarray) -> Iterator[None]:
 
 
 def taylor_test(
-    rf, q, dq, h0: float | None = None, num: int = 4, factor: float = 0.5
+    rf: "ReducedFunctional", q, dq, h0: float | None = None, num: int = 4, factor: float = 0.5
 ) -> TaylorResult:
     """Taylor remainder test of a ReducedFunctional (or any object with __call__ and gradient).
 
@@ -91,7 +95,7 @@ def taylor_test(
         return _taylor(rf, q, dq, h0, num, factor)
 
 
-def _taylor(rf, q, dq, h0, num, factor) -> TaylorResult:
+def _taylor(rf: "ReducedFunctional", q, dq, h0, num, factor) -> TaylorResult:
     J0 = rf(q)
     g = rf.gradient(q)
     dJ = float(g @ dq)
@@ -153,7 +157,9 @@ class FiniteDifferenceResult:
         return "\n".join(lines)
 
 
-def finite_difference_check(rf, q, dq, steps=None, gradient=None) -> FiniteDifferenceResult:
+def finite_difference_check(
+    rf: "ReducedFunctional", q, dq, steps=None, gradient=None
+) -> FiniteDifferenceResult:
     """Compare dJ.dq from the adjoint with central differences over a sweep of steps.
 
     Args:
@@ -171,7 +177,7 @@ def finite_difference_check(rf, q, dq, steps=None, gradient=None) -> FiniteDiffe
         return _central_differences(rf, q, dq, steps, gradient)
 
 
-def _central_differences(rf, q, dq, steps, gradient) -> FiniteDifferenceResult:
+def _central_differences(rf: "ReducedFunctional", q, dq, steps, gradient) -> FiniteDifferenceResult:
     g = rf.gradient(q) if gradient is None else gradient
     dJ = float(g @ dq)
     if steps is None:
@@ -185,7 +191,7 @@ def _central_differences(rf, q, dq, steps, gradient) -> FiniteDifferenceResult:
     return FiniteDifferenceResult(dJ, steps, fds, errors)
 
 
-def check_reproducible(rf, q) -> float:
+def check_reproducible(rf: "ReducedFunctional", q) -> float:
     """Run the forward problem twice at q and require bit-identical J.
 
     Returns:

@@ -2,11 +2,15 @@
 
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.errors import DiffsolidsError
+
+if TYPE_CHECKING:
+    from diffsolids.simulation import Simulation
 
 __all__ = ["Control", "ControlError", "ControlSet"]
 
@@ -45,7 +49,7 @@ class Control(ABC):
     def pullback(self, sens: Sensitivities) -> np.ndarray:
         """dJ/dq from the sensitivities (identical on all ranks)."""
 
-    def check(self, simulation) -> None:  # noqa: B027 (optional hook)
+    def check(self, simulation: "Simulation") -> None:  # noqa: B027 (optional hook)
         """Raise ControlError if the control does not belong to ``simulation``."""
 
     def footprint(self) -> set[tuple]:
@@ -98,7 +102,7 @@ def _check_disjoint(controls: Sequence[Control]) -> None:
 class ControlSet:
     """Several controls concatenated into one flat parameter vector."""
 
-    def __init__(self, controls: Sequence[Control], simulation):
+    def __init__(self, controls: Sequence[Control], simulation: "Simulation"):
         if isinstance(controls, Control):
             controls = [controls]
         if not controls:

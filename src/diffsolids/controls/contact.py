@@ -1,12 +1,15 @@
 """Control of contact parameters: friction coefficients per pair of bodies."""
 
-from typing import override
+from typing import TYPE_CHECKING, override
 
 import numpy as np
 
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.controls.base import Control, ControlError
 from diffsolids.controls.maps import Identity, ParameterMap, as_map
+
+if TYPE_CHECKING:
+    from diffsolids.simulation import Simulation
 
 __all__ = ["FrictionControl"]
 
@@ -43,7 +46,7 @@ class FrictionControl(Control):
             raise ControlError(f"friction coefficients cannot be parametrised: {err}") from None
 
     @override
-    def check(self, simulation) -> None:
+    def check(self, simulation: "Simulation") -> None:
         if self.contact not in simulation.model.numeric_terms:
             raise ControlError("the contact term of the friction control is not in the model")
 

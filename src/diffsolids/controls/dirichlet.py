@@ -1,6 +1,6 @@
 """Control of prescribed (Dirichlet) displacement values, constant or per step."""
 
-from typing import override
+from typing import TYPE_CHECKING, override
 
 import numpy as np
 from mpi4py import MPI
@@ -8,6 +8,9 @@ from mpi4py import MPI
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.controls.base import Control, ControlError
 from diffsolids.parallel import collective_comm
+
+if TYPE_CHECKING:
+    from diffsolids.simulation import Simulation
 
 __all__ = ["DirichletControl"]
 
@@ -21,7 +24,7 @@ class DirichletControl(Control):
         per_step: One value per step 1..N (else one value for all steps).
     """
 
-    def __init__(self, simulation, condition, per_step: bool = False):
+    def __init__(self, simulation: "Simulation", condition, per_step: bool = False):
         if condition not in simulation.model.dirichlet:
             raise ControlError("the Dirichlet condition does not belong to the simulation's model")
         self.sim, self.condition, self.per_step = simulation, condition, per_step
@@ -35,7 +38,7 @@ class DirichletControl(Control):
         self._dofs_by_comp = [dofs[dofs % bs == c] for c in condition.components]
 
     @override
-    def check(self, simulation) -> None:
+    def check(self, simulation: "Simulation") -> None:
         if simulation is not self.sim:
             raise ControlError("Dirichlet control belongs to a different simulation")
 

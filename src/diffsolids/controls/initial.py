@@ -1,6 +1,6 @@
 """Controls of the initial conditions u^0, v^0 (paper sec. 4.2, g^u and g^v)."""
 
-from typing import override
+from typing import TYPE_CHECKING, override
 
 import numpy as np
 from dolfinx import fem
@@ -11,6 +11,9 @@ from diffsolids.controls.base import Control, ControlError
 from diffsolids.controls.ordering import CanonicalLayout
 from diffsolids.controls.transfer import interpolate_nonmatching
 from diffsolids.parallel import collective_comm
+
+if TYPE_CHECKING:
+    from diffsolids.simulation import Simulation
 
 __all__ = ["InitialCondition", "RigidVelocity"]
 
@@ -23,7 +26,7 @@ class InitialCondition(Control):
         which: "displacement" or "velocity".
     """
 
-    def __init__(self, simulation, which: str = "velocity"):
+    def __init__(self, simulation: "Simulation", which: str = "velocity"):
         if which not in ("displacement", "velocity"):
             raise ControlError("InitialCondition controls 'displacement' or 'velocity'")
         if which == "velocity" and not simulation.integrator.dynamic:
@@ -37,7 +40,7 @@ class InitialCondition(Control):
         return self.sim.u0 if self.which == "displacement" else self.sim.v0
 
     @override
-    def check(self, simulation) -> None:
+    def check(self, simulation: "Simulation") -> None:
         if simulation is not self.sim:
             raise ControlError(f"control {self.name} belongs to a different simulation")
 
@@ -87,7 +90,7 @@ class RigidVelocity(Control):
     velocity.
     """
 
-    def __init__(self, simulation, body, angular: bool = True):
+    def __init__(self, simulation: "Simulation", body, angular: bool = True):
         if not simulation.integrator.dynamic:
             raise ControlError("a rigid initial-velocity control needs a dynamic simulation")
         self.sim = simulation
@@ -114,7 +117,7 @@ class RigidVelocity(Control):
         self.q = np.zeros(self.size)
 
     @override
-    def check(self, simulation) -> None:
+    def check(self, simulation: "Simulation") -> None:
         if simulation is not self.sim:
             raise ControlError(f"control {self.name} belongs to a different simulation")
 

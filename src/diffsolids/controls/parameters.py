@@ -1,6 +1,6 @@
 """Controls of model coefficients: material fields, density, damping, load vectors."""
 
-from typing import override
+from typing import TYPE_CHECKING, override
 
 import numpy as np
 from mpi4py import MPI
@@ -11,6 +11,10 @@ from diffsolids.controls.maps import ParameterMap, as_map
 from diffsolids.controls.ordering import CanonicalLayout
 from diffsolids.controls.transfer import interpolate_nonmatching
 from diffsolids.parallel import collective_comm
+
+if TYPE_CHECKING:
+    from diffsolids.model import Model
+    from diffsolids.simulation import Simulation
 
 __all__ = ["ParameterControl"]
 
@@ -38,7 +42,7 @@ class ParameterControl(Control):
 
     def __init__(
         self,
-        model,
+        model: "Model",
         name: str,
         mode: str = "field",
         bodies=None,
@@ -78,7 +82,7 @@ class ParameterControl(Control):
             raise ControlError(f"coefficient {name!r} cannot be parametrised: {err}") from None
 
     @override
-    def check(self, simulation) -> None:
+    def check(self, simulation: "Simulation") -> None:
         if simulation.model is not self.model:
             raise ControlError(f"control {self.name} belongs to a different model")
 

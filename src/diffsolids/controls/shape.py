@@ -1,7 +1,7 @@
 """Shape control: rest positions of mesh vertices (paper: the geometric map q-bar)."""
 
 from collections.abc import Callable, Sequence
-from typing import override
+from typing import TYPE_CHECKING, override
 
 import numpy as np
 import scipy.sparse as sp
@@ -13,6 +13,10 @@ from diffsolids.controls.base import Control, ControlError
 from diffsolids.errors import InvertedElementError
 from diffsolids.mesh import inverted_cells
 from diffsolids.parallel import collective_comm
+
+if TYPE_CHECKING:
+    from diffsolids.model import Model
+    from diffsolids.simulation import Simulation
 
 __all__ = ["ShapeControl", "boundary_vertices"]
 
@@ -51,7 +55,7 @@ class ShapeControl(Control):
 
     def __init__(
         self,
-        model,
+        model: "Model",
         vertices: str | np.ndarray | Callable = "all",
         exclude_facets: Sequence[int | str] = (),
         linear_map=None,
@@ -105,7 +109,7 @@ class ShapeControl(Control):
         return ids
 
     @override
-    def check(self, simulation) -> None:
+    def check(self, simulation: "Simulation") -> None:
         if simulation.model is not self.model:
             raise ControlError("shape control belongs to a different model")
 

@@ -8,6 +8,7 @@ collective over the mesh communicator and returns the same array on every rank (
 """
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import dolfinx.mesh
 import numpy as np
@@ -15,10 +16,13 @@ from dolfinx import fem
 
 from diffsolids.parallel import collective_comm
 
+if TYPE_CHECKING:
+    from diffsolids.model import Model
+
 __all__ = ["boundary_edges", "deformed_triangles", "nodal_displacement", "silhouette_edges"]
 
 
-def nodal_displacement(model, u: np.ndarray) -> np.ndarray:
+def nodal_displacement(model: "Model", u: np.ndarray) -> np.ndarray:
     """Displacement at the local geometry nodes, shape (num nodes, dim).
 
     Args:
@@ -42,7 +46,7 @@ def nodal_displacement(model, u: np.ndarray) -> np.ndarray:
     return uf.x.array.reshape(-1, d)[node_of_dof]
 
 
-def boundary_edges(model, u: np.ndarray | None = None) -> np.ndarray:
+def boundary_edges(model: "Model", u: np.ndarray | None = None) -> np.ndarray:
     """Boundary edges of a 2D model, at rest or deformed by ``u``, shape (n, 2, 2).
 
     Args:
@@ -61,7 +65,7 @@ def boundary_edges(model, u: np.ndarray | None = None) -> np.ndarray:
 
 
 def deformed_triangles(
-    model, u: np.ndarray | None = None, values: np.ndarray | None = None
+    model: "Model", u: np.ndarray | None = None, values: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Triangles (n, 3, 2) of the owned cells of a 2D model, with their cell values.
 
@@ -86,7 +90,7 @@ def deformed_triangles(
     return tris, np.concatenate(collective_comm(comm).allgather(np.asarray(values)))
 
 
-def silhouette_edges(model, axes: Sequence[int] = (1, 2)) -> list[np.ndarray]:
+def silhouette_edges(model: "Model", axes: Sequence[int] = (1, 2)) -> list[np.ndarray]:
     """Silhouette edges of a 3D model's rest boundary seen along each of the given axes.
 
     An edge of the boundary belongs to the silhouette seen along axis k when the outward

@@ -2,6 +2,7 @@
 
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from dolfinx import fem, io
@@ -12,13 +13,17 @@ from diffsolids.forms.elasticity import plane_strain_normal_stress
 from diffsolids.model.terms import ElasticEnergy
 from diffsolids.solvers.forms import compile_expression
 
+if TYPE_CHECKING:
+    from diffsolids.model import Model
+    from diffsolids.simulation import Trajectory
+
 __all__ = ["TrajectoryWriter", "von_mises_field", "write_trajectory"]
 
 
 class _VonMises:
     """Cellwise (DG0) von Mises stress of the current displacement."""
 
-    def __init__(self, model, u: fem.Function):
+    def __init__(self, model: "Model", u: fem.Function):
         mesh = model.domain.mesh
         self.field = fem.Function(fem.functionspace(mesh, ("DG", 0)), name="von_mises")
         midpoint = mesh.basix_cell()
@@ -49,7 +54,7 @@ class _VonMises:
         return self.field
 
 
-def von_mises_field(model, u_array: np.ndarray) -> fem.Function:
+def von_mises_field(model: "Model", u_array: np.ndarray) -> fem.Function:
     """DG0 von Mises stress of a displacement array."""
     u = fem.Function(model.V)
     u.x.array[:] = u_array
@@ -89,7 +94,9 @@ class TrajectoryWriter:
             non-Lagrange family (VTX), or with a name already used.
     """
 
-    def __init__(self, model, path: str | os.PathLike, extra: list[fem.Function] | None = None):
+    def __init__(
+        self, model: "Model", path: str | os.PathLike, extra: list[fem.Function] | None = None
+    ):
         self.path = Path(path)
         if self.path.suffix not in (".bp", ".xdmf"):
             raise ParameterError(f"output path {path} must end in .bp (VTX) or .xdmf (XDMF)")
@@ -192,7 +199,10 @@ class TrajectoryWriter:
 
 
 def write_trajectory(
-    model, trajectory, path: str | os.PathLike, extra: list[fem.Function] | None = None
+    model: "Model",
+    trajectory: "Trajectory",
+    path: str | os.PathLike,
+    extra: list[fem.Function] | None = None,
 ) -> list[Path]:
     """Write every state of a trajectory (u, v, von Mises stress) with a :class:`TrajectoryWriter`.
 

@@ -3,6 +3,7 @@
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import dolfinx.io.gmsh
 import numpy as np
@@ -14,10 +15,13 @@ from diffsolids.mesh.domain import Domain
 from diffsolids.mesh.gmsh_session import gmsh_session
 from diffsolids.parallel import collective_comm
 
+if TYPE_CHECKING:
+    from diffsolids.model import Model
+
 __all__ = ["from_geo", "from_gmsh_model", "read_mesh", "transform_domain"]
 
 
-def from_gmsh_model(model, comm: MPI.Comm, dim: int, rank: int = 0) -> Domain:
+def from_gmsh_model(model: "Model", comm: MPI.Comm, dim: int, rank: int = 0) -> Domain:
     """Convert the current gmsh model (on ``rank``) to a Domain with physical-group tags."""
     data = dolfinx.io.gmsh.model_to_mesh(model, comm, rank, gdim=dim)
     names = {}

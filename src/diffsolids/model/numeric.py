@@ -16,11 +16,14 @@ Jacobian may need entries outside the finite-element sparsity, see :meth:`matrix
 """
 
 from abc import ABC, abstractmethod
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 from dolfinx import fem
 from petsc4py import PETSc
+
+if TYPE_CHECKING:
+    from diffsolids.simulation import Simulation, Trajectory
 
 __all__ = ["NumericTerm"]
 
@@ -97,10 +100,10 @@ class NumericTerm(ABC):
         return None
 
     # -- per-step hooks --------------------------------------------------------------------
-    def begin_step(self, i: int, traj, coeffs, sim=None) -> None:  # noqa: B027 - optional hook
+    def begin_step(self, i: int, traj: "Trajectory", coeffs, sim: "Simulation" = None) -> None:  # noqa: B027 - optional hook
         """Called before step ``i`` is solved (forward) or differentiated (backward)."""
 
-    def end_step(self, i: int, traj) -> Any:
+    def end_step(self, i: int, traj: "Trajectory") -> Any:
         """Called after step ``i`` converged; may return a record of the step."""
         return None
 

@@ -17,6 +17,7 @@ All of them are collective over the mesh communicator and return the same value 
 
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import ipctk
 import numpy as np
@@ -27,6 +28,10 @@ from diffsolids.errors import IntersectionError
 from diffsolids.io.geometry import nodal_displacement
 from diffsolids.mesh import inverted_cells, signed_cell_volumes
 from diffsolids.parallel import collective_comm
+
+if TYPE_CHECKING:
+    from diffsolids.model import Model
+    from diffsolids.simulation import Simulation
 
 __all__ = [
     "BoundaryIntersection",
@@ -55,7 +60,9 @@ class StateChecks:
     min_distance: float
 
 
-def check_trajectories(simulation, trajectories: Iterable, contact=None) -> StateChecks:
+def check_trajectories(
+    simulation: "Simulation", trajectories: Iterable, contact=None
+) -> StateChecks:
     """Check every state of the trajectories for inverted elements and intersections.
 
     Args:
@@ -91,7 +98,7 @@ def check_trajectories(simulation, trajectories: Iterable, contact=None) -> Stat
     return StateChecks(states, inverted, intersecting, float(distance))
 
 
-def min_volume_ratio(model, u: np.ndarray) -> float:
+def min_volume_ratio(model: "Model", u: np.ndarray) -> float:
     """Smallest deformed/rest volume ratio of the cells deformed by ``u`` at their vertices.
 
     A non-positive value means an inverted element.
@@ -111,7 +118,7 @@ def min_volume_ratio(model, u: np.ndarray) -> float:
     return collective_comm(mesh.comm).allreduce(local, op=MPI.MIN)
 
 
-def inverted_rest_cells(model) -> int:
+def inverted_rest_cells(model: "Model") -> int:
     """Cells of the model's current rest mesh whose orientation flipped against the original."""
     mesh = model.domain.mesh
     owned = mesh.topology.index_map(mesh.topology.dim).size_local
@@ -128,7 +135,7 @@ class BoundaryIntersection:
             are seen).
     """
 
-    def __init__(self, model):
+    def __init__(self, model: "Model"):
         self.model = model
         self.surface = CollisionSurface(model.domain, model.V)
 

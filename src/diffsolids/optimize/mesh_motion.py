@@ -20,7 +20,7 @@ initial inverse Hessian of L-BFGS.
 """
 
 from collections.abc import Callable, Sequence
-from typing import override
+from typing import TYPE_CHECKING, override
 
 import dolfinx.fem.petsc
 import numpy as np
@@ -36,6 +36,10 @@ from diffsolids.controls.shape import ShapeControl, boundary_vertices
 from diffsolids.mesh import Domain, signed_cell_volumes
 from diffsolids.parallel import collective_comm
 from diffsolids.solvers.forms import compile_form
+
+if TYPE_CHECKING:
+    from diffsolids.model import Model
+    from diffsolids.reduced_functional import ReducedFunctional
 
 __all__ = ["MeshMotion", "MeshMotionControl", "RieszMap", "ShapeInnerProduct"]
 
@@ -324,7 +328,7 @@ class MeshMotionControl(ShapeControl):
 
     def __init__(
         self,
-        model,
+        model: "Model",
         vertices: str | np.ndarray | Callable = "boundary",
         exclude_facets: Sequence[int | str] = (),
         extension: str = "elasticity",
@@ -359,7 +363,11 @@ class ShapeInnerProduct:
     """
 
     def __init__(
-        self, rf, mass_weight: float | None = None, scale: float = 1.0, other_scale: float = 1.0
+        self,
+        rf: "ReducedFunctional",
+        mass_weight: float | None = None,
+        scale: float = 1.0,
+        other_scale: float = 1.0,
     ):
         self.options = {"mass_weight": mass_weight, "scale": scale, "other_scale": other_scale}
         controls = rf.controls
@@ -384,6 +392,6 @@ class ShapeInnerProduct:
             out[a:b] = riesz(g[a:b])
         return out
 
-    def rebuild(self, rf) -> "ShapeInnerProduct":
+    def rebuild(self, rf: "ReducedFunctional") -> "ShapeInnerProduct":
         """The same inner product for another functional (e.g. after a remesh)."""
         return ShapeInnerProduct(rf, **self.options)

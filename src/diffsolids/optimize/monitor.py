@@ -5,12 +5,17 @@ import logging
 import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from mpi4py import MPI
 
 from diffsolids.optimize.checkpoint import atomic_write_bytes
 from diffsolids.optimize.options import OptimizationError
+
+if TYPE_CHECKING:
+    from diffsolids.model import Model
+    from diffsolids.simulation import Trajectory
 
 __all__ = ["IterationRecord", "OptimizationOutput", "log_iteration", "plot_history"]
 
@@ -200,7 +205,7 @@ class OptimizationOutput:
         """Whether the trajectory of this iterate is written."""
         return self.iterate_every > 0 and (last or iteration % self.iterate_every == 0)
 
-    def write_iterate(self, iteration: int, model, trajectory) -> Path:
+    def write_iterate(self, iteration: int, model: "Model", trajectory: "Trajectory") -> Path:
         """Write the trajectory of an iterate (collective)."""
         from diffsolids.io.output import TrajectoryWriter
 

@@ -32,6 +32,7 @@ import time
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from mpi4py import MPI
@@ -55,6 +56,9 @@ from diffsolids.optimize.monitor import (
 )
 from diffsolids.optimize.options import LBFGSOptions, OptimizationError, OptimizationWarning
 from diffsolids.parallel import collective_comm
+
+if TYPE_CHECKING:
+    from diffsolids.reduced_functional import ReducedFunctional
 
 __all__ = ["LBFGS", "OptimizationResult", "minimize"]
 
@@ -152,7 +156,7 @@ class LBFGS:
 
     def __init__(
         self,
-        rf,
+        rf: "ReducedFunctional",
         options: LBFGSOptions | None = None,
         *,
         inner_product: Callable[[np.ndarray], np.ndarray] | None = None,
@@ -629,7 +633,9 @@ _MESSAGES = {
 }
 
 
-def minimize(rf, q0=None, options: LBFGSOptions | None = None, **kwargs) -> OptimizationResult:
+def minimize(
+    rf: "ReducedFunctional", q0=None, options: LBFGSOptions | None = None, **kwargs
+) -> OptimizationResult:
     """Minimise a ReducedFunctional with :class:`LBFGS` (keyword arguments as there).
 
     Example:

@@ -27,6 +27,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import dolfinx
 import numpy as np
@@ -40,6 +41,9 @@ from diffsolids.mesh import Domain, gmsh_session, min_scaled_jacobian
 from diffsolids.mesh.arrays import MeshArrays, domain_from_arrays
 from diffsolids.parallel import collective_comm
 from diffsolids.portability import ensure_ipctk_runs
+
+if TYPE_CHECKING:
+    from diffsolids.reduced_functional import ReducedFunctional
 
 __all__ = [
     "MeshArrays",
@@ -543,7 +547,7 @@ class RemeshRecord:
     seconds: float
 
 
-def _shape_controls(rf, q) -> list[tuple[ShapeControl, np.ndarray]]:
+def _shape_controls(rf: "ReducedFunctional", q) -> list[tuple[ShapeControl, np.ndarray]]:
     blocks = rf.controls.split(q)
     return [
         (c, b)
@@ -608,7 +612,7 @@ class Remesher:
         """Number of remeshes so far (including those before a restored checkpoint)."""
         return self._restored + len(self.history)
 
-    def rest_coordinates(self, rf, q) -> np.ndarray:
+    def rest_coordinates(self, rf: "ReducedFunctional", q) -> np.ndarray:
         """Local vertex coordinates of the rest shape at q (collective)."""
         mesh = rf.model.domain.mesh
         x = mesh.geometry.x.copy()
@@ -617,18 +621,18 @@ class Remesher:
             x[:, : control.dim] = control.X0 + d
         return x
 
-    def quality(self, rf, q) -> float:
+    def quality(self, rf: "ReducedFunctional", q) -> float:
         """Minimum scaled Jacobian of the rest mesh at q (collective)."""
         mesh = rf.model.domain.mesh
         return min_scaled_jacobian(mesh, rf.model.reference_signs, self.rest_coordinates(rf, q))
 
-    def needs_remesh(self, rf, q) -> bool:
+    def needs_remesh(self, rf: "ReducedFunctional", q) -> bool:
         """True when the rest mesh at q is below the quality threshold (collective)."""
         if self.max_remeshes is not None and self.count >= self.max_remeshes:
             return False
         return self.quality(rf, q) < self._trigger
 
-    def remesh(self, rf, q):
+    def remesh(self, rf: "ReducedFunctional", q):
         """Remesh the rest shape at q and rebuild the problem on it (collective).
 
         Returns:
@@ -669,7 +673,7 @@ class Remesher:
             )
         return new_rf, new_q
 
-    def _transfer(self, rf, q, new_rf) -> np.ndarray:
+    def _transfer(self, rf: "ReducedFunctional", q, new_rf) -> np.ndarray:
         old, new = rf.controls.controls, new_rf.controls.controls
         if [type(c) for c in old] != [type(c) for c in new]:
             raise MeshError(
@@ -689,7 +693,7 @@ class Remesher:
     # -- checkpoints ---------------------------------------------------------------------------
     CHECKPOINT_FILE = "mesh.npz"
 
-    def save_checkpoint(self, directory: str | os.PathLike, rf) -> None:
+    def save_checkpoint(self, directory: str | os.PathLike, rf: "ReducedFunctional") -> None:
         """Write the reference mesh (q = 0 of the shape controls) of ``rf`` (collective).
 
         The optimiser calls this after a remesh; with its q this restores the state after any
@@ -702,7 +706,7 @@ class Remesher:
         path = Path(directory) / self.CHECKPOINT_FILE
         save_domain(rf.model.domain, path, x, remeshes=self.count, trigger=self._trigger)
 
-    def load_checkpoint(self, directory: str | os.PathLike, rf):
+    def load_checkpoint(self, directory: str | os.PathLike, rf: "ReducedFunctional"):
         """Read the mesh written by :meth:`save_checkpoint` and rebuild the problem on it.
 
         Args:
