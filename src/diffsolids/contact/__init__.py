@@ -1,7 +1,14 @@
 """IPC contact and friction (numpy + ipctk) as a numeric term of the incremental potential."""
 
+from diffsolids.contact.obstacle import Obstacle
 from diffsolids.contact.stiffness import suggest_barrier_stiffness
 from diffsolids.contact.surface import CollisionSurface
 from diffsolids.contact.term import ContactRecord, ContactTerm
 
-__all__ = ["CollisionSurface", "ContactRecord", "ContactTerm", "suggest_barrier_stiffness"]
+__all__ = [
+    "CollisionSurface",
+    "ContactRecord",
+    "ContactTerm",
+    "Obstacle",
+    "suggest_barrier_stiffness",
+]

@@ -13,7 +13,16 @@ forces, so the curved FE surface may sag through an obstacle by O(h^2 curvature)
 The surface is numbered by the input (file) index of the vertices, independent of the partition,
 so a run on n ranks builds the same collision mesh as a serial run. Each rank contributes the
 values of the vertices whose displacement block it owns (one allgather per evaluation).
+
+Kinematic obstacles (:class:`~diffsolids.contact.obstacle.Obstacle`) are appended after the
+body vertices (``num_body_vertices`` ... ``num_vertices``): they are part of the CollisionMesh
+(collision set, CCD, area weights from their own segments/triangles) but have no dofs: every
+array gathered from a V array holds zeros in their rows, their dofs count as prescribed
+(:meth:`CollisionSurface.dof_mask`), and the owner maps, global dofs and matrix insertion see
+body vertices only. Each obstacle has a body id after the domain's (``body_ids``).
 """
+
+from collections.abc import Sequence
 
 import dolfinx
 import ipctk
@@ -104,7 +113,7 @@ class CollisionSurface:
         mesh: The ipctk CollisionMesh (area Jacobians initialised).
     """
 
-    def __init__(self, domain, V: fem.FunctionSpace):
+    def __init__(self, domain, V: fem.FunctionSpace, obstacles: Sequence = ()):
         mesh = domain.mesh
         self.comm = mesh.comm
         self.dim = mesh.geometry.dim
@@ -115,10 +124,11 @@ class CollisionSurface:
             raise MeshError("contact needs an affine (degree 1) mesh geometry")
         self.V = V
         self.bs = V.dofmap.index_map_bs
-        self.body_ids = domain.body_ids
+        self.body_ids = list(domain.body_ids)
         self._domain = domain
         ensure_ipctk_runs(self.comm)  # a PortabilityError here instead of a SIGILL below
         self._facet_data(domain)
+        self._add_obstacles(obstacles)
         self._build_ipc_mesh()
         self._node_blocks = _vertex_blocks(mesh, V)
         self.displacement = self._owned_map(V, self._node_blocks)
@@ -171,6 +181,63 @@ class CollisionSurface:
             pairs = np.sort(prims[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
             self.edges = np.ascontiguousarray(np.unique(pairs, axis=0), dtype=np.int32)
 
+    def _add_obstacles(self, obstacles: Sequence) -> None:
+        """Append the obstacles' vertices and primitives after the body surface."""
+        nb = self.num_vertices
+        self.num_body_vertices = nb
+        self.obstacles = tuple(obstacles)
+        first = max(self.body_ids, default=0) + 1
+        self.obstacle_ids = list(range(first, first + len(self.obstacles)))
+        self.obstacle_offsets = np.cumsum([nb] + [o.num_vertices for o in self.obstacles])
+        if not self.obstacles:
+            return
+        for o in self.obstacles:
+            o.broadcast(self.comm)
+            if o.dim != self.dim:
+                raise MeshError(f"{o.label} is {o.dim}D, the model is {self.dim}D")
+        offsets = self.obstacle_offsets
+        rest = [self.rest_positions] + [o.rest_positions for o in self.obstacles]
+        self.rest_positions = np.ascontiguousarray(np.concatenate(rest), dtype=float)
+        self._obstacle_rest = self.rest_positions[nb:].copy()
+        pairs = list(zip(self.obstacles, offsets[:-1], self.obstacle_ids, strict=True))
+        self.edges = np.ascontiguousarray(
+            np.concatenate([self.edges] + [o.edges + k for o, k, _ in pairs]), dtype=np.int32
+        )
+        if self.dim == 3:
+            self.faces = np.ascontiguousarray(
+                np.concatenate([self.faces] + [o.faces + k for o, k, _ in pairs]), dtype=np.int32
+            )
+        prims = [len(o.edges) if self.dim == 2 else len(o.faces) for o in self.obstacles]
+        tags = [np.full(m, b) for m, b in zip(prims, self.obstacle_ids, strict=True)]
+        self.primitive_body = np.concatenate([self.primitive_body, *tags])
+        self.body = np.concatenate(
+            [self.body] + [np.full(o.num_vertices, b) for o, _, b in pairs]
+        ).astype(np.int64)
+        self.num_vertices = int(offsets[-1])
+        self.body_ids = self.body_ids + self.obstacle_ids
+        self.body_index = np.searchsorted(self.body_ids, self.body)
+
+    def obstacle_displacement(self, t: float) -> np.ndarray:
+        """(num_vertices, dim) displacements with the obstacles' at time ``t`` (zero body rows).
+
+        Every rank evaluates the motions (bad output fails everywhere alike); rank 0's values
+        are broadcast, so the collision mesh is the same on all ranks.
+        """
+        U = np.zeros((self.num_vertices, self.dim))
+        for o, a, b in zip(
+            self.obstacles, self.obstacle_offsets[:-1], self.obstacle_offsets[1:], strict=True
+        ):
+            if o.moving:
+                U[a:b] = o.displacement(t)
+        if self.comm.size > 1 and any(o.moving for o in self.obstacles):
+            self.comm.Bcast(U, root=0)
+        return U
+
+    @property
+    def has_moving_obstacles(self) -> bool:
+        """Whether any obstacle moves."""
+        return any(o.moving for o in self.obstacles)
+
     def _build_ipc_mesh(self) -> None:
         self.mesh = ipctk.CollisionMesh(
             np.asfortranarray(self.rest_positions),
@@ -185,7 +252,7 @@ class CollisionSurface:
         imap = space.dofmap.index_map
         input_ids = np.asarray(mesh.geometry.input_global_indices, dtype=np.int64)
         pos = np.searchsorted(self.vertex_input_ids, input_ids)
-        pos = np.minimum(pos, self.num_vertices - 1)
+        pos = np.minimum(pos, len(self.vertex_input_ids) - 1)
         on_surface = self.vertex_input_ids[pos] == input_ids
         owned = on_surface & (node_blocks >= 0) & (node_blocks < imap.size_local)
         nodes = np.flatnonzero(owned)
@@ -193,7 +260,7 @@ class CollisionSurface:
         # a node can be listed once per rank only; several nodes never share a block
         cv, first = np.unique(cv, return_index=True)
         nodes = nodes[first]
-        omap = _OwnedMap(self.comm, cv, node_blocks[nodes], imap, self.num_vertices)
+        omap = _OwnedMap(self.comm, cv, node_blocks[nodes], imap, len(self.vertex_input_ids))
         omap.nodes = nodes
         return omap
 
@@ -201,10 +268,17 @@ class CollisionSurface:
     def gather(self, values: np.ndarray) -> np.ndarray:
         """(num_vertices, dim) values at the collision vertices of a local V array (collective).
 
+        Rows of obstacle vertices are zero (they have no dofs).
+
         Args:
             values: Local blocked array of V (``u.x.array`` or the owned part of a PETSc Vec).
         """
-        return self.displacement.gather(np.asarray(values), self.bs)[:, : self.dim]
+        body = self.displacement.gather(np.asarray(values), self.bs)[:, : self.dim]
+        if self.num_vertices == self.num_body_vertices:
+            return body
+        full = np.zeros((self.num_vertices, self.dim), dtype=body.dtype)
+        full[: self.num_body_vertices] = body
+        return full
 
     def current_rest_positions(self) -> np.ndarray:
         """Rest coordinates of the collision vertices from the current mesh geometry."""
@@ -212,6 +286,7 @@ class CollisionSurface:
         omap = self.displacement
         full = np.empty((self.num_vertices, self.dim))
         full[omap.order] = omap.allgather(np.ascontiguousarray(x[omap.nodes]))
+        full[self.num_body_vertices :] = self.rest_positions[self.num_body_vertices :]
         return full
 
     def update_rest_positions(self) -> bool:
@@ -248,7 +323,9 @@ class CollisionSurface:
 
     def global_dofs(self) -> np.ndarray:
         """Global (PETSc) index of every collision dof (interleaved, length num_vertices*dim)."""
-        return (self.displacement.global_blocks[:, None] * self.bs + np.arange(self.dim)).ravel()
+        blocks = np.full(self.num_vertices, -1, dtype=np.int64)  # obstacles: no dofs
+        blocks[: self.num_body_vertices] = self.displacement.global_blocks
+        return (blocks[:, None] * self.bs + np.arange(self.dim)).ravel()
 
     def add_to_owned(self, target: np.ndarray, g: np.ndarray) -> None:
         """target[owned V dofs] += g[collision dofs] (g interleaved, length num_vertices*dim)."""
@@ -262,10 +339,13 @@ class CollisionSurface:
         return out
 
     def dof_mask(self, local_dofs: np.ndarray) -> np.ndarray:
-        """Boolean (num_vertices*dim) mask of collision dofs listed in ``local_dofs`` (V local)."""
+        """Boolean (num_vertices*dim) mask of collision dofs listed in ``local_dofs`` (V local).
+
+        Obstacle vertices are always in it (their motion is prescribed).
+        """
         _, vdofs = self.owned_dof_indices()
         flags = np.isin(vdofs, local_dofs).reshape(-1, self.dim).astype(np.int8)
-        full = np.empty((self.num_vertices, self.dim), dtype=np.int8)
+        full = np.ones((self.num_vertices, self.dim), dtype=np.int8)
         full[self.displacement.order] = self.displacement.allgather(flags)
         return full.ravel().astype(bool)
 

@@ -13,6 +13,26 @@ v = (u - u^{i-1}) / dt with coefficient dt (alpha = -1, beta = 1).
 
 All ranks hold the whole collision surface (gathered once per evaluation), run ipctk on it, and
 add only the rows they own.
+
+Kinematic obstacles (:class:`~diffsolids.contact.obstacle.Obstacle`) are extra vertices of the
+collision mesh with prescribed displacements O^i = O(t_i) and no dofs: x = X + W u + O^i, their
+rows and columns never enter the PETSc vectors and matrices, and every adjoint product keeps the
+body rows only (obstacles have neither shape dofs nor state). Their velocity in the friction
+potential is the same BDF formula, (O^i + sum_j alpha_j O^{i-j}) / (beta dt), and the lagged
+normal forces and tangent bases are those at x^{i-1} (obstacles at O^{i-1}): friction acts on the
+relative sliding velocity.
+
+Scheme of a step with moving obstacles (never intersected): the Newton solve of step i runs with
+the obstacles at O^i (its line search scales only the body part). The move O^{i-1} -> O^i before
+it is checked by CCD in :meth:`ContactTerm.begin_step`: (1) with the bodies held at u^{i-1}; if
+that is collision-free, the Newton start (u^{i-1}, O^i) is admissible and every later path (the
+guess, the Newton steps) is checked with the obstacles at O^i; (2) otherwise (an obstacle pushing
+a body, e.g. an elevator, closes the gap within the step) the start is not admissible and the move
+must be made together with the body's initial guess: :meth:`ContactTerm.max_step` from exactly
+u^{i-1} then checks the straight path on which the obstacles move from O^{i-1} to O^i while the
+body moves from u^{i-1} to the guess, and admits it only in full (inf or 0). If no guess passes, a
+clear IntersectionError names the obstacle and the step (a smaller time step, or an initial
+guess that moves with the obstacle, is needed).
 """
 
 import contextlib
@@ -21,7 +41,7 @@ import itertools
 import logging
 import os
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import ipctk
@@ -31,6 +51,7 @@ from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from diffsolids.contact.obstacle import Obstacle
 from diffsolids.contact.reach import reach_blocks
 from diffsolids.contact.shape import barrier_shape_derivative
 from diffsolids.contact.surface import CollisionSurface, _contains, block_pattern
@@ -126,9 +147,14 @@ class ContactTerm(NumericTerm):
         area_weighting: Weight each pair by its surface area (paper sec. 8.2).
         min_gap: Initial configurations closer than ``min_gap * dhat`` are refused.
         num_threads: ipctk threads (default: cores divided by MPI ranks).
+        obstacles: Kinematic :class:`~diffsolids.contact.obstacle.Obstacle` s (collision-only,
+            no dofs, fixed or moving); each is a body of the contact term with the next body id
+            after the domain's (``body_ids``), named by its ``name`` in friction tables.
 
     Raises:
-        ParameterError: Non-positive dhat, stiffness or eps_v, negative friction, unknown body.
+        ParameterError: Non-positive dhat, stiffness or eps_v, negative friction, unknown body,
+            an obstacle that is not an Obstacle or whose name is taken.
+        MeshError: An obstacle of the wrong dimension.
     """
 
     name = "contact"
@@ -148,6 +174,7 @@ class ContactTerm(NumericTerm):
         area_weighting: bool = True,
         min_gap: float = 1e-6,
         num_threads: int | None = None,
+        obstacles: Sequence[Obstacle] = (),
     ):
         for label, value in (("dhat", dhat), ("stiffness", stiffness), ("eps_v", eps_v)):
             if not (np.isfinite(value) and value > 0):
@@ -164,8 +191,13 @@ class ContactTerm(NumericTerm):
             num_threads = max(1, (os.cpu_count() or 1) // self.comm.size)
         if num_threads is not None:
             ipctk.set_num_threads(int(num_threads))
-        self.surface = CollisionSurface(model.domain, model.V)
+        self.obstacles = self._check_obstacles(obstacles)
+        self.surface = CollisionSurface(model.domain, model.V, self.obstacles)
+        self.surface.obstacle_displacement(0.0)  # a bad motion fails here, not in a step
         self.body_ids = self.surface.body_ids
+        pairs = zip(self.obstacles, self.surface.obstacle_ids, strict=True)
+        self._obstacle_names = {o.name: b for o, b in pairs if o.name}
+        self._clock = None
         self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness)
         self.friction_potential = ipctk.FrictionPotential(self.eps_v)
         self.broad_phase = ipctk.LBVH()
@@ -188,6 +220,8 @@ class ContactTerm(NumericTerm):
         self._mu = np.zeros(len(self.friction_pairs))
         self._set_friction(friction)
         self.records: list[ContactRecord] = []
+        # forward steps whose obstacle move was made with the body's initial guess
+        self.moved_with_guess: list[int] = []
         self.timings: dict[str, list] = {}
         self.force_function = fem.Function(model.V, name="contact_force")
         self._token = 0
@@ -201,11 +235,33 @@ class ContactTerm(NumericTerm):
         self._pattern_memo = None
 
     # -- parameters ---------------------------------------------------------------------------
+    def _check_obstacles(self, obstacles) -> tuple[Obstacle, ...]:
+        obstacles = tuple(obstacles)
+        names = set(self.model.domain.names)
+        for o in obstacles:
+            if not isinstance(o, Obstacle):
+                raise ParameterError(f"obstacles must be Obstacle objects, got {type(o).__name__}")
+            if o.name is not None and o.name in names:
+                raise ParameterError(
+                    f"obstacle name {o.name!r} is taken (by a body, tag or another obstacle)"
+                )
+            if o.name is not None:
+                names.add(o.name)
+        return obstacles
+
+    def _body_id(self, body: int | str) -> int:
+        """Body id of a domain body or an obstacle (by id or name)."""
+        if isinstance(body, str) and body in self._obstacle_names:
+            return self._obstacle_names[body]
+        if not isinstance(body, str) and int(body) in self.surface.obstacle_ids:
+            return int(body)
+        return self.model.domain.body_id(body)
+
     def _set_friction(self, friction) -> None:
         if isinstance(friction, Mapping):
             mu = np.zeros(len(self.friction_pairs))
             for (a, b), value in friction.items():
-                ia, ib = self.model.domain.body_id(a), self.model.domain.body_id(b)
+                ia, ib = self._body_id(a), self._body_id(b)
                 mu[self.pair_index(ia, ib)] = value
             self.friction_coefficients = mu
         else:
@@ -214,8 +270,8 @@ class ContactTerm(NumericTerm):
     def pair_index(self, body_a: int | str, body_b: int | str) -> int:
         """Index of the pair of bodies in :attr:`friction_pairs`."""
         ids = self.body_ids
-        ia = ids.index(self.model.domain.body_id(body_a))
-        ib = ids.index(self.model.domain.body_id(body_b))
+        ia = ids.index(self._body_id(body_a))
+        ib = ids.index(self._body_id(body_b))
         return int(self._pair_index[ia, ib])
 
     @property
@@ -249,7 +305,13 @@ class ContactTerm(NumericTerm):
         if surf.update_rest_positions():
             self._token += 1
         self._update_static()
-        hist = [surf.gather(traj.u[i - j]) for j in range(1, len(coeffs.alpha) + 1)]
+        if sim is not None:
+            self._clock = sim.integrator.time
+        elif self._clock is None:
+            self._clock = lambda k, dt=coeffs.dt: k * dt
+        m = len(coeffs.alpha)
+        obstacle = [self._obstacle_at(i - j) for j in range(m + 1)]
+        hist = [surf.gather(traj.u[i - j]) + obstacle[j] for j in range(1, m + 1)]
         beta_dt = coeffs.beta_dt
         v_offset = sum(a * U for a, U in zip(coeffs.alpha, hist, strict=True)) / beta_dt
         motion, deformation = self._step_motion(i, traj, coeffs)
@@ -262,6 +324,8 @@ class ContactTerm(NumericTerm):
             "lagged": hist[0],
             "motion": motion,
             "deformation": deformation,
+            "obstacle": obstacle[0],
+            "blocked": False,
         }
         self._token += 1
         self._eval = None
@@ -271,8 +335,69 @@ class ContactTerm(NumericTerm):
         forward = len(traj.u) == i
         if forward and (self._forward_step is None or i != self._forward_step + 1):
             self.records = []
+            self.moved_with_guess = []
             self.check_configuration(hist[0], step=i - 1)
         self._forward_step = i if forward else None
+        if forward and surf.has_moving_obstacles:
+            self._check_obstacle_move(hist[0], obstacle[1], obstacle[0])
+
+    def _obstacle_at(self, k: int) -> np.ndarray:
+        """(num_vertices, dim): zero body rows, the obstacles' displacements at step ``k``."""
+        surf = self.surface
+        if not surf.has_moving_obstacles:
+            return np.zeros((surf.num_vertices, self.dim))
+        if self._clock is None:
+            if k != 0:
+                raise ParameterError(
+                    f"the time of step {k} is not known yet (moving obstacles): run or begin a "
+                    "step of the simulation first"
+                )
+            return surf.obstacle_displacement(0.0)
+        return surf.obstacle_displacement(float(self._clock(k)))
+
+    def _check_obstacle_move(self, lagged: np.ndarray, O_prev: np.ndarray, O_now: np.ndarray):
+        """CCD of the obstacles' move O^{i-1} -> O^i with the bodies held at u^{i-1} (collective).
+
+        Free: the Newton start (u^{i-1}, O^i) is admissible. Not free: the move must be made
+        with the body's initial guess (see :meth:`max_step`); ``blocked`` records that.
+        """
+        if np.array_equal(O_prev, O_now):
+            return
+        X = self.surface.rest_positions
+        x0 = np.asfortranarray(X + lagged)
+        x1 = np.asfortranarray(x0 + (O_now - O_prev))
+        with self._timed("ccd_obstacles"):
+            toi = self._collision_free_fraction(lagged, x0, x1)
+        self._step["blocked"] = toi < 1.0
+        self._step["start_body"] = lagged - O_prev
+        if self._step["blocked"]:
+            self.moved_with_guess.append(self._step["index"])
+            logger.info(
+                "contact step %d: the obstacles' move alone is not collision-free (fraction "
+                "%.3g): it is made with the body's initial guess",
+                self._step["index"],
+                toi,
+            )
+
+    def _obstacle_move_error(self) -> IntersectionError:
+        step, surf = self._step, self.surface
+        i = step["index"]
+        move = step["obstacle"] - (step["lagged"] - step["start_body"])
+        names = []
+        for o, a, b in zip(
+            surf.obstacles, surf.obstacle_offsets[:-1], surf.obstacle_offsets[1:], strict=True
+        ):
+            d = float(np.linalg.norm(move[a:b], axis=1).max(initial=0.0))
+            if d > 0:
+                names.append(f"{o.label} (moves {d:.3e})")
+        return IntersectionError(
+            f"step {i}: {', '.join(names)} moves into the bodies faster than they can follow: "
+            "the move from t_{i-1} to t_i is not collision-free with the bodies held at "
+            "u^{i-1}, nor together with the body's initial guess (obstacles move before the "
+            "Newton solve of a step, which then keeps them at t_i); use a smaller time step "
+            "(an obstacle pressing a body may move at most about the contact gap per step "
+            "unless the body already moves with it) or a slower motion"
+        )
 
     def _step_motion(self, i: int, traj, coeffs) -> tuple[np.ndarray, np.ndarray]:
         """How far each collision vertex may move in step ``i`` (collective).
@@ -421,6 +546,8 @@ class ContactTerm(NumericTerm):
         values = u.x.array if isinstance(u, fem.Function) else u
         with self._timed("gather"):
             U = self.surface.gather(values)
+        if self._step is not None and self.obstacles:
+            U = U + self._step["obstacle"]
         T = self._friction()
         ev = self._eval
         if ev is not None and ev.token == self._token and np.array_equal(ev.U, U):
@@ -626,24 +753,51 @@ class ContactTerm(NumericTerm):
         """Largest a such that the surface moves collision-free along x + s dx, s in [0, a).
 
         The CCD runs on the step extended to ``2 dx``, so a free full step reports a value > 1.
+        Obstacles stay at their step-i positions, except on the step's first move when their
+        own move is not collision-free (see the module docstring): from exactly u^{i-1}, the
+        path on which they move from t_{i-1} to t_i with the body is checked, and admitted only
+        in full (inf, or 0).
+
+        Raises:
+            IntersectionError: That first move is not admissible even without body motion.
         """
-        U0 = self.surface.gather(x.array_r)
+        Ub = self.surface.gather(x.array_r)
         dU = self.surface.gather(dx.array_r)
+        step = self._step
+        if step is not None and step["blocked"] and np.array_equal(Ub, step["start_body"]):
+            X = self.surface.rest_positions
+            x0 = np.asfortranarray(X + step["lagged"])
+            x1 = np.asfortranarray(X + Ub + dU + step["obstacle"])
+            with self._timed("ccd_obstacles"):
+                toi = self._collision_free_fraction(step["lagged"], x0, x1)
+            if toi >= 1.0:
+                return np.inf
+            if not np.any(dU):
+                raise self._obstacle_move_error()
+            return 0.0
         if not np.any(dU):
             return np.inf
+        U0 = Ub + (step["obstacle"] if step is not None else 0.0)
         x0 = np.asfortranarray(self.surface.rest_positions + U0)
         x1 = np.asfortranarray(x0 + _CCD_REACH * dU)
-        self._floor_held = None
         with self._timed("ccd"):
-            candidates = ipctk.Candidates()
-            candidates.build(self.surface.mesh, x0, x1, self.dhat, self.broad_phase)
-            near, far = np.inf, candidates
-            if self.dim == 2 and not len(candidates.vv_candidates):
-                near, far = self._near_pairs_2d(candidates, U0, x0, x1)
-            toi = far.compute_collision_free_stepsize(self.surface.mesh, x0, x1, 0.0, self.ccd)
-            toi = min(float(toi), near)
+            toi, candidates = self._collision_free_fraction(U0, x0, x1, with_candidates=True)
         self._segment = (U0, dU, candidates, self._token)
-        return collective_comm(self.comm).allreduce(float(toi) * _CCD_REACH, op=MPI.MIN)
+        return toi * _CCD_REACH
+
+    def _collision_free_fraction(
+        self, U0: np.ndarray, x0: np.ndarray, x1: np.ndarray, with_candidates: bool = False
+    ):
+        """Collision-free fraction of the straight path x0 -> x1 (the same on all ranks)."""
+        self._floor_held = None
+        candidates = ipctk.Candidates()
+        candidates.build(self.surface.mesh, x0, x1, self.dhat, self.broad_phase)
+        near, far = np.inf, candidates
+        if self.dim == 2 and not len(candidates.vv_candidates):
+            near, far = self._near_pairs_2d(candidates, U0, x0, x1)
+        toi = far.compute_collision_free_stepsize(self.surface.mesh, x0, x1, 0.0, self.ccd)
+        toi = collective_comm(self.comm).allreduce(min(float(toi), near), op=MPI.MIN)
+        return (toi, candidates) if with_candidates else toi
 
     def _near_pairs_2d(
         self, candidates: ipctk.Candidates, U0: np.ndarray, x0: np.ndarray, x1: np.ndarray
@@ -702,6 +856,8 @@ class ContactTerm(NumericTerm):
 
     # -- configuration checks ----------------------------------------------------------------
     def _body_label(self, body: int) -> str:
+        if body in self.surface.obstacle_ids:
+            return self.obstacles[self.surface.obstacle_ids.index(body)].label
         names = [k for k, v in self.model.domain.names.items() if v == body]
         return f"body {body}" + (f" ({names[0]!r})" if names else "")
 
@@ -741,7 +897,8 @@ class ContactTerm(NumericTerm):
         """Refuse intersecting or touching configurations; returns the minimum distance.
 
         Collective. Re-reads the rest positions from the mesh first; ``U`` is the (num_vertices,
-        dim) displacement of the collision vertices.
+        dim) displacement of the collision vertices (e.g. ``surface.gather(u)``); the rows of
+        obstacles are replaced by their displacement at step ``step``.
 
         Raises:
             IntersectionError: Naming the bodies that intersect or are closer than
@@ -749,6 +906,10 @@ class ContactTerm(NumericTerm):
         """
         if self.surface.update_rest_positions():  # the shape may have changed since
             self._token += 1
+        if self.obstacles:
+            nb = self.surface.num_body_vertices
+            U = np.array(U, dtype=float)
+            U[nb:] = self._obstacle_at(step)[nb:]
         x = self.surface.rest_positions + U
         mesh = self.surface.mesh
         if ipctk.has_intersections(mesh, np.asfortranarray(x), self.broad_phase):
