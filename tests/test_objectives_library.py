@@ -13,6 +13,7 @@ from gradient_scenes import CONTROLS, simulation
 from diffsolids.objectives import (
     Integral,
     ObjectiveError,
+    RestCollisionBarrier,
     StepValues,
     TimeGrid,
     compliance,
@@ -365,3 +366,81 @@ def test_series_barrier_on_the_height():
 def test_step_values_name_the_non_finite_state():
     with pytest.raises(ObjectiveError, match=r"1 are not \(state 0: nan\)"):
         StepValues([np.nan, 1.0, 2.0], "height")
+
+
+# -- the IPC barrier of the rest shape -------------------------------------------------------------
+def _geometry_fd(model, reg, direction, h=1e-6):
+    x = model.domain.mesh.geometry.x
+    x0 = x.copy()
+    try:
+        x[:, :2] = x0[:, :2] + h * direction
+        plus = reg.evaluate(model)
+        x[:, :2] = x0[:, :2] - h * direction
+        minus = reg.evaluate(model)
+    finally:
+        x[:] = x0
+    return (plus - minus) / (2 * h)
+
+
+def test_rest_collision_barrier_values_and_geometry_derivative():
+    """Bar of height 0.5 with boundary edges of 0.25 and 0.5: a corner vertex and the second
+    edge along the side are 0.25 apart (not adjacent), the top and bottom sides 0.5."""
+    sim = simulation(SCENE, "bdf2")
+    model = sim.model
+    assert RestCollisionBarrier(model, 0.2).evaluate(model) == 0.0
+    assert RestCollisionBarrier(model, 0.2).smallest_distance() == np.inf
+    assert RestCollisionBarrier(model, 0.3).smallest_distance() == pytest.approx(0.25, rel=1e-12)
+    x = model.domain.mesh.geometry.x
+    x0 = x.copy()
+    try:  # a jittered design (see the next test)
+        x[:, :2] += 0.03 * np.random.default_rng(9).uniform(-1, 1, (len(x), 2))
+        _check_rest_barrier_gradient(model)
+    finally:
+        x[:] = x0
+
+
+def _check_rest_barrier_gradient(model):
+    reg = RestCollisionBarrier(model, 0.6, stiffness=2.0)
+    value = reg.evaluate(model)
+    assert value > 0
+    # the geometry nodes are the P1 shape dofs (serial): compare along random motions
+    g = reg.gradient(model)["shape"].reshape(-1, 2)
+    S = model.shape_space
+    node_of = np.empty(len(g), dtype=np.int64)
+    node_of[S.dofmap.list.ravel()] = model.domain.mesh.geometry.dofmaps[0].ravel()
+    rng = np.random.default_rng(2)
+    for _ in range(2):
+        d = 0.01 * rng.standard_normal((len(g), 2))
+        direction = np.zeros((len(g), 2))
+        direction[node_of] = d
+        assert np.sum(g * d) == pytest.approx(_geometry_fd(model, reg, direction), rel=1e-6)
+    direction = np.zeros((len(g), 2))
+    direction[node_of] = 0.01 * g / np.linalg.norm(g)
+    assert np.sum(g * 0.01 * g / np.linalg.norm(g)) == pytest.approx(
+        _geometry_fd(model, reg, direction), rel=1e-6
+    )
+
+
+def test_rest_collision_barrier_in_a_shape_gradient_and_touching_designs():
+    """On a jittered design: on the structured grid every closest point is an edge's end, where
+    the distance changes type (C^1 only), which central differences resolve at O(h) only."""
+    sim = simulation(SCENE, "bdf2")
+    model = sim.model
+    x = model.domain.mesh.geometry.x
+    x0 = x.copy()
+    free = ~np.isclose(x0[:, 0], 0.0)  # the clamped end stays
+    try:
+        x[free, :2] += 0.03 * np.random.default_rng(8).uniform(-1, 1, (free.sum(), 2))
+        J = final_value(target_positions(model, lambda x: 1.01 * x[:2], facets=3))
+        J = J + 1e-2 * RestCollisionBarrier(model, 0.6)
+        _fd_check(sim, J, ["shape-all", "young-field-log"])
+    finally:
+        x[:] = x0
+    x0 = x.copy()
+    top = np.isclose(x0[:, 1], 0.5) & np.isclose(x0[:, 0], 1.0)
+    try:
+        x[top, 1] = 0.0  # the middle of the top side pushed down onto the bottom side
+        with pytest.raises(ObjectiveError, match="rest collision barrier"):
+            RestCollisionBarrier(model, 0.6).evaluate(model)
+    finally:
+        x[:] = x0

@@ -6,6 +6,7 @@ from diffsolids.objectives.barriers import (
     sdf_barrier,
     series_barrier,
 )
+from diffsolids.objectives.collision import RestCollisionBarrier
 from diffsolids.objectives.functional import (
     Integral,
     Objective,
@@ -48,6 +49,7 @@ __all__ = [
     "Objective",
     "ObjectiveError",
     "Regulariser",
+    "RestCollisionBarrier",
     "Series",
     "SoftMin",
     "StepValues",
