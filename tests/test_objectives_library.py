@@ -29,6 +29,8 @@ from diffsolids.objectives import (
     series_values,
     soft_min,
     step_selector,
+    step_values,
+    step_weights,
     target_positions,
     target_trajectory,
     time_integral,
@@ -444,3 +446,31 @@ def test_rest_collision_barrier_in_a_shape_gradient_and_touching_designs():
             RestCollisionBarrier(model, 0.6).evaluate(model)
     finally:
         x[:] = x0
+
+
+# -- per-step values of an objective -------------------------------------------------------------
+def test_step_values_of_an_objective_are_public_and_finite_at_every_state():
+    sim = simulation(SCENE, "bdf2")
+    model = sim.model
+    target = target_trajectory(sim, _target_run(sim, 1.2), facets=[2])
+    rate = Integral(lambda f: ufl.dot(f.u - f.u_prev, f.u - f.u_prev) * f.dx, "rate")
+    J = 10.0 * time_integral(target, "uniform") + time_integral(rate, "sum")
+    J = J + soft_min(-height_objective(model), alpha=50.0)
+    rf = ReducedFunctional(sim, J, [CONTROLS["initial-v0"](sim)])
+    with pytest.raises(ObjectiveError, match="no forward run yet"):
+        step_values(rf)
+    value = rf(rf.initial_parameters())
+    per_step = step_values(rf)
+    labels = list(per_step)
+    assert labels[:2] == ["target trajectory", "rate"] and len(labels) == 3
+    for values in per_step.values():
+        assert values.shape == (4,) and np.all(np.isfinite(values))
+    assert per_step["rate"][0] == 0.0  # state 0: no motion before the start
+    grid = rf.grid
+    by_steps = 10.0 * step_weights("uniform", grid) @ per_step["target trajectory"]
+    by_steps += step_weights("sum", grid) @ per_step["rate"]
+    height = per_step[labels[2]][1:]
+    by_steps += -np.log(np.sum(np.exp(-50.0 * height))) / 50.0
+    assert by_steps == pytest.approx(value, rel=1e-12)
+    terms = rf.term_values()
+    assert any(label.startswith("softmin(") for label in terms)

@@ -40,7 +40,7 @@ from diffsolids.objectives.targets import (
     step_selector,
     target_trajectory,
 )
-from diffsolids.objectives.values import series_values
+from diffsolids.objectives.values import objective_series, series_values, step_values
 
 __all__ = [
     "BoundarySmoothing",
@@ -64,6 +64,7 @@ __all__ = [
     "inversion_barrier",
     "min_distance_target",
     "node_target",
+    "objective_series",
     "scalar_log_barrier",
     "sdf_barrier",
     "sdf_target",
@@ -71,6 +72,7 @@ __all__ = [
     "series_values",
     "soft_min",
     "step_selector",
+    "step_values",
     "step_weights",
     "stress_bound_penalty",
     "stress_lp_norm",

@@ -19,7 +19,7 @@ from diffsolids.objectives.functional import (
     TimeIntegral,
 )
 
-__all__ = ["ObjectiveTerm", "objective_terms", "term_label"]
+__all__ = ["ObjectiveTerm", "objective_terms", "series_label", "term_label"]
 
 
 @dataclass(frozen=True)
@@ -41,22 +41,23 @@ class ObjectiveTerm:
         return self.sign * float(self.node.value(table, reg, grid))
 
 
-def _series_label(s: Series) -> str:
+def series_label(s: Series) -> str:
+    """A short readable label of a series."""
     if isinstance(s, Integral):
         return s.name
     if isinstance(s, ConstantSeries):
         return f"{s.value:g}"
     if isinstance(s, BinarySeries):
-        return f"({_series_label(s.a)}{s.op}{_series_label(s.b)})"
+        return f"({series_label(s.a)}{s.op}{series_label(s.b)})"
     if isinstance(s, MappedSeries):
-        return f"{s.name}({_series_label(s.a)})"
+        return f"{s.name}({series_label(s.a)})"
     return type(s).__name__
 
 
 def term_label(node: Objective) -> str:
     """A short readable label of a (sub-)objective."""
     if isinstance(node, TimeIntegral):
-        inner = _series_label(node.series)
+        inner = series_label(node.series)
         return inner if isinstance(node.spec, str) and node.spec == "final" else f"sum_t {inner}"
     if isinstance(node, ConstantObjective):
         return f"{node.c:g}"
@@ -70,7 +71,7 @@ def term_label(node: Objective) -> str:
         if node.op == "*" and isinstance(node.b, ConstantObjective):
             return f"{node.b.c:g}*{term_label(node.a)}"
         return f"({term_label(node.a)}{node.op}{term_label(node.b)})"
-    return type(node).__name__
+    return str(getattr(node, "name", None) or type(node).__name__)
 
 
 def _flatten(node: Objective, sign: float, out: list) -> None:

@@ -5,6 +5,9 @@ misfit) has one value per state; :func:`series_values` evaluates it on any traje
 path of a body's centre of mass for a figure or a check::
 
     com = series_values(sim, center_of_mass(model, "B"), trajectory)  # (N + 1, dim)
+
+and :func:`step_values` gives the per-state values of every series an objective reduces (time
+integrals, soft minima) along the last forward run of a ReducedFunctional, by label.
 """
 
 from collections.abc import Sequence
@@ -13,11 +16,12 @@ import numpy as np
 from dolfinx import fem
 from mpi4py import MPI
 
-from diffsolids.objectives.functional import Series
+from diffsolids.objectives.functional import ObjectiveError, Series
+from diffsolids.objectives.terms import series_label
 from diffsolids.parallel import collective_comm
 from diffsolids.solvers.forms import compile_form
 
-__all__ = ["series_values"]
+__all__ = ["objective_series", "series_values", "step_values"]
 
 
 def _state_indices(steps: Sequence[int] | None, num_states: int) -> list[int]:
@@ -42,7 +46,8 @@ def series_values(
 
     Every state is evaluated as the ReducedFunctional evaluates an objective: the step's data
     (time, loads, history fields) are those set by ``simulation.load_step(i, trajectory)``
-    (time 0 for state 0) and the model's ``u`` and ``v`` hold the state. The model's ``u`` and
+    (time 0 for state 0, where the history fields ``u_prev`` and ``u_tilde`` hold u^0: no
+    motion before the start) and the model's ``u`` and ``v`` hold the state. The model's ``u`` and
     ``v`` are restored afterwards; the step data stay those of the last state evaluated (every
     solve and objective evaluation sets its own).
 
@@ -76,6 +81,9 @@ def series_values(
                 simulation.load_step(i, trajectory)
             else:
                 model.update_time(0.0)
+                # no motion before the start: the history fields of state 0 hold u^0
+                f.u_prev.x.array[:] = trajectory.u[0]
+                f.u_tilde.x.array[:] = trajectory.u[0]
             f.u.x.array[:] = trajectory.u[i]
             f.v.x.array[:] = trajectory.v[i]
             for leaf, form in forms.items():
@@ -88,3 +96,58 @@ def series_values(
     values = np.column_stack([np.broadcast_to(s.values(table), (num_states,)) for s in parts])
     values = values[wanted]
     return values[:, 0] if single else values
+
+
+def objective_series(objective) -> dict[str, Series]:
+    """The series an objective reduces over steps (time integrals, soft minima), by label.
+
+    Labels are those of the objective's terms (e.g. ``"target trajectory"``); a repeated label
+    gets a ``#k`` suffix. A series reduced twice is listed once.
+    """
+    found: list[Series] = []
+
+    def walk(node) -> None:
+        series = getattr(node, "series", None)
+        if isinstance(series, Series):
+            if all(series is not s for s in found):
+                found.append(series)
+            return
+        for child in (getattr(node, "a", None), getattr(node, "b", None)):
+            if child is not None:
+                walk(child)
+
+    walk(objective)
+    labels = [series_label(s) for s in found]
+    out: dict[str, Series] = {}
+    counts: dict[str, int] = {}
+    for label, series in zip(labels, found, strict=True):
+        if labels.count(label) > 1:
+            counts[label] = counts.get(label, 0) + 1
+            label = f"{label}#{counts[label]}"
+        out[label] = series
+    return out
+
+
+def step_values(rf) -> dict[str, np.ndarray]:
+    """Per-state values of the series of an objective along the last forward run (collective).
+
+    Every state 0..N is evaluated (also those the objective gives zero weight, so there is no
+    NaN placeholder), as :func:`series_values` does; the numbers behind a time integral are
+    ``J_term = sum_i w_i s_i``.
+
+    Args:
+        rf: A ReducedFunctional after a forward run (``rf(q)``).
+
+    Returns:
+        ``{label: array of shape (N + 1,)}``, the same on every rank.
+
+    Raises:
+        ObjectiveError: No forward run yet.
+    """
+    if rf.trajectory is None:
+        raise ObjectiveError("no forward run yet: call rf(q) before step_values(rf)")
+    series = objective_series(rf.objective)
+    if not series:
+        return {}
+    values = series_values(rf.simulation, list(series.values()), rf.trajectory)
+    return {label: values[:, k] for k, label in enumerate(series)}
