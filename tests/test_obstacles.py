@@ -20,6 +20,7 @@ from diffsolids.controls import FrictionControl, InitialCondition, ShapeControl
 from diffsolids.errors import IntersectionError, MeshError, ParameterError
 from diffsolids.mesh.scene import combine_meshes, simplex_box
 from diffsolids.objectives import Integral, final_value, time_integral
+from diffsolids.optimize.invariants import check_trajectories
 from diffsolids.reduced_functional import ReducedFunctional
 
 DHAT = 1e-2
@@ -185,6 +186,51 @@ def test_obstacle_faster_than_body_is_refused():
     _, _, sim = block_scene(lift, integ, gravity=(0, 0))  # block 0.005 above, at rest
     with pytest.raises(IntersectionError, match=r"obstacle 'lift'.*faster than"):
         sim.run()
+
+
+def test_invariant_checks_see_obstacles():
+    """check_trajectories and ContactTerm.intersects check the obstacle at each state's time."""
+    speed = 0.5
+    integ = ds.BDF(1, 0.01, 4)
+    belt = ground(motion=lambda t: np.array([0.0, -speed * t]), name="sinking")
+    _, contact, sim = block_scene(belt, integ, gravity=(0, 0))
+    traj = sim.run()
+    checks = check_trajectories(sim, [traj], contact)
+    assert checks.intersecting == 0 and checks.min_distance > 0
+    assert not contact.intersects(traj.u[-1], step=len(traj.u) - 1)
+    # the block moved down by 2 cm: through the ground at rest, above it at step 4 (t = 0.04)
+    down = np.zeros_like(traj.u[0]).reshape(-1, 2)
+    down[:, 1] = -0.02
+    state = down.ravel()
+    assert contact.intersects(state, step=0) and not contact.intersects(state, step=4)
+    moved = ds.Trajectory(times=traj.times, u=[traj.u[0], state, traj.u[2], traj.u[3], state])
+    checks = check_trajectories(sim, [moved], contact)
+    assert checks.intersecting == 1  # state 1 (t = 0.01, ground at -0.005) only
+
+
+def test_obstacle_files(tmp_path):
+    """Surface files are the obstacle, volume files give their boundary; bad files: errors."""
+    import meshio
+
+    X = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [5, 5, 5.0]])
+    tris = np.array([[0, 1, 2], [0, 2, 3]])
+    meshio.write(tmp_path / "plane.obj", meshio.Mesh(X, [("triangle", tris)]))
+    plane = Obstacle.from_file(tmp_path / "plane.obj", scale=2.0, translation=[0, 0, -1])
+    assert plane.name == "plane" and plane.dim == 3 and len(plane.faces) == 2
+    assert np.allclose(plane.rest_positions, 2.0 * X[:4] + [0, 0, -1])  # unused point dropped
+    lines = meshio.Mesh(X[:3, :2], [("line", np.array([[0, 1], [1, 2]]))])
+    meshio.write(tmp_path / "curve.vtu", lines)
+    curve = Obstacle.from_file(tmp_path / "curve.vtu", dim=2)
+    assert curve.dim == 2 and len(curve.edges) == 2
+    square = meshio.Mesh(X[:4, :2], [("triangle", tris)])
+    meshio.write(tmp_path / "square.vtu", square)
+    boundary = Obstacle.from_file(tmp_path / "square.vtu", dim=2)
+    assert len(boundary.edges) == 4 and boundary.num_vertices == 4
+    with pytest.raises(MeshError, match="does not exist"):
+        Obstacle.from_file(tmp_path / "missing.obj")
+    (tmp_path / "bad.obj").write_text("this is not a mesh")
+    with pytest.raises(MeshError, match=r"bad\.obj"):
+        Obstacle.from_file(tmp_path / "bad.obj")
 
 
 # -- errors -------------------------------------------------------------------------------

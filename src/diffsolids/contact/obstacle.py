@@ -17,7 +17,9 @@ Motion: ``motion(t)`` returns the obstacle's placement at time (or load paramete
 values are broadcast, so all ranks hold the same obstacle (obstacles are global data).
 """
 
-from collections.abc import Callable
+import os
+from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import dolfinx
@@ -206,6 +208,71 @@ class Obstacle:
         if gdim == 2:
             return cls(X, edges=prims, motion=motion, name=name)
         return cls(X, faces=prims, motion=motion, name=name)
+
+    @classmethod
+    def from_file(
+        cls,
+        path: str | os.PathLike,
+        *,
+        dim: int | None = None,
+        scale: float = 1.0,
+        translation: Sequence[float] | None = None,
+        motion: Motion | None = None,
+        name: str | None = None,
+    ):
+        """An obstacle from a mesh file (every rank reads it; x' = scale x + translation).
+
+        A surface mesh (3D triangles, e.g. ``.obj``/``.stl``; 2D line segments) is the
+        obstacle itself; a volume mesh (2D triangles/quadrilaterals, 3D tetrahedra) gives its
+        boundary (:func:`diffsolids.mesh.read_mesh` and :meth:`from_domain`).
+
+        Args:
+            path: Any file meshio reads (``.msh`` volumes also through read_mesh).
+            dim: Geometric dimension (default: 3 unless the z coordinates are all zero).
+            scale: Scale factor (> 0).
+            translation: Translation vector.
+            motion: As for :class:`Obstacle`.
+            name: As for :class:`Obstacle` (default: the file's stem).
+
+        Raises:
+            MeshError: A missing or unreadable file, or one with neither surface nor volume
+                cells of the dimension.
+        """
+        import meshio
+
+        from diffsolids.mesh import read_mesh
+
+        path = Path(path)
+        name = path.stem if name is None else name
+        if not path.exists():
+            raise MeshError(f"obstacle file {path} does not exist")
+        try:
+            data = meshio.read(path)
+        except Exception as e:  # meshio raises many types
+            raise MeshError(f"obstacle file {path}: unreadable ({e})") from e
+        points = np.asarray(data.points, dtype=float)
+        if points.ndim != 2 or len(points) == 0 or not data.cells:
+            raise MeshError(f"obstacle file {path}: no points or cells")
+        if dim is None:
+            dim = 3 if points.shape[1] == 3 and np.ptp(points[:, 2]) > 0 else 2
+        kinds = {c.type for c in data.cells}
+        volume = {"tetra"} if dim == 3 else {"triangle", "quad"}
+        if kinds & volume:
+            domain = read_mesh(path, MPI.COMM_SELF, dim, scale=scale, translation=translation)
+            return cls.from_domain(domain, motion=motion, name=name)
+        kind = "triangle" if dim == 3 else "line"
+        cells = [c.data for c in data.cells if c.type == kind]
+        if not cells:
+            raise MeshError(f"obstacle file {path}: no {kind} or volume cells ({sorted(kinds)})")
+        prims = np.concatenate(cells)
+        used, prims = np.unique(prims, return_inverse=True)
+        prims = prims.reshape(-1, 3 if dim == 3 else 2)
+        X = float(scale) * points[used, :dim]
+        if translation is not None:
+            X = X + np.asarray(translation, dtype=float)
+        if dim == 3:
+            return cls(X, faces=prims, motion=motion, name=name)
+        return cls(X, edges=prims, motion=motion, name=name)
 
     def broadcast(self, comm: MPI.Comm) -> None:
         """Make the rest geometry rank 0's on every rank (collective)."""

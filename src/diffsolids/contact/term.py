@@ -194,6 +194,10 @@ class ContactTerm(NumericTerm):
         self.obstacles = self._check_obstacles(obstacles)
         self.surface = CollisionSurface(model.domain, model.V, self.obstacles)
         self.surface.obstacle_displacement(0.0)  # a bad motion fails here, not in a step
+        if self.obstacles:  # obstacles never collide with each other
+            static = np.zeros(self.surface.num_vertices, dtype=bool)
+            static[self.surface.num_body_vertices :] = True
+            self.surface.set_static(static)
         self.body_ids = self.surface.body_ids
         pairs = zip(self.obstacles, self.surface.obstacle_ids, strict=True)
         self._obstacle_names = {o.name: b for o, b in pairs if o.name}
@@ -940,6 +944,21 @@ class ContactTerm(NumericTerm):
                 " cannot start from touching bodies (leave a gap)"
             )
         return dist
+
+    def intersects(self, u: np.ndarray | None = None, step: int = 0) -> bool:
+        """Whether the collision surface (bodies and obstacles at step ``step``) intersects.
+
+        Collective. ``u`` is a local V array (None: the rest shape); the rest positions are
+        re-read from the mesh (shape iterates are seen).
+        """
+        if self.surface.update_rest_positions():
+            self._token += 1
+        U = self.surface.gather(u) if u is not None else np.zeros_like(self.surface.rest_positions)
+        if self.obstacles:
+            nb = self.surface.num_body_vertices
+            U[nb:] = self._obstacle_at(step)[nb:]
+        x = np.asfortranarray(self.surface.rest_positions + U)
+        return bool(ipctk.has_intersections(self.surface.mesh, x, ipctk.LBVH()))
 
     # -- output ---------------------------------------------------------------------------------
     def end_step(self, i: int, traj) -> ContactRecord:
