@@ -16,6 +16,7 @@ from diffsolids.objectives import (
     RestCollisionBarrier,
     StepValues,
     TimeGrid,
+    center_target,
     compliance,
     final_value,
     height_objective,
@@ -172,6 +173,15 @@ def test_target_trajectory_errors_name_the_state():
     s = target_trajectory(sim, own)
     with pytest.raises(ObjectiveError, match="the target has 4 states but the run has 3"):
         s.values({s: np.zeros(3)})
+
+
+def test_center_target_of_the_sliding_bunny():
+    """PolyFEM's center-target (fig21): zero on the own run, gradient against the E x 0.7 run."""
+    sim = simulation(SCENE, "bdf2")
+    own = _run(sim)
+    assert np.abs(series_values(sim, center_target(sim, own, bodies=[2]), own)).max() < 1e-28
+    s = center_target(sim, _target_run(sim, 0.7), bodies=[2])
+    _fd_check(sim, 100.0 * final_value(s), ["initial-v0", "young-field-log"])
 
 
 # -- node target -----------------------------------------------------------------------------

@@ -34,6 +34,7 @@ from diffsolids.objectives.reductions import SoftMin, min_distance_target, soft_
 from diffsolids.objectives.regularisers import BoundarySmoothing, MaterialSmoothing
 from diffsolids.objectives.targets import (
     TrajectoryTarget,
+    center_target,
     compliance,
     node_target,
     sdf_target,
@@ -58,6 +59,7 @@ __all__ = [
     "boundary_graph_fit",
     "center_of_mass",
     "center_of_mass_trajectory",
+    "center_target",
     "compliance",
     "final_value",
     "height_objective",

@@ -31,11 +31,20 @@ from diffsolids import forms
 from diffsolids.errors import ParameterError
 from diffsolids.model.terms import BodyForce, Traction
 from diffsolids.objectives.functional import Integral, ObjectiveError, Series
-from diffsolids.objectives.library import Tags, _data, _facet_measure, _volume_measure
+from diffsolids.objectives.library import (
+    Tags,
+    _data,
+    _facet_measure,
+    _volume_measure,
+    center_of_mass,
+    center_of_mass_trajectory,
+)
+from diffsolids.objectives.values import series_values
 from diffsolids.parallel import collective_comm
 
 __all__ = [
     "TrajectoryTarget",
+    "center_target",
     "compliance",
     "node_target",
     "sdf_target",
@@ -209,6 +218,27 @@ def target_trajectory(
 
     form(model.fields)  # unknown tags fail here
     return TrajectoryTarget(form, "target trajectory", len(states))
+
+
+def center_target(simulation, target, bodies: Tags = None) -> Series:
+    """Per-step squared distance of the centre of mass from that of a stored run.
+
+    ||c^i - c^trg,i||^2 with c the deformed centre of mass of ``bodies`` (PolyFEM's
+    ``center-target``, the sliding bunny of fig21 with ``integral_type: final``). The target's
+    centres are computed once, now, from its states on the current mesh (the numbers stay fixed
+    when the shape or the density changes later).
+
+    Args:
+        simulation: The Simulation the objective is evaluated on.
+        target: A Trajectory of a run on the same mesh and partition.
+        bodies: The bodies whose centre of mass is matched (default: all).
+
+    Raises:
+        ObjectiveError: The target has another number of states, times or layout.
+    """
+    _target_states(simulation, target)
+    com = series_values(simulation, center_of_mass(simulation.model, bodies), target)
+    return center_of_mass_trajectory(simulation.model, com, bodies)
 
 
 # -- node targets ------------------------------------------------------------------------------
