@@ -15,6 +15,20 @@ Motion: ``motion(t)`` returns the obstacle's placement at time (or load paramete
 
 ``motion=None`` is a fixed obstacle. The function is evaluated on every rank and rank 0's
 values are broadcast, so all ranks hold the same obstacle (obstacles are global data).
+
+Area weights (``ContactTerm(area_weighting=True)``): ipctk weights a 2D vertex-edge pair by half
+the vertex's area (half the lengths of its edges), a 3D vertex-face pair by a quarter of the
+vertex's area and an edge-edge pair by a quarter of the two edges' areas, with the areas of
+the collision mesh's own primitives: an obstacle vertex gets its area from the obstacle's
+segments/triangles, exactly as the boundary vertex of a meshed volume does from its boundary
+facets. So an obstacle whose geometry is a clamped volume's boundary
+(:meth:`Obstacle.from_domain`) gives the same contact as that volume (the same collision set,
+weights and trajectory; tests/test_obstacles.py checks it). A coarser obstacle for the same
+surface (a plane as two triangles) has no vertices under a body: its pairs are the body's
+vertices against the obstacle's faces only, the pairs of obstacle vertices against the body's
+faces are missing, and in flat contact the barrier carries about half the weight of a finely
+meshed obstacle (the contact force is the same at equilibrium, its gap is smaller). PolyFEM's
+``is_obstacle`` surfaces behave the same way (the same ipctk collision sets).
 """
 
 import os
