@@ -180,3 +180,105 @@ def test_unsupported_keys_and_bad_values_are_named(tmp_path):
         scene = read_polyfem_scene(_write(tmp_path, clamp), obstacles="clamp")
     model = scene.model(scene.domain(COMM))
     assert len(model.dirichlet) == 1
+
+
+# -- gradients on the scenes ---------------------------------------------------------------
+GRADIENT_STEPS = 6
+
+
+def paper_gradient_scene(name: str, comm=COMM):
+    """A few steps of a paper scene with the paper's objective, the bodies colliding early.
+
+    ``name`` is "puzzle" (control: the piece's initial velocity, evaluated at v0 = (1, -4), the
+    piece hitting the ground at step 3) or "kangaroo" (controls: the kangaroo's log E and nu at
+    the run scene's 3e6, 0.5, thrown at (3.2, -3) m/s so that it lands at step 3). The target
+    is the run of the target scene's values (shifted for the puzzle). The barrier stiffness is
+    suggest_barrier_stiffness's: with the scenes' kappa = 1e5 the pairs rest 1e-12 m apart,
+    where the distance of points ~1 m from the origin has a relative roundoff of ~1e-4, and
+    central differences agree with the adjoint only to ~1e-4 (h = 1e-3) and worse for smaller h.
+
+    Returns:
+        (ReducedFunctional, q, contact)
+    """
+    from demo_modules import load_demo
+
+    from diffsolids.controls import ParameterControl, RigidVelocity
+    from diffsolids.reduced_functional import ReducedFunctional
+
+    common = load_demo("paper_common")
+    folder = {"puzzle": "fig14_puzzle_piece", "kangaroo": "fig20_kangaroo"}[name]
+    _scene_file(folder + "/opt.json")
+    path, opt = common.experiment(DIFFIPC, folder)
+    run, target = common.scenes(path, opt)
+    model, contact, sim = common.build(run, comm, GRADIENT_STEPS, "suggest", rtol=1e-10)
+    if name == "puzzle":
+        control = RigidVelocity(sim, 1, angular=False)
+        q = np.array([1.0, -4.0])
+        control.assign(q + np.array([0.3, -0.2]))
+        controls = control
+    else:
+        v0 = sim.v0.reshape(-1, 2)
+        free = np.linalg.norm(v0, axis=1) > 0
+        v0[free] = [3.2, -3.0]
+        controls = [
+            ParameterControl(model, "E", "bodies", [1], log=True),
+            ParameterControl(model, "nu", "bodies", [1]),
+        ]
+        q = np.array([np.log(run.materials[1].E), run.materials[1].nu])
+        truth = [np.log(target.materials[1].E), target.materials[1].nu]
+        for c, value in zip(controls, truth, strict=True):
+            c.assign(np.array([value]))
+    traj = sim.run()
+    sim.targets = [u.copy() for u in traj.u]
+    rf = ReducedFunctional(sim, common.target_objective(sim, opt), controls)
+    rf(q)
+    return rf, q, contact
+
+
+@pytest.mark.parametrize("name", ["puzzle", "kangaroo"])
+def test_gradient_of_the_paper_objective_against_central_differences(name):
+    rf, q, contact = paper_gradient_scene(name)
+    g = rf.gradient(q)
+    gaps = [r.min_distance for r in contact.records[-GRADIENT_STEPS:]]
+    assert np.isfinite(gaps).sum() >= 3  # in contact over half of the steps
+    rng = np.random.default_rng(14)
+    h = 1e-4
+    for dq in (rng.normal(size=q.size), g / np.linalg.norm(g)):
+        fd = (rf(q + h * dq) - rf(q - h * dq)) / (2 * h)
+        assert abs(fd - g @ dq) <= 1e-6 * abs(g @ dq), (name, fd, g @ dq)
+
+
+# -- the demos -------------------------------------------------------------------------------
+def test_paper_puzzle_demo_tiny(tmp_path):
+    from demo_modules import load_demo
+
+    _scene_file("fig14_puzzle_piece/opt.json")
+    report = load_demo("paper_puzzle").main(
+        ["--tiny", "--no-plot", "--out", str(tmp_path), "--data", str(DIFFIPC)]
+    )
+    assert report.passed, report.summary()
+    assert report.extra["v0_error_final"] < 1e-3 * report.extra["v0_error_initial"]
+    assert report.extra["dofs"] == 740
+    assert report.extra["dhat"] == pytest.approx(0.8 * 4.24e-4, rel=5e-3)
+
+
+@pytest.mark.slow
+def test_paper_kangaroo_demo_tiny(tmp_path):
+    from demo_modules import load_demo
+
+    _scene_file("fig20_kangaroo/opt.json")
+    report = load_demo("paper_kangaroo").main(
+        ["--tiny", "--no-plot", "--out", str(tmp_path), "--data", str(DIFFIPC)]
+    )
+    assert report.passed, report.summary()
+    # two iterations move E toward the truth
+    E0, E1 = report.extra["initial"]["E"], report.extra["recovered"]["E"]
+    assert abs(np.log(E1 / 1e7)) < abs(np.log(E0 / 1e7))
+    assert report.extra["dofs"] == 462
+
+
+def test_missing_data_folder_is_named(tmp_path):
+    from demo_modules import load_demo
+
+    with pytest.raises(FileNotFoundError, match="--data"):
+        load_demo("paper_puzzle").main(["--tiny", "--no-plot", "--data", str(tmp_path)])

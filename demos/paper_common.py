@@ -1,0 +1,192 @@
+"""Helpers of the demos that run the paper's experiments on the paper's own data.
+
+The paper's data repository (``Huangzizhou/DiffIPC-data``, folder ``json_scripts/``) holds one
+folder per experiment with the meshes, the PolyFEM scene of the run (``run*.json``), of the
+target (``target*.json``) and the optimisation (``opt.json``: parameters, objective,
+optimiser). The demos take ``--data DIR`` (that folder of a checkout; default: the environment
+variable ``DIFFSOLIDS_DATA`` + ``/diffipc``, else ``../shared/data/diffipc`` next to the
+repository, as the tests do) and never copy the data.
+
+Here: the data folder, the scenes of an experiment (run and target must place the same
+meshes), the paper's ``transient_integral`` of a ``target`` objective (opt.json) as our
+objective, and a Simulation that loads the target of each step.
+"""
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+from common import ROOT
+from dolfinx import fem
+
+import diffsolids as ds
+from diffsolids.io.polyfem_scene import PolyFEMScene, read_polyfem_scene
+from diffsolids.objectives import target_displacement, time_integral
+
+__all__ = [
+    "DEFAULT_DATA",
+    "TargetSimulation",
+    "add_data_argument",
+    "build",
+    "experiment",
+    "kappa_argument",
+    "plot_paths",
+    "scenes",
+    "target_objective",
+]
+
+DEFAULT_DATA = Path(os.environ.get("DIFFSOLIDS_DATA", ROOT.parent / "shared" / "data")) / "diffipc"
+
+
+def add_data_argument(parser) -> None:
+    """``--data DIR`` (the folder holding the experiments' folders) and ``--kappa``."""
+    parser.add_argument(
+        "--data",
+        type=Path,
+        default=DEFAULT_DATA,
+        help=f"folder of the paper's scene data (default {DEFAULT_DATA})",
+    )
+    parser.add_argument(
+        "--kappa",
+        default="suggest",
+        help="barrier stiffness: 'suggest' (suggest_barrier_stiffness, the default), 'scene' "
+        "(the scene's barrier_stiffness as PolyFEM means it) or a number",
+    )
+
+
+def experiment(data: Path, folder: str) -> tuple[Path, dict]:
+    """The folder of an experiment and its ``opt.json``.
+
+    Raises:
+        FileNotFoundError: The folder or its opt.json is missing (names ``--data``).
+    """
+    path = Path(data) / folder
+    if not (path / "opt.json").is_file():
+        raise FileNotFoundError(
+            f"no {folder}/opt.json under {data}: pass --data DIR, the folder of the paper's "
+            "scene data (json_scripts/ of Huangzizhou/DiffIPC-data), or set DIFFSOLIDS_DATA"
+        )
+    return path, json.loads((path / "opt.json").read_text())
+
+
+def scenes(path: Path, opt: dict) -> tuple[PolyFEMScene, PolyFEMScene | None]:
+    """The run scene (``states[0]``) and the target scene (``states[1]``, if any).
+
+    Raises:
+        ds.ParameterError: The target places other meshes than the run.
+    """
+    states = [read_polyfem_scene(path / s["path"]) for s in opt["states"]]
+    run = states[0]
+    target = states[1] if len(states) > 1 else None
+    if target is not None and not run.same_geometry(target):
+        raise ds.ParameterError(f"{target.path}: the target places other meshes than {run.path}")
+    return run, target
+
+
+def kappa_argument(value: str | None):
+    """``--kappa`` as the ``stiffness`` argument of PolyFEMScene.contact_term.
+
+    "scene" (or None): the scene's own barrier stiffness; "suggest"; or a number.
+    """
+    if value is None or value == "scene":
+        return None
+    if value == "suggest":
+        return value
+    return float(value)
+
+
+class TargetSimulation(ds.Simulation):
+    """A Simulation that loads the target displacement of step i into ``self.target``.
+
+    ``load_step`` runs before anything of step i is assembled (forward, objective, adjoint), so
+    an objective on ``self.target`` compares u^i with the target of the same step.
+    """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.target = fem.Function(self.model.V, name="target")
+        self.targets: list[np.ndarray] | None = None
+
+    def load_step(self, i, traj):
+        """Set step ``i`` (see Simulation.load_step) and the target displacement of step i."""
+        if self.targets is not None:
+            self.target.x.array[:] = self.targets[i]
+        return super().load_step(i, traj)
+
+
+def target_objective(sim: TargetSimulation, opt: dict):
+    """The paper's objective of opt.json: ``transient_integral`` of a ``target`` term.
+
+    PolyFEM's ``target`` with ``surface_selection`` is int_Gamma |x - x_target|^2 ds over the
+    selected boundary (same meshes: |u - u_target|^2); its ``transient_integral`` (uniform)
+    skips t = 0 and weights each later step by dt; ``weight`` multiplies the whole.
+
+    Raises:
+        ds.ParameterError: opt.json holds another objective.
+    """
+    (functional,) = opt["functionals"]
+    static = functional.get("static_objective", {})
+    if (
+        functional.get("type") != "transient_integral"
+        or static.get("type") != "target"
+        or functional.get("integral_type", "uniform") != "uniform"
+    ):
+        raise ds.ParameterError(f"opt.json objective {functional!r} is not a uniform target")
+    facets = static["surface_selection"]
+    misfit = target_displacement(sim.model, sim.target, facets=facets)
+    return time_integral(misfit, "uniform") * float(functional.get("weight", 1.0))
+
+
+def build(scene: PolyFEMScene, comm, steps: int | None, kappa=None, rtol: float = 1e-9):
+    """The scene's model, contact term and a TargetSimulation of its first ``steps`` steps.
+
+    Args:
+        scene: The run scene.
+        comm: Communicator.
+        steps: Number of steps (None: the scene's).
+        kappa: ``--kappa`` ("scene" or None: the scene's barrier stiffness as written).
+        rtol: Newton tolerance.
+
+    Returns:
+        (model, contact, simulation)
+    """
+    domain = scene.domain(comm)
+    model = scene.model(domain)
+    integrator = ds.BDF(scene.bdf_order, scene.dt, steps or scene.num_steps)
+    # the scenes' soft barriers (kappa 1e5) rest pairs ~1e-11 m apart: only closer than
+    # 1e-10 dhat counts as touching in the invariant checks (check_trajectories)
+    contact = scene.contact_term(model, integrator, kappa_argument(kappa), min_gap=1e-10)
+    sim = TargetSimulation(
+        model,
+        integrator,
+        ds.SolverOptions(rtol=rtol),
+        u0=scene.nodal_values(model, scene.initial_displacement),
+        v0=scene.nodal_values(model, scene.initial_velocity),
+        progress=False,
+    )
+    return model, contact, sim
+
+
+def plot_paths(path, paths: dict, result, title: str, comm) -> None:
+    """Centre-of-mass paths (target, initial, final) and the objective per iteration."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from common import plot_history, save_figure
+
+    if comm.rank != 0:
+        return
+    fig, (ax, ax_h) = plt.subplots(1, 2, figsize=(11, 4), width_ratios=[2, 1])
+    styles = {"target": ("k", "-"), "initial": ("tab:blue", "--"), "final": ("tab:red", ":")}
+    for key, xy in paths.items():
+        color, ls = styles[key]
+        ax.plot(xy[:, 0], xy[:, 1], color=color, ls=ls, label=key)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.legend(fontsize=8)
+    ax.set_title(title, fontsize=9)
+    plot_history(ax_h, result, "J", "objective", fontsize=9)
+    save_figure(fig, path, comm)
