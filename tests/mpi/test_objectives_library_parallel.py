@@ -1,7 +1,7 @@
 """Run under ``mpiexec -n 2``: the objectives of the library for ported scenes (target
-trajectory, node targets, soft minimum over steps, signed distance, compliance, barriers and the
-rest collision barrier) give the same value and gradient on a distributed mesh as on a serial
-copy (COMM_SELF in the same process), parameter by parameter in canonical order."""
+trajectory, centre target, node targets, soft minimum over steps, signed distance, compliance,
+barriers and the rest collision barrier) give the same value and gradient on a distributed mesh
+as on a serial copy (COMM_SELF in the same process), parameter by parameter in canonical order."""
 
 import numpy as np
 import pytest
@@ -12,6 +12,7 @@ from mpi4py import MPI
 import diffsolids as ds
 from diffsolids.objectives import (
     RestCollisionBarrier,
+    center_target,
     compliance,
     final_value,
     inversion_barrier,
@@ -67,6 +68,7 @@ def _objective(sim):
         + inversion_barrier(model, 0.5, 0.6, deformed=False)
         + time_integral(sdf_barrier(model, lambda x: x[1] + 0.5, 0.6, facets=[2]), "uniform")
         + 1e-2 * RestCollisionBarrier(model, 0.6)
+        + 100.0 * final_value(center_target(sim, target, bodies=[2]))
     ), target
 
 
