@@ -1,0 +1,152 @@
+"""The documentation cannot rot: every example script runs, and the site builds without warning.
+
+Each ``docs/examples/*.py`` runs in a subprocess at a tiny size, and the checks read what it
+prints or writes (Taylor rates, finite-difference errors, objective decrease, output files).
+The Sphinx build runs as ``make docs`` does (``-W --keep-going``: any warning fails it).
+"""
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs"
+EXAMPLES = DOCS / "examples"
+BIN = Path(sys.executable).parent
+DATA = Path(os.environ.get("DIFFSOLIDS_DATA", ROOT.parent / "shared" / "data" / "diffipc"))
+# every example and the test that runs it (a new example without a test fails here)
+COVERED = {
+    "first_script.py": "test_first_script_serial_and_on_two_ranks",
+    "tutorial_2d.py": "test_tutorial_2d_optimises_and_writes_paraview_files",
+    "test_tutorial_2d.py": "test_the_tutorials_pytest_gradient_check_passes",
+    "tutorial_3d.py": "test_tutorial_3d",
+    "howto_extend.py": "test_howto_extend_gradients_through_the_new_pieces",
+    "howto_polyfem.py": "test_howto_polyfem_builds_and_runs_the_scene",
+}
+
+
+def _run(args: list[str], cwd: Path = ROOT, timeout: float = 300) -> str:
+    """Run a command, fail with its output unless it exits with 0; its stdout."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.run(
+        args, cwd=cwd, capture_output=True, text=True, timeout=timeout, env=env, check=False
+    )
+    assert proc.returncode == 0, f"{args} failed:\n{proc.stdout}\n{proc.stderr[-4000:]}"
+    return proc.stdout
+
+
+def _number(pattern: str, text: str) -> float:
+    match = re.search(pattern, text)
+    assert match, f"{pattern!r} not in the output:\n{text}"
+    return float(match.group(1))
+
+
+def test_every_example_has_a_test():
+    examples = {p.name for p in EXAMPLES.glob("*.py")}
+    assert examples == set(COVERED)
+    tests = {name for name in globals() if name.startswith("test_")}
+    assert set(COVERED.values()) <= tests
+
+
+def test_first_script_serial_and_on_two_ranks():
+    serial = _run([sys.executable, "docs/examples/first_script.py"])
+    assert _number(r"Taylor rate ([\d.]+)", serial) >= 1.9
+    assert 0.05 < _number(r"sag ([\d.e+-]+) m", serial) < 0.2
+    assert _number(r"dsag/dE ([\d.e+-]+)", serial) < 0  # stiffer: less sag
+    parallel = _run(
+        [str(BIN / "mpiexec"), "-n", "2", sys.executable, "docs/examples/first_script.py"]
+    )
+    assert parallel.strip() == serial.strip()  # printed once, same digits
+
+
+def test_tutorial_2d_optimises_and_writes_paraview_files(tmp_path):
+    out = _run(
+        [
+            sys.executable,
+            "docs/examples/tutorial_2d.py",
+            *("--steps", "10", "--dt", "0.05", "--iterations", "2", "--out", str(tmp_path)),
+        ]
+    )
+    J0 = _number(r"initial throw .*: J = ([\d.e+-]+)", out)
+    J1 = _number(r"optimised throw .*: J = ([\d.e+-]+)", out)
+    assert J1 < 0.5 * J0
+    assert "inverted states 0, intersecting 0" in out
+    for label in ("initial", "final"):
+        assert (tmp_path / f"{label}.bp").is_dir() and (tmp_path / f"{label}_cells.bp").is_dir()
+
+
+def test_the_tutorials_pytest_gradient_check_passes():
+    out = _run(
+        [sys.executable, "-m", "pytest", "-q", "-s", "-p", "no:cacheprovider", "docs/examples"]
+    )
+    assert "1 passed" in out
+    rates = [
+        float(r)
+        for r in re.findall(r"^\s*[\d.e+-]+\s+\S+\s+[\d.]+\s+\S+\s+([\d.]+)\s*$", out, re.M)
+    ]
+    assert rates and min(rates) > 1.8
+
+
+def test_tutorial_3d(tmp_path):
+    out = _run(
+        [
+            sys.executable,
+            "docs/examples/tutorial_3d.py",
+            *("--steps", "4", "--iterations", "1", "--out", str(tmp_path)),
+        ]
+    )
+    assert _number(r"Taylor rate ([\d.]+)", out) >= 1.8
+    J0, J1 = (float(x) for x in re.search(r"J ([\d.e+-]+) -> ([\d.e+-]+)", out).groups())
+    assert J1 < J0
+    assert (tmp_path / "final.bp").is_dir()
+
+
+def test_howto_extend_gradients_through_the_new_pieces():
+    out = _run([sys.executable, "docs/examples/howto_extend.py"])
+    errors = re.search(r"relative errors: random ([\d.e+-]+), along the gradient ([\d.e+-]+)", out)
+    assert errors, out
+    assert max(float(e) for e in errors.groups()) < 1e-6
+
+
+@pytest.mark.skipif(not (DATA / "fig20_kangaroo").is_dir(), reason="paper data not found")
+def test_howto_polyfem_builds_and_runs_the_scene():
+    out = _run(
+        [sys.executable, "docs/examples/howto_polyfem.py", "--data", str(DATA), "--steps", "3"]
+    )
+    assert "'stiffness': 100000.0" in out and "'friction': 0.5" in out
+    assert "3 steps" in out
+    assert 0 < _number(r"largest displacement ([\d.]+) m", out) < 0.2
+
+
+def test_the_documentation_builds_without_a_warning(tmp_path):
+    sphinx = shutil.which("sphinx-build", path=str(BIN))
+    assert sphinx, "sphinx-build missing: install the docs extra (pip install -e '.[docs]')"
+    out = tmp_path / "html"
+    proc = subprocess.run(
+        [
+            sphinx,
+            "-W",
+            "--keep-going",
+            "-q",
+            "-b",
+            "html",
+            "-d",
+            str(tmp_path / "doctrees"),
+            "docs",
+            str(out),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr[-6000:]
+    assert not proc.stderr.strip(), proc.stderr[-6000:]
+    for page in ("index", "getting_started", "tutorial", "api/index", "api/diffsolids"):
+        assert (out / f"{page}.html").is_file(), page
