@@ -10,9 +10,10 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from diffsolids.adjoint import AdjointSolverOptions, BackwardSweep, Sensitivities
+from diffsolids.adjoint.checkpointing import CheckpointedRun, Checkpointing
 from diffsolids.adjoint.forms import check_objective_fields
 from diffsolids.controls import Control, ControlSet
-from diffsolids.errors import DiffsolidsError
+from diffsolids.errors import DiffsolidsError, ParameterError
 from diffsolids.objectives import Objective, ObjectiveError, TimeGrid
 from diffsolids.objectives.terms import objective_terms
 from diffsolids.parallel import collective_comm
@@ -40,6 +41,14 @@ class ReducedFunctional:
             factorisation as the adjoint preconditioner of that step (0 disables; None, the
             default, keeps factors while the node has a quarter of its memory available:
             see :class:`~diffsolids.solvers.factor_store.FactorStore`).
+        checkpointing: Which forward states the adjoint keeps: a
+            :class:`~diffsolids.adjoint.checkpointing.Checkpointing` policy (all in memory, a
+            fixed number of checkpoints in memory, or disk); None (default) is
+            ``Checkpointing("auto")``, which keeps every state in memory while the states fit
+            the node's spare memory and checkpoints otherwise (the rule is in
+            :class:`~diffsolids.adjoint.checkpointing.Checkpointing`). Checkpointed runs give the
+            gradient of the all-in-memory run; their ``trajectory`` holds u^0, u^N and the
+            records only, and does not warm-start later runs.
 
     Raises:
         ObjectiveError: ``objective`` is not an Objective.
@@ -58,7 +67,12 @@ class ReducedFunctional:
         controls: Control | Sequence[Control],
         adjoint_options: AdjointSolverOptions | None = None,
         factor_memory_mb: float | None = None,
+        checkpointing: Checkpointing | None = None,
     ):
+        if checkpointing is not None and not isinstance(checkpointing, Checkpointing):
+            raise ParameterError(
+                f"checkpointing must be a Checkpointing policy, got {type(checkpointing).__name__}"
+            )
         if not isinstance(objective, Objective):
             raise ObjectiveError(
                 "objective must be an Objective (e.g. time_integral(Integral(...)))"
@@ -78,6 +92,8 @@ class ReducedFunctional:
         self._sweep: BackwardSweep | None = None
         if factor_memory_mb != 0 and simulation.integrator.num_steps > 1:
             simulation.solver.factor_store = FactorStore(factor_memory_mb)
+        self.checkpointing = checkpointing or Checkpointing()
+        self._run: CheckpointedRun | None = None  # of the last forward, when checkpointed
         self._state = None  # (q, trajectory, table, reg values, J)
         self.timings: dict[str, float] = {}
 
@@ -105,10 +121,16 @@ class ReducedFunctional:
         """Assign q, run the simulation and evaluate J."""
         q = np.array(q, dtype=float)
         self.controls.assign(q)
+        self._close_run()
         t0 = time.perf_counter()
-        traj = self.simulation.run()
+        policy = self.checkpointing.resolve(self.simulation)
+        if policy.policy == "all":
+            traj = self.simulation.run()
+            table = self._evaluate_leaves(traj)
+        else:
+            self._run = CheckpointedRun(self.simulation, policy)
+            traj, table = self._checkpointed_forward(self._run)
         self.timings["forward"] = time.perf_counter() - t0
-        table = self._evaluate_leaves(traj)
         reg = {r: r.evaluate(self.model) for r in self.regularisers}
         J = float(self.objective.value(table, reg, self.grid))
         if not np.isfinite(J):
@@ -117,23 +139,48 @@ class ReducedFunctional:
         return J
 
     def _evaluate_leaves(self, traj) -> dict:
-        grid = self.grid
-        needed = self.objective.requirements(grid)
-        f = self.model.fields
-        table = {leaf: np.full(grid.num_steps + 1, np.nan) for leaf in self.leaves}
+        table, needed = self._empty_table()
         steps = sorted(set().union(*needed.values())) if needed else []
         for i in steps:
-            if i > 0:
-                self.simulation.load_step(i, traj)
-            else:
-                self.model.update_time(0.0)
-            f.u.x.array[:] = traj.u[i]
-            f.v.x.array[:] = traj.v[i]
-            for leaf, leaf_steps in needed.items():
-                if i in leaf_steps:
-                    local = fem.assemble_scalar(self._value_forms[leaf])
-                    table[leaf][i] = collective_comm(self.comm).allreduce(local, op=MPI.SUM)
+            self._evaluate_step(i, traj, table, needed)
         return table
+
+    def _empty_table(self) -> tuple[dict, dict]:
+        grid = self.grid
+        needed = self.objective.requirements(grid)
+        table = {leaf: np.full(grid.num_steps + 1, np.nan) for leaf in self.leaves}
+        return table, needed
+
+    def _evaluate_step(self, i: int, traj, table: dict, needed: dict) -> None:
+        """The objective's integrals of step i (``traj`` holds u^{i-d..i}, v^{i-d..i})."""
+        if not any(i in leaf_steps for leaf_steps in needed.values()):
+            return
+        f = self.model.fields
+        if i > 0:
+            self.simulation.load_step(i, traj)
+        else:
+            self.model.update_time(0.0)
+        f.u.x.array[:] = traj.u[i]
+        f.v.x.array[:] = traj.v[i]
+        for leaf, leaf_steps in needed.items():
+            if i in leaf_steps:
+                local = fem.assemble_scalar(self._value_forms[leaf])
+                table[leaf][i] = collective_comm(self.comm).allreduce(local, op=MPI.SUM)
+
+    def _checkpointed_forward(self, run: CheckpointedRun):
+        """Forward run of a checkpointing schedule, the integrals evaluated as states appear."""
+        table, needed = self._empty_table()
+        run.on_state = lambda i, view: self._evaluate_step(i, view, table, needed)
+        try:
+            traj = self.simulation.run(checkpoints=run)
+        finally:
+            run.on_state = None
+        return traj, table
+
+    def _close_run(self) -> None:
+        if self._run is not None:
+            self._run.close()
+            self._run = None
 
     def __call__(self, q) -> float:
         """J(q) (reuses the last forward run when q is unchanged)."""
@@ -163,7 +210,18 @@ class ReducedFunctional:
                 self.simulation, self.leaves, self.controls.targets(), self.adjoint_options
             )
         t0 = time.perf_counter()
-        sens = self._sweep.run(traj, leaf_weights)
+        run = getattr(traj, "run", None)
+        if run is None:
+            sens = self._sweep.run(traj, leaf_weights)
+        else:
+            freed = run.reversed and self.simulation.solver.factor_store is not None
+            if run.closed or run.exhausted or freed:
+                # its schedule allowed one reverse, a later forward freed its checkpoints, or
+                # the last reverse freed the factors: the same forward again (the same states
+                # and factors: the same gradient)
+                self.forward(self._state[0])
+                run = self._state[1].run
+            sens = self._sweep.run_checkpointed(run, leaf_weights)
         self._add_regularisers(sens, reg_weights)
         g = self.controls.pullback(sens)
         self.timings["gradient"] = time.perf_counter() - t0

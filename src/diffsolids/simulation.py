@@ -48,6 +48,13 @@ class Trajectory:
         """Total Newton iterations over all steps."""
         return sum(r.iterations for r in self.records)
 
+    def append_state(self, t: float, u: np.ndarray, v: np.ndarray, record: StepRecord) -> None:
+        """Append the state of the next step and its record."""
+        self.times.append(t)
+        self.u.append(u)
+        self.v.append(v)
+        self.records.append(record)
+
 
 def _initial_array(V: fem.FunctionSpace, value, name: str) -> np.ndarray:
     f = fem.Function(V)
@@ -192,7 +199,8 @@ class Simulation:
         guess = prev + self.integrator.dt * traj.v[i - 1] if self.integrator.dynamic else prev
         candidates = [guess, prev]
         warm = self.warm_start
-        if warm is not None and i < len(warm.u) and warm.u[i].shape == prev.shape:
+        # only a full Trajectory warm-starts (a checkpointed one does not hold every state)
+        if isinstance(warm, Trajectory) and i < len(warm.u) and warm.u[i].shape == prev.shape:
             candidates.insert(0, warm.u[i])
         for candidate in candidates:
             u.x.array[:] = candidate
@@ -281,36 +289,69 @@ class Simulation:
         return min(b.max_step(x, dx) for b in numeric) <= 1.0
 
     # -- run -----------------------------------------------------------------------------
-    def run(self) -> Trajectory:
-        """Solve all steps and return the trajectory (also kept as ``self.trajectory``)."""
+    def run(self, checkpoints=None) -> Trajectory:
+        """Solve all steps and return the trajectory (also kept as ``self.trajectory``).
+
+        Args:
+            checkpoints: Optional :class:`~diffsolids.adjoint.checkpointing.CheckpointedRun`
+                that drives the steps by its schedule and keeps only its checkpoints; the
+                returned trajectory is then its
+                :class:`~diffsolids.adjoint.checkpointing.CheckpointedTrajectory`.
+        """
         from diffsolids.io.progress import progress_bar
 
         integ = self.integrator
-        self.solver.reset()
-        self.substeps = {}
-        if self.solver.factor_store is not None:
-            self.solver.factor_store.clear()
-        traj = Trajectory(times=[0.0], u=[self.u0.copy()], v=[self.v0.copy()])
+        self.begin_run()
         writer = self._open_writer()
+        if checkpoints is None:
+            traj = Trajectory(times=[0.0], u=[self.u0.copy()], v=[self.v0.copy()])
+        else:
+            traj = checkpoints.start()
         if writer:
             writer.write(0.0, traj.u[0], traj.v[0])
         with progress_bar(integ.num_steps, self.model.domain.comm, self.progress) as bar:
-            for i in range(1, integ.num_steps + 1):
-                if i <= len(self.startup):
-                    self._prescribe(i, traj)
-                else:
-                    self._step(i, traj)
+
+            def stepped(i: int, states) -> None:
                 if writer:
-                    writer.write(traj.times[i], traj.u[i], traj.v[i])
+                    writer.write(traj.times[i], states.u[i], states.v[i])
                 bar.update(1)
                 if self.callback:
                     self.callback(i, self)
+
+            if checkpoints is None:
+                for i in range(1, integ.num_steps + 1):
+                    self.advance(i, traj)
+                    stepped(i, traj)
+            else:
+                checkpoints.forward(stepped)
         if writer:
             writer.close()
         self.trajectory = traj
         return traj
 
-    def _step(self, i: int, traj: Trajectory) -> None:
+    def begin_run(self) -> None:
+        """Forget the previous run's solver state (cached Jacobians, stored factors)."""
+        self.solver.reset()
+        self.substeps = {}
+        if self.solver.factor_store is not None:
+            self.solver.factor_store.clear()
+
+    def advance(self, i: int, traj, replay: bool = False) -> None:
+        """Solve (or prescribe) step ``i`` from the states of ``traj`` and append u^i, v^i.
+
+        Args:
+            i: The step.
+            traj: A Trajectory, or a checkpointing view holding the states step ``i`` reads
+                (u^{i-j}, v^{i-j} for j = 1..max(m, 2)).
+            replay: The step is recomputed from a checkpoint (backward sweep): numeric terms'
+                ``end_step`` (records and output of a converged step) is not called again.
+        """
+        if i <= len(self.startup):
+            self._prescribe(i, traj)
+        else:
+            self._step(i, traj, replay)
+
+    def _step(self, i: int, traj, replay: bool = False) -> None:
         t0 = time.perf_counter()
         c = self.load_step(i, traj)
         for term in self.model.numeric_terms:
@@ -335,19 +376,18 @@ class Simulation:
             if self.integrator.dynamic
             else ((u_i - traj.u[i - 1]) / c.dt)
         )
-        traj.times.append(self.integrator.time(i))
-        traj.u.append(u_i)
-        traj.v.append(v_i)
         rec = StepRecord(
             i,
-            traj.times[-1],
+            self.integrator.time(i),
             c.order,
             result.iterations,
             result.residual,
             result.energy,
             time.perf_counter() - t0,
         )
-        traj.records.append(rec)
+        traj.append_state(rec.time, u_i, v_i, rec)
+        if replay:
+            return
         for term in self.model.numeric_terms:
             term.end_step(i, traj)
         logger.info(
@@ -361,12 +401,10 @@ class Simulation:
             rec.seconds,
         )
 
-    def _prescribe(self, i: int, traj: Trajectory) -> None:
+    def _prescribe(self, i: int, traj) -> None:
         u_i, v_i = self.startup[i - 1]
-        traj.times.append(self.integrator.time(i))
-        traj.u.append(u_i.copy())
-        traj.v.append(v_i.copy())
-        traj.records.append(StepRecord(i, traj.times[-1], 0, 0, np.nan, np.nan, 0.0))
+        t = self.integrator.time(i)
+        traj.append_state(t, u_i.copy(), v_i.copy(), StepRecord(i, t, 0, 0, np.nan, np.nan, 0.0))
 
     def _open_writer(self):
         if self.output is None:

@@ -1,5 +1,11 @@
 """The discrete adjoint: backward sweep, its forms and its linear solves."""
 
+from diffsolids.adjoint.checkpointing import (
+    CheckpointedRun,
+    CheckpointedTrajectory,
+    Checkpointing,
+    CheckpointingError,
+)
 from diffsolids.adjoint.forms import AdjointForms
 from diffsolids.adjoint.linear import AdjointLinearSolver, AdjointSolverOptions
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
@@ -10,6 +16,10 @@ __all__ = [
     "AdjointLinearSolver",
     "AdjointSolverOptions",
     "BackwardSweep",
+    "CheckpointedRun",
+    "CheckpointedTrajectory",
+    "Checkpointing",
+    "CheckpointingError",
     "Sensitivities",
     "Targets",
 ]

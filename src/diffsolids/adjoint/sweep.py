@@ -39,6 +39,18 @@ __all__ = ["BackwardSweep"]
 logger = logging.getLogger("diffsolids")
 
 
+class _Adjoints(dict):
+    """Accumulated adjoints ubar^i (or vbar^i) by step, created as zeros when first touched."""
+
+    def __init__(self, n: int):
+        super().__init__()
+        self.n = n
+
+    def __missing__(self, i: int) -> np.ndarray:
+        value = self[i] = np.zeros(self.n)
+        return value
+
+
 class BackwardSweep:
     """Computes Sensitivities of an objective for the last forward run of a Simulation.
 
@@ -96,55 +108,93 @@ class BackwardSweep:
     # -- the sweep ----------------------------------------------------------------------------
     def run(self, traj, leaf_weights: dict) -> Sensitivities:
         """Backward sweep over ``traj`` with chain-rule weights ``leaf_weights[leaf][i]``."""
-        t0 = time.perf_counter()
+        self._begin(traj.num_steps, len(traj.u[0]), leaf_weights)
+        for i in range(traj.num_steps, 0, -1):
+            self._step(i, traj)
+        return self._finish((traj.u[0], traj.v[0]))
+
+    def run_checkpointed(self, run, leaf_weights: dict) -> Sensitivities:
+        """Backward sweep of a :class:`~diffsolids.adjoint.checkpointing.CheckpointedRun`.
+
+        The run's schedule recomputes the states each step needs; the forward factorisations
+        of recomputed steps precondition their adjoint solves and are freed after them. Same
+        arithmetic as :meth:`run`: the gradient of the all-in-memory sweep.
+        """
+        u0, v0 = run.initial_state()
+        self._begin(run.N, len(u0), leaf_weights)
+        store = self.sim.solver.factor_store
+
+        def step(i: int, view) -> None:
+            if store is not None:  # the factors of steps recomputed since the last step
+                self.linear._stored = dict(store.factors)
+            self._step(i, view)
+            if store is not None:
+                store.discard_after(i)
+
+        run.reverse(step)
+        if store is not None:
+            store.clear()
+        return self._finish((u0, v0))
+
+    def _begin(self, N: int, n: int, leaf_weights: dict) -> None:
+        self._t0 = time.perf_counter()
         self._phases.clear()  # also drops the times of a sweep that raised part-way
-        sim, forms = self.sim, self.forms
-        n = len(traj.u[0])
-        N = traj.num_steps
-        ubar = [np.zeros(n) for _ in range(N + 1)]
-        vbar = [np.zeros(n) for _ in range(N + 1)]
-        sens = self._empty_sensitivities(N)
+        # accumulated adjoints of the states not yet swept (those of step i are complete at i)
+        self._ubar = _Adjoints(n)
+        self._vbar = _Adjoints(n)
+        self._weights = leaf_weights
+        self._sens = self._empty_sensitivities(N)
         self.linear.begin()
-        krylov = []
-        for i in range(N, 0, -1):
-            c = sim.load_step(i, traj)
-            self._load_state(traj, i)
-            for term in self.model.numeric_terms:
-                term.begin_step(i, traj, c, sim)
-            active = forms.set_weights(leaf_weights, i)
-            if active:
-                with self._phase("objective_state"):
-                    self._add(ubar[i], forms.objective_u)
-                    self._add(vbar[i], forms.objective_v)
-                    self._add(ubar[i - 1], forms.objective_prev)
-                    if forms.objective_tilde is not None:
-                        g = self._assemble(forms.objective_tilde)
-                        self._push_predictor(ubar, vbar, i, c, g)
-            # 1. v^i = (u^i + sum_j alpha_j u^{i-j}) / (beta dt)
-            ubar[i] += vbar[i] / c.beta_dt
-            for j, a in enumerate(c.alpha, start=1):
-                ubar[i - j] += a * vbar[i] / c.beta_dt
-            # 2. K_i lambda_i = -ubar^i on free dofs
-            with self._phase("linear_solves"):
-                krylov.append(self._solve(ubar[i], i))
-            # 3. push lambda_i (and the objective's own partials) into the inputs of step i
-            with self._phase("history"):
-                self._history(ubar, vbar, i, c)
-            with self._phase("parameters"):
-                self._parameters(sens, active)
-            if self.targets.dirichlet:
-                ubar[i][: self.owned] += self._assemble(forms.jacobian_action)
-                sens.dirichlet[i] = ubar[i]
-        self._initial_step(traj, leaf_weights, ubar, vbar, sens)
-        seconds = time.perf_counter() - t0
+        self._krylov = []
+
+    def _step(self, i: int, traj) -> None:
+        """Adjoint of step i: reads u^{i-d..i}, v^{i-d..i} of ``traj``."""
+        sim, forms = self.sim, self.forms
+        ubar, vbar, sens = self._ubar, self._vbar, self._sens
+        c = sim.load_step(i, traj)
+        self._load_state(traj, i)
+        for term in self.model.numeric_terms:
+            term.begin_step(i, traj, c, sim)
+        active = forms.set_weights(self._weights, i)
+        if active:
+            with self._phase("objective_state"):
+                self._add(ubar[i], forms.objective_u)
+                self._add(vbar[i], forms.objective_v)
+                self._add(ubar[i - 1], forms.objective_prev)
+                if forms.objective_tilde is not None:
+                    g = self._assemble(forms.objective_tilde)
+                    self._push_predictor(ubar, vbar, i, c, g)
+        # 1. v^i = (u^i + sum_j alpha_j u^{i-j}) / (beta dt)
+        ubar[i] += vbar[i] / c.beta_dt
+        for j, a in enumerate(c.alpha, start=1):
+            ubar[i - j] += a * vbar[i] / c.beta_dt
+        # 2. K_i lambda_i = -ubar^i on free dofs
+        with self._phase("linear_solves"):
+            self._krylov.append(self._solve(ubar[i], i))
+        # 3. push lambda_i (and the objective's own partials) into the inputs of step i
+        with self._phase("history"):
+            self._history(ubar, vbar, i, c)
+        with self._phase("parameters"):
+            self._parameters(sens, active)
+        if self.targets.dirichlet:
+            ubar[i][: self.owned] += self._assemble(forms.jacobian_action)
+            sens.dirichlet[i] = ubar[i]
+        ubar.pop(i)
+        vbar.pop(i)
+
+    def _finish(self, state0) -> Sensitivities:
+        sens = self._sens
+        self._initial_step(state0, self._weights, self._ubar, self._vbar, sens)
+        seconds = time.perf_counter() - self._t0
         phases = dict(self._phases)
         phases["other"] = seconds - sum(phases.values())  # loading states, step 0, Dirichlet
         self.stats = {
             "seconds": seconds,
             **self.linear.stats,
             "phase_seconds": phases,
-            "krylov_per_step": krylov[::-1],
+            "krylov_per_step": self._krylov[::-1],
         }
+        self._ubar = self._vbar = self._sens = None
         return sens
 
     def _empty_sensitivities(self, N: int) -> Sensitivities:
@@ -226,11 +276,12 @@ class BackwardSweep:
                     contrib = term.adjoint_parameter(name, self.model.fields.u, lam)
                     sens.contact[name] = sens.contact.get(name, 0.0) + contrib
 
-    def _initial_step(self, traj, leaf_weights, ubar, vbar, sens) -> None:
+    def _initial_step(self, state0, leaf_weights, ubar, vbar, sens) -> None:
         """Step 0: objective partials at u^0, v^0 (lambda = 0) and the initial sensitivities."""
         forms = self.forms
         self.model.update_time(0.0)
-        self._load_state(traj, 0)
+        f = self.model.fields
+        f.u.x.array[:], f.v.x.array[:] = state0
         forms.lam.x.array[:] = 0.0
         if forms.set_weights(leaf_weights, 0):
             self._add(ubar[0], forms.objective_u)

@@ -140,6 +140,16 @@ class FactorStore:
         self.used_mb = 0.0
         self.stride = 1
 
+    def discard_after(self, step: int) -> None:
+        """Free the factorisations of steps after ``step`` (collective: same steps on all ranks).
+
+        A checkpointed backward sweep calls this once the adjoint of ``step`` is solved: later
+        steps' factors are not needed again (a preconditioner still in use keeps its own
+        reference to them).
+        """
+        for s in [s for s in self.factors if s > step]:
+            self._drop(s)
+
     def _drop(self, step: int) -> None:
         self.factors.pop(step).destroy()
         self.used_mb -= self.sizes_mb.pop(step)
@@ -182,6 +192,8 @@ class FactorStore:
             return
         if step % self.stride:
             return
+        if step in self.factors:  # the step was solved again (a checkpointed recomputation)
+            self._drop(step)
         comm = old.comm.tompi4py()
         if not self._room(comm) or step % self.stride:  # thinning may have doubled the stride
             return
