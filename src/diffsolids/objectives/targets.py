@@ -249,13 +249,13 @@ def _vertex_nodes(model, nodes) -> tuple[fem.FunctionSpace, np.ndarray, np.ndarr
     """
     mesh = model.domain.mesh
     Q = fem.functionspace(mesh, ("Lagrange", 1))
-    comm = collective_comm(mesh.comm)
+    collective = collective_comm(mesh.comm)
     imap = Q.dofmap.index_map
     owned = imap.size_local
     if callable(nodes):
         dofs = fem.locate_dofs_geometrical(Q, nodes)
         order = None
-        if comm.allreduce(int(np.sum(dofs < owned)), op=MPI.SUM) == 0:
+        if collective.allreduce(int(np.sum(dofs < owned)), op=MPI.SUM) == 0:
             raise ParameterError("node target: the locator selects no mesh vertex")
         return Q, dofs, order
     wanted = np.asarray(nodes, dtype=np.int64).ravel()
@@ -266,7 +266,7 @@ def _vertex_nodes(model, nodes) -> tuple[fem.FunctionSpace, np.ndarray, np.ndarr
     ids = mesh.geometry.input_global_indices[q_to_node].astype(np.int64)
     hit = np.isin(ids, wanted)
     dofs = np.flatnonzero(hit).astype(np.int32)
-    found = comm.allgather(ids[:owned][hit[:owned]])
+    found = collective.allgather(ids[:owned][hit[:owned]])
     missing = np.setdiff1d(wanted, np.concatenate(found))
     if missing.size:
         raise ParameterError(
