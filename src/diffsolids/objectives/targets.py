@@ -262,7 +262,8 @@ def _vertex_nodes(model, nodes) -> tuple[fem.FunctionSpace, np.ndarray, np.ndarr
     if wanted.size == 0 or len(np.unique(wanted)) != wanted.size:
         raise ParameterError("node target: give distinct vertex indices (at least one)")
     q_to_node = np.empty(owned + imap.num_ghosts, dtype=np.int64)
-    q_to_node[Q.dofmap.list.ravel()] = mesh.geometry.dofmaps[0].ravel()
+    corners = Q.dofmap.list.shape[1]  # the vertex nodes come first in the geometry dofmap
+    q_to_node[Q.dofmap.list.ravel()] = mesh.geometry.dofmaps[0][:, :corners].ravel()
     ids = mesh.geometry.input_global_indices[q_to_node].astype(np.int64)
     hit = np.isin(ids, wanted)
     dofs = np.flatnonzero(hit).astype(np.int32)
