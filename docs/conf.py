@@ -167,7 +167,25 @@ def plain_docstrings(app, what, name, obj, options, lines) -> None:
             lines[i] = "".join(p if p.startswith("``") else p.replace("|", "\\|") for p in parts)
 
 
+def resolve_top_level(app, env, node, contnode):
+    """Resolve ``diffsolids.Name[.attr]`` to where Name is documented (its subpackage)."""
+    target = node.get("reftarget", "")
+    if node.get("refdomain") != "py" or not target.startswith("diffsolids."):
+        return None
+    name, _, rest = target.removeprefix("diffsolids.").partition(".")
+    if name not in diffsolids.__all__:
+        return None
+    canonical = _canonical("diffsolids", name) + (f".{rest}" if rest else "")
+    if canonical == target:
+        return None
+    py = env.get_domain("py")
+    return py.resolve_xref(
+        env, node["refdoc"], app.builder, node["reftype"], canonical, node, contnode
+    )
+
+
 def setup(app) -> None:
     """Write the API pages before Sphinx reads the sources; read docstrings as written."""
     app.connect("builder-inited", write_api_pages, priority=100)
     app.connect("autodoc-process-docstring", plain_docstrings)
+    app.connect("missing-reference", resolve_top_level)
