@@ -32,7 +32,11 @@ must be made together with the body's initial guess: :meth:`ContactTerm.max_step
 u^{i-1} then checks the straight path on which the obstacles move from O^{i-1} to O^i while the
 body moves from u^{i-1} to the guess, and admits it only in full (inf or 0). If no guess passes, a
 clear IntersectionError names the obstacle and the step (a smaller time step, or an initial
-guess that moves with the obstacle, is needed).
+guess that moves with the obstacle, is needed). So a moving obstacle may carry a body that
+already moves with it (the extrapolated guess u^{i-1} + dt v^{i-1} of a body riding a lift) or
+slide along it (a belt), but not push a body at rest, or quasi-statically in load steps, by
+more than their gap per step: that needs a continuation of the obstacle's move with
+intermediate solves (as ``Simulation._dirichlet_continuation`` does for Dirichlet values).
 """
 
 import contextlib
@@ -202,6 +206,7 @@ class ContactTerm(NumericTerm):
         pairs = zip(self.obstacles, self.surface.obstacle_ids, strict=True)
         self._obstacle_names = {o.name: b for o, b in pairs if o.name}
         self._clock = None
+        self._dynamic = True
         self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness)
         self.friction_potential = ipctk.FrictionPotential(self.eps_v)
         self.broad_phase = ipctk.LBVH()
@@ -311,6 +316,7 @@ class ContactTerm(NumericTerm):
         self._update_static()
         if sim is not None:
             self._clock = sim.integrator.time
+            self._dynamic = sim.integrator.dynamic
         elif self._clock is None:
             self._clock = lambda k, dt=coeffs.dt: k * dt
         m = len(coeffs.alpha)
@@ -401,6 +407,13 @@ class ContactTerm(NumericTerm):
             "Newton solve of a step, which then keeps them at t_i); use a smaller time step "
             "(an obstacle pressing a body may move at most about the contact gap per step "
             "unless the body already moves with it) or a slower motion"
+            + (
+                ""
+                if self._dynamic
+                else "; load steps have no velocity for the guess to move with, so an "
+                "obstacle cannot push a body quasi-statically: drive a clamped volume by "
+                "Dirichlet values instead (reached by continuation)"
+            )
         )
 
     def _step_motion(self, i: int, traj, coeffs) -> tuple[np.ndarray, np.ndarray]:
