@@ -374,9 +374,24 @@ def test_series_barrier_on_the_height():
     assert value > 0
 
 
-def test_step_values_name_the_non_finite_state():
-    with pytest.raises(ObjectiveError, match=r"1 are not \(state 0: nan\)"):
-        StepValues([np.nan, 1.0, 2.0], "height")
+def test_step_values_missing_states_and_the_step_that_uses_one():
+    """NaN marks a state without data: fine where the weight is zero, named where it is not."""
+    with pytest.raises(ObjectiveError, match=r"1 are infinite \(state 2: inf\)"):
+        StepValues([0.0, 1.0, np.inf], "height")
+    a = _leaf("a")
+    table = {a: np.array([np.nan, 1.0, 2.0, 3.0, 4.0, 5.0])}
+    target = StepValues([np.nan, 1.5, 1.5, np.nan, 1.5, 1.5], "target")
+    misfit = (a - target) ** 2
+    assert time_integral(misfit, [1, 2, 4, 5]).value(table, {}, GRID) == pytest.approx(
+        0.25 + 0.25 + 6.25 + 12.25
+    )
+    out = {}
+    time_integral(misfit, [1, 2, 4, 5]).backward(table, {}, GRID, 1.0, out, {})
+    assert np.array_equal(out[a], [0.0, -1.0, 1.0, 0.0, 5.0, 7.0])
+    with pytest.raises(ObjectiveError, match=r"not finite at 1 step\(s\) .*\(step 3: nan\)"):
+        time_integral(misfit, "uniform").value(table, {}, GRID)
+    with pytest.raises(ObjectiveError, match=r"step 3: nan"):
+        soft_min(misfit).value(table, {}, GRID)
 
 
 # -- the IPC barrier of the rest shape -------------------------------------------------------------

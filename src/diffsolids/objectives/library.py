@@ -54,9 +54,16 @@ Tags = int | str | Sequence[int | str] | None
 class StepValues(DataSeries):
     """Given values s_0..s_N (data, e.g. a target per step); no derivatives.
 
+    NaN marks a state without data (e.g. state 0 of per-step values taken with "uniform"
+    weights): an objective that gives such a state a nonzero weight raises an ObjectiveError
+    naming it; the others never read it.
+
     Args:
         values: N + 1 numbers (checked against the run's steps when evaluated).
         name: Name used in error messages.
+
+    Raises:
+        ObjectiveError: Not 1D, or an infinite entry (naming the states).
     """
 
     def __init__(self, values, name: str = "step values"):
@@ -66,13 +73,12 @@ class StepValues(DataSeries):
                 f"{name}: expected a finite 1D array of per-step values (one per state 0..N), "
                 f"got shape {self.array.shape}"
             )
-        bad = np.flatnonzero(~np.isfinite(self.array))
+        bad = np.flatnonzero(np.isinf(self.array))
         if bad.size:
             shown = ", ".join(f"state {i}: {self.array[i]}" for i in bad[:5])
             raise ObjectiveError(
-                f"{name}: per-step values must be finite, {bad.size} are not ({shown}); a state "
-                "the objective gives zero time weight (e.g. state 0 with 'uniform') may hold "
-                "any finite number such as 0"
+                f"{name}: per-step values must be finite (NaN: no data), {bad.size} are "
+                f"infinite ({shown})"
             )
         self.name = name
 
