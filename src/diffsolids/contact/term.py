@@ -106,7 +106,8 @@ class ContactRecord:
         step: Step index.
         num_collisions: Active primitive pairs (distance below dhat).
         min_distance: Smallest distance between active pairs (inf when there are none).
-        normal_force: (num_bodies, dim) total barrier force on each body (rows: ``body_ids``).
+        normal_force: (num_bodies, dim) total barrier force on each body (rows: ``body_ids``,
+            the domain's bodies, then the obstacles: the force on an obstacle is its reaction).
         friction_force: (num_bodies, dim) total friction force on each body.
     """
 
