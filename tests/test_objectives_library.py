@@ -10,6 +10,7 @@ from diffsolids.forms.objectives import log_barrier
 from dolfinx import fem
 from gradient_scenes import CONTROLS, simulation
 
+from diffsolids.adjoint import Checkpointing, CheckpointingError
 from diffsolids.objectives import (
     Integral,
     ObjectiveError,
@@ -498,3 +499,10 @@ def test_step_values_of_an_objective_are_public_and_finite_at_every_state():
     assert by_steps == pytest.approx(value, rel=1e-12)
     terms = rf.term_values()
     assert any(label.startswith("softmin(") for label in terms)
+    # a checkpointed run keeps u^0 and u^N only: refused, not evaluated on the wrong states
+    rf = ReducedFunctional(
+        sim, J, [CONTROLS["initial-v0"](sim)], checkpointing=Checkpointing("memory", snaps=2)
+    )
+    assert rf(rf.initial_parameters()) == pytest.approx(value, rel=1e-12)
+    with pytest.raises(CheckpointingError, match=r"state 1 is not held"):
+        step_values(rf)

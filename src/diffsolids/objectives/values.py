@@ -143,6 +143,8 @@ def step_values(rf) -> dict[str, np.ndarray]:
 
     Raises:
         ObjectiveError: No forward run yet.
+        CheckpointingError: A checkpointed run that did not keep every state (use
+            ``Checkpointing("all")``).
     """
     if rf.trajectory is None:
         raise ObjectiveError("no forward run yet: call rf(q) before step_values(rf)")
