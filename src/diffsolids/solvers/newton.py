@@ -58,6 +58,17 @@ class SolverOptions:
             of the suggested stiffness stops an approaching pair within about three cuts of
             about 1/5 each; more and smaller cuts in a row mean a soft barrier.
         march_substeps: At most this many extensions per Newton step.
+        exact_hessian_below: Numeric terms that offer a PSD-projected Newton matrix (contact)
+            give it to Newton while ||residual|| > ``exact_hessian_below * f_char`` and their
+            exact Hessian below (quadratic convergence at the end, and the factors the adjoint
+            reuses are those of the exact Jacobian). With contact the step potential is not
+            convex: Newton on the exact (indefinite) Hessian, projected only when its step is not
+            a descent direction, can end at a different stationary point after a tiny change
+            of the parameters (a saddle, 2e-3 above the minimum in the box-on-slab scene of
+            tests/test_friction_smoothness.py), so J jumps and finite differences do not
+            verify gradients. Projected steps descend into a minimum, as in IPC and PolyFEM.
+            ``inf``: the exact Hessian from the start (the behaviour before this option);
+            ``0``: always projected.
     """
 
     rtol: float = 1e-9
@@ -69,6 +80,7 @@ class SolverOptions:
     march_after: int = 4
     march_below: float = 0.03
     march_substeps: int = 25
+    exact_hessian_below: float = 1e-3
 
 
 @dataclass
@@ -219,7 +231,14 @@ class NewtonSolver:
         if self.quadratic and self._jacobian_key == self._current_key():
             return  # the Hessian of a quadratic potential does not change: keep the factors
         self._assign(x)
-        self.assemble_jacobian(A)
+        o = self.options
+        if self._projectable() and not self._fnorm <= o.exact_hessian_below * self._f_char:
+            self.assemble_projected_jacobian(A)
+            self._exact_factors = False
+            self.projected_steps += 1
+        else:
+            self.assemble_jacobian(A)
+            self._exact_factors = True
         self._jacobian_key = self._current_key()
 
     def _current_key(self):
@@ -285,6 +304,7 @@ class NewtonSolver:
             self.snes.getKSP().solve(F, y)
             slope = y.dot(F)
             self.projected_steps += 1
+            self._exact_factors = False
         if not slope > 0:
             # Not a descent direction (indefinite Hessian): fall back to the gradient direction.
             y.scale(0.0)
@@ -544,6 +564,7 @@ class NewtonSolver:
             self._energy_cache[0].destroy()
             self._energy_cache = None
         self._roundoff_converged = False
+        self._exact_factors = True
         self.fallbacks = 0
         self.bounded_steps = 0
         self.marched_substeps = 0
@@ -574,7 +595,8 @@ class NewtonSolver:
         # Success means the residual test passed, or the Newton increment reached round-off;
         # whatever else PETSc may report (e.g. a user snes_stol) is not convergence.
         converged = self._roundoff_converged or (reason > 0 and self._fnorm <= tolerance)
-        if converged and its > 0 and self.factor_store is not None and not self.quadratic:
+        keep = converged and its > 0 and self._exact_factors and not self.quadratic
+        if keep and self.factor_store is not None:  # the adjoint needs the exact Jacobian's
             self.factor_store.keep(step, self.snes)
         if not converged:
             names = {
