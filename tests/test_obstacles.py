@@ -223,8 +223,9 @@ def test_obstacle_files(tmp_path):
     assert np.allclose(plane.rest_positions, 2.0 * X[:4] + [0, 0, -1])  # unused point dropped
     lines = meshio.Mesh(X[:3, :2], [("line", np.array([[0, 1], [1, 2]]))])
     meshio.write(tmp_path / "curve.vtu", lines)
-    curve = Obstacle.from_file(tmp_path / "curve.vtu", dim=2)
+    curve = Obstacle.from_file(tmp_path / "curve.vtu", dim=2, rotation=90.0)
     assert curve.dim == 2 and len(curve.edges) == 2
+    assert np.allclose(curve.rest_positions, [[0, 0], [0, 1], [-1, 1]], atol=1e-15)
     square = meshio.Mesh(X[:4, :2], [("triangle", tris)])
     meshio.write(tmp_path / "square.vtu", square)
     boundary = Obstacle.from_file(tmp_path / "square.vtu", dim=2)

@@ -41,6 +41,7 @@ import numpy as np
 from mpi4py import MPI
 
 from diffsolids.errors import MeshError, ParameterError
+from diffsolids.mesh.readers import _rotation_matrix
 from diffsolids.parallel import collective_comm
 
 __all__ = ["Obstacle"]
@@ -229,12 +230,13 @@ class Obstacle:
         path: str | os.PathLike,
         *,
         dim: int | None = None,
-        scale: float = 1.0,
+        scale: float | Sequence[float] = 1.0,
+        rotation: float | Sequence[float] | None = None,
         translation: Sequence[float] | None = None,
         motion: Motion | None = None,
         name: str | None = None,
     ):
-        """An obstacle from a mesh file (every rank reads it; x' = scale x + translation).
+        """An obstacle from a mesh file (every rank reads it; x' = R (scale x) + translation).
 
         A surface mesh (3D triangles, e.g. ``.obj``/``.stl``; 2D line segments) is the
         obstacle itself; a volume mesh (2D triangles/quadrilaterals, 3D tetrahedra) gives its
@@ -243,7 +245,9 @@ class Obstacle:
         Args:
             path: Any file meshio reads (``.msh`` volumes also through read_mesh).
             dim: Geometric dimension (default: 3 unless the z coordinates are all zero).
-            scale: Scale factor (> 0).
+            scale: Scale factor, or one per axis (> 0).
+            rotation: Degrees, as :func:`diffsolids.mesh.read_mesh` (PolyFEM's
+                ``transformation``): an angle in 2D, Euler angles about x, y, z in 3D.
             translation: Translation vector.
             motion: As for :class:`Obstacle`.
             name: As for :class:`Obstacle` (default: the file's stem).
@@ -272,7 +276,9 @@ class Obstacle:
         kinds = {c.type for c in data.cells}
         volume = {"tetra"} if dim == 3 else {"triangle", "quad"}
         if kinds & volume:
-            domain = read_mesh(path, MPI.COMM_SELF, dim, scale=scale, translation=translation)
+            domain = read_mesh(
+                path, MPI.COMM_SELF, dim, scale=scale, rotation=rotation, translation=translation
+            )
             return cls.from_domain(domain, motion=motion, name=name)
         kind = "triangle" if dim == 3 else "line"
         cells = [c.data for c in data.cells if c.type == kind]
@@ -281,7 +287,10 @@ class Obstacle:
         prims = np.concatenate(cells)
         used, prims = np.unique(prims, return_inverse=True)
         prims = prims.reshape(-1, 3 if dim == 3 else 2)
-        X = float(scale) * points[used, :dim]
+        factor = np.broadcast_to(np.asarray(scale, dtype=float), (dim,))
+        if not (np.all(np.isfinite(factor)) and np.all(factor > 0)):
+            raise MeshError(f"obstacle file {path}: scale {scale} must be finite and positive")
+        X = (factor * points[used, :dim]) @ _rotation_matrix(dim, rotation).T
         if translation is not None:
             X = X + np.asarray(translation, dtype=float)
         if dim == 3:
