@@ -7,14 +7,19 @@ time weights (``time_integral(series, "uniform")``, a list of steps, ``final_val
   :class:`~diffsolids.simulation.Trajectory` of the same mesh at every step (PolyFEM's
   ``target`` objective with ``"matching": "exact"``, used by the puzzle and kangaroo scenes:
   ``int ||X + u^i - (X^trg + u^trg,i)||^2`` over a surface or the volume).
+* :func:`center_target`: the centre of mass matched to that of a stored run (PolyFEM's
+  ``center-target``, the sliding bunny of fig21).
 * :func:`node_target`: the displacement or position of selected mesh vertices (PolyFEM's
   ``node-target``), an exact sum over the vertices.
 * :func:`sdf_target`: ``int sdf(X + u)^2`` of a user signed-distance function written in UFL
   (PolyFEM's ``sdf-target``); its gradient is UFL's.
 * :func:`compliance`: the work ``f . u`` of the model's tractions and body forces per step.
 
-The per-step values of any of them along a trajectory are ``series_values(simulation, series,
-trajectory)`` (e.g. ``rf.trajectory`` after a forward run).
+PolyFEM's ``{"type": "transient_integral", "weight": w, "static_objective": {...}}`` with its
+default ``integral_type`` "uniform" (w_0 = 0, w_i = dt) is ``w * time_integral(series,
+"uniform")``; "final" is ``final_value``, "steps" a list of steps (PolyFEM divides by their
+number). The per-step values of any of them along a trajectory are ``series_values(simulation,
+series, trajectory)``; those of an objective's series at the last forward run ``step_values(rf)``.
 """
 
 import itertools
