@@ -116,7 +116,9 @@ def test_bad_control_construction(scene):
         ParameterControl(model, "young")
     with pytest.raises(ControlError, match="unknown parameter mode 'cells'"):
         ParameterControl(model, "E", "cells")
-    with pytest.raises(ControlError, match="log parametrisation of 'gravity' needs positive"):
+    with pytest.raises(
+        ControlError, match="'gravity' cannot be parametrised: log parametrisation needs positive"
+    ):
         ParameterControl(model, "gravity", "uniform", log=True)
     with pytest.raises(ds.TagError, match="unknown body"):
         ParameterControl(model, "E", "bodies", bodies=[7])
