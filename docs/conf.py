@@ -51,6 +51,14 @@ autodoc_preserve_defaults = True
 autosummary_generate = False
 autosummary_ignore_module_all = False
 
+# A broken cross-reference fails the build (-W). Names of other packages and of the standard
+# library have no inventory here (no intersphinx: no network at build time): not checked.
+nitpicky = True
+nitpick_ignore_regex = [
+    ("py:.*", r"(numpy|np|dolfinx|petsc4py|PETSc|ufl|mpi4py|MPI|scipy|basix|ipctk)(\..*)?"),
+    ("py:.*", r"(collections\.abc|typing|os|pathlib|abc|contextlib)\..*"),
+]
+
 # The modules whose ``__all__`` the reference documents, with the title of their page.
 API_MODULES = {
     "diffsolids": "The one import: ``import diffsolids as ds``",
@@ -59,10 +67,12 @@ API_MODULES = {
     "diffsolids.integrators": "Time integrators",
     "diffsolids.simulation": "Simulation and trajectories",
     "diffsolids.solvers": "Newton solver",
+    "diffsolids.solvers.factor_store": "Factorisations kept for the adjoint",
     "diffsolids.contact": "Contact (IPC barrier and friction)",
     "diffsolids.contact.polyfem": "PolyFEM contact parameters",
     "diffsolids.objectives": "Objectives",
     "diffsolids.controls": "Controls",
+    "diffsolids.controls.maps": "Parameter maps",
     "diffsolids.reduced_functional": "Reduced functional",
     "diffsolids.adjoint": "Discrete adjoint",
     "diffsolids.verification": "Gradient checks",
@@ -72,6 +82,7 @@ API_MODULES = {
     "diffsolids.parallel": "MPI helpers",
     "diffsolids.portability": "Portability (the ipctk CPU check)",
     "diffsolids.forms": "UFL forms (``diffsolids.forms``)",
+    "diffsolids.forms.objectives": "UFL objective integrands",
 }
 
 
@@ -125,7 +136,17 @@ def write_api_pages(app) -> None:
         mod = importlib.import_module(module)
         names = sorted(mod.__all__, key=str.lower)
         first = (mod.__doc__ or "").strip().split("\n\n")[0]
-        lines = [title, "=" * len(title), "", f"``{module}``", ""]
+        lines = [
+            title,
+            "=" * len(title),
+            "",
+            f".. py:module:: {module}",
+            "",
+            ".. currentmodule:: None",
+            "",
+            f"``{module}``",
+            "",
+        ]
         if first:
             lines += [first, ""]
         lines += [".. autosummary::", ""]
@@ -167,25 +188,100 @@ def plain_docstrings(app, what, name, obj, options, lines) -> None:
             lines[i] = "".join(p if p.startswith("``") else p.replace("|", "\\|") for p in parts)
 
 
-def resolve_top_level(app, env, node, contnode):
-    """Resolve ``diffsolids.Name[.attr]`` to where Name is documented (its subpackage)."""
-    target = node.get("reftarget", "")
-    if node.get("refdomain") != "py" or not target.startswith("diffsolids."):
+def _candidates(target: str, module: str | None, cls: str | None) -> list[str]:
+    """Where a reference may be documented.
+
+    A top-level name in its subpackage, a name of a module by the API module that lists it, a
+    short name in the API module of the docstring's module (or of any module), an attribute of
+    the class.
+    """
+    if target.startswith("diffsolids."):
+        name, _, rest = target.removeprefix("diffsolids.").partition(".")
+        if name in diffsolids.__all__:
+            return [_canonical("diffsolids", name) + (f".{rest}" if rest else "")]
+        prefix, _, last = target.rpartition(".")
+        return [
+            f"{api}.{last}"
+            for api in API_MODULES
+            if api.startswith(prefix) and last in importlib.import_module(api).__all__
+        ]
+    head = target.split(".")[0]
+    found = []
+    for api in sorted(API_MODULES, key=lambda m: not (module or "").startswith(m)):
+        if api == "diffsolids":
+            continue
+        names = importlib.import_module(api).__all__
+        if cls and cls in names and (module or "").startswith(api):
+            found.append(f"{api}.{cls}.{target}")
+        if head in names:
+            found.append(f"{api}.{target}")
+    return found
+
+
+def resolve_short_names(app, env, node, contnode):
+    """Resolve references the way the docstrings write them (see :func:`_candidates`)."""
+    if node.get("refdomain") != "py":
         return None
-    name, _, rest = target.removeprefix("diffsolids.").partition(".")
-    if name not in diffsolids.__all__:
-        return None
-    canonical = _canonical("diffsolids", name) + (f".{rest}" if rest else "")
-    if canonical == target:
-        return None
+    target = node.get("reftarget", "").lstrip(".~")
     py = env.get_domain("py")
-    return py.resolve_xref(
-        env, node["refdoc"], app.builder, node["reftype"], canonical, node, contnode
-    )
+    for candidate in _candidates(target, node.get("py:module"), node.get("py:class")):
+        if candidate == target:
+            continue
+        ref = py.resolve_xref(
+            env, node["refdoc"], app.builder, node["reftype"], candidate, node, contnode
+        )
+        if ref is not None:
+            return ref
+    if target.rpartition(".")[2].startswith("_") or _undocumented_member(node, target):
+        return contnode  # private, or an attribute without a docstring: shown as code
+    return None
+
+
+def _undocumented_member(node, target: str) -> bool:
+    """Does a member reference name an existing attribute of the docstring's class?"""
+    module, cls = node.get("py:module"), node.get("py:class")
+    if node.get("reftype") not in ("attr", "meth") or not (module and cls) or "." in target:
+        return False
+    owner = importlib.import_module(module)
+    for part in cls.split("."):
+        owner = getattr(owner, part, None)
+    if owner is None:
+        return False
+    if hasattr(owner, target):
+        return True
+    init = getattr(owner, "__init__", None)
+    try:
+        return f"self.{target}" in inspect.getsource(init)
+    except (OSError, TypeError):
+        return False
+
+
+def _documented() -> set[int]:
+    """Ids of the objects the API pages document."""
+    return {
+        id(getattr(mod, n))
+        for mod in map(importlib.import_module, API_MODULES)
+        for n in mod.__all__
+        if hasattr(mod, n)
+    }
+
+
+def public_bases(app, name, obj, options, bases) -> None:
+    """Show a class's documented bases: an internal base (``_DensityTerm``) by its bases."""
+    documented = _documented()
+    i = 0
+    while i < len(bases):
+        base = bases[i]
+        internal = base.__module__.startswith("diffsolids") and id(base) not in documented
+        if internal:
+            bases[i : i + 1] = [b for b in bases[i].__bases__ if b is not object]
+        else:
+            i += 1
 
 
 def setup(app) -> None:
     """Write the API pages before Sphinx reads the sources; read docstrings as written."""
     app.connect("builder-inited", write_api_pages, priority=100)
     app.connect("autodoc-process-docstring", plain_docstrings)
-    app.connect("missing-reference", resolve_top_level)
+    app.connect("missing-reference", resolve_short_names)
+    app.connect("autodoc-process-bases", public_bases)
