@@ -52,11 +52,12 @@ def block_scene(
     damped: bool = False,
     comm=MPI.COMM_SELF,
     v0=None,
+    degree: int = 1,
     **contact_kwargs,
 ):
     """A block (body 1) over an obstacle; returns (model, contact, simulation)."""
     dom = combine_meshes(comm, [simplex_box(block, [3, 2])], names={"block": 1})
-    model = ds.Model(dom, {1: _material(damped)})
+    model = ds.Model(dom, {1: _material(damped)}, degree=degree)
     model.add_body_force(np.asarray(gravity, dtype=float), name="gravity")
     contact = _contact(model, integrator, [obstacle], **contact_kwargs)
     sim = ds.Simulation(model, integrator, NEWTON, v0=v0, progress=False)
@@ -116,12 +117,14 @@ def test_block_comes_to_rest_on_fixed_ground():
     assert contact.body_ids == [1, 2] and contact.surface.num_body_vertices == 10
 
 
-@pytest.mark.parametrize("mu", [0.0, 0.5])
-def test_moving_belt_drags_block(mu):
+@pytest.mark.parametrize("mu, degree", [(0.0, 1), (0.5, 1), (0.5, 2)])
+def test_moving_belt_drags_block(mu, degree):
     speed = 0.5
     integ = ds.BDF(1, 0.01, 8)
     belt = ground(motion=lambda t: np.array([speed * t, 0.0]), name="belt")
-    _, contact, sim = block_scene(belt, integ, friction={("block", "belt"): mu}, eps_v=1e-3)
+    _, contact, sim = block_scene(
+        belt, integ, degree=degree, friction={("block", "belt"): mu}, eps_v=1e-3
+    )
     traj = sim.run()
     vx = [block_velocity(contact, v, 1)[0] for v in traj.v]
     assert all(np.isfinite(r.min_distance) and r.min_distance > 0 for r in contact.records)
