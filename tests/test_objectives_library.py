@@ -12,6 +12,7 @@ from gradient_scenes import CONTROLS, simulation
 
 from diffsolids.adjoint import Checkpointing, CheckpointingError
 from diffsolids.objectives import (
+    DeformedCollisionBarrier,
     Integral,
     ObjectiveError,
     RestCollisionBarrier,
@@ -506,3 +507,88 @@ def test_step_values_of_an_objective_are_public_and_finite_at_every_state():
     assert rf(rf.initial_parameters()) == pytest.approx(value, rel=1e-12)
     with pytest.raises(CheckpointingError, match=r"state 1 is not held"):
         step_values(rf)
+
+
+def test_deformed_collision_barrier_partials():
+    """PolyFEM's deformed_collision_barrier at a state of the run: dJ/du and dJ/dX against
+    central differences of its value along random directions and along the gradients, the
+    series along a trajectory, and an intersecting state refused naming its time."""
+    sim = simulation(SCENE, "bdf2")
+    model = sim.model
+    u = model.fields.u
+    x = model.domain.mesh.geometry.x
+    x0, u_saved = x.copy(), u.x.array.copy()
+    rng = np.random.default_rng(12)
+    try:
+        x[:, :2] += 0.03 * rng.uniform(-1, 1, (len(x), 2))  # off the grid's degenerate pairs
+        own = _run(sim)
+        barrier = DeformedCollisionBarrier(model, 0.6, stiffness=3.0)
+        values = series_values(sim, barrier, own)
+        assert np.all(values > 0) and not np.allclose(values, values[0])
+        u.x.array[:] = own.u[-1]
+        g = barrier.state_gradient(model)
+        owned = model.V.dofmap.index_map.size_local * 2
+        assert np.all(g[owned:] == 0.0)
+
+        def along_u(d, h=1e-6):
+            u.x.array[:] = own.u[-1] + h * d
+            plus = barrier.evaluate(model)
+            u.x.array[:] = own.u[-1] - h * d
+            minus = barrier.evaluate(model)
+            u.x.array[:] = own.u[-1]
+            return (plus - minus) / (2 * h)
+
+        for d in (0.01 * rng.standard_normal(len(g)), 0.01 * g / np.linalg.norm(g)):
+            assert g @ d == pytest.approx(along_u(d), rel=1e-6)
+        # shape: at fixed u, the positions move with X
+        G = barrier.shape_gradient(model).reshape(-1, 2)
+        S = model.shape_space
+        node_of = np.empty(len(G), dtype=np.int64)
+        node_of[S.dofmap.list.ravel()] = model.domain.mesh.geometry.dofmaps[0].ravel()
+        for d in (0.01 * rng.standard_normal(G.shape), 0.01 * G / np.linalg.norm(G)):
+            direction = np.zeros_like(d)
+            direction[node_of] = d
+            assert np.sum(G * d) == pytest.approx(_geometry_fd(model, barrier, direction), rel=1e-6)
+        # the right half folded down (y -> -y beyond x = 1): its top side crosses the bottom
+        X = model.V.tabulate_dof_coordinates()
+        fold = X[:, 0] > 1.01
+        u.x.array.reshape(-1, 2)[fold, 1] = -2.0 * X[fold, 1]
+        model.fields.t.value = 0.1
+        with pytest.raises(ObjectiveError, match=r"deformed collision barrier at t = 0.1"):
+            barrier.evaluate(model)
+        with pytest.raises(ObjectiveError, match="numeric code, not a UFL form"):
+            barrier.form(model.fields)
+    finally:
+        x[:] = x0
+        u.x.array[:] = u_saved
+        model.fields.t.value = 0.0
+
+
+def _numeric_leaves_supported(sim, objective, controls) -> ReducedFunctional:
+    """The ReducedFunctional, or a skip while it cannot evaluate numeric leaves."""
+    try:
+        return ReducedFunctional(sim, objective, controls)
+    except ObjectiveError as e:
+        if "numeric code, not a UFL form" not in str(e):
+            raise
+        pytest.skip("the ReducedFunctional does not evaluate numeric objective leaves yet")
+
+
+def test_deformed_collision_barrier_gradient():
+    """Through the adjoint: E field, shape and v0 against central differences along random
+    directions and the gradient, with a UFL target in the same objective and on steps 0, 3."""
+    sim = simulation(SCENE, "bdf2")
+    model = sim.model
+    x = model.domain.mesh.geometry.x
+    x0 = x.copy()
+    free = ~np.isclose(x0[:, 0], 0.0)
+    try:
+        x[free, :2] += 0.03 * np.random.default_rng(8).uniform(-1, 1, (free.sum(), 2))
+        barrier = DeformedCollisionBarrier(model, 0.6)
+        target = final_value(target_positions(model, lambda x: 1.01 * x[:2], facets=3))
+        J = time_integral(barrier, "uniform") + target
+        _numeric_leaves_supported(sim, J, [CONTROLS["initial-v0"](sim)])
+        _fd_check(sim, J, ["young-field-log", "shape-all", "initial-v0"])
+        _fd_check(sim, time_integral(barrier, [0, 3]), ["shape-all", "initial-v0"])
+    finally:
+        x[:] = x0

@@ -11,6 +11,8 @@ from mpi4py import MPI
 
 import diffsolids as ds
 from diffsolids.objectives import (
+    DeformedCollisionBarrier,
+    ObjectiveError,
     RestCollisionBarrier,
     center_target,
     compliance,
@@ -98,3 +100,26 @@ def test_library_world_equals_self():
     assert np.all(np.isfinite(s_par)) and s_par[-1] > 0
     for value in collective_comm(comm).allgather(J_par):
         assert value == J_par
+
+
+def _barrier_value_and_gradient(comm):
+    sim = _simulation(comm)
+    J = time_integral(DeformedCollisionBarrier(sim.model, 0.6), "uniform")
+    keys = ["young-field-log", "shape-all", "initial-v0"]
+    try:
+        rf = ReducedFunctional(sim, J, [CONTROLS[k](sim) for k in keys])
+    except ObjectiveError as e:
+        if "numeric code, not a UFL form" not in str(e):
+            raise
+        pytest.skip("the ReducedFunctional does not evaluate numeric objective leaves yet")
+    q0 = rf.initial_parameters()
+    rng = np.random.default_rng(5)
+    q = q0 + 1e-3 * np.maximum(np.abs(q0), 1e-2) * rng.standard_normal(q0.size)
+    return rf.value_and_gradient(q)
+
+
+def test_deformed_collision_barrier_world_equals_self():
+    J_par, g_par = _barrier_value_and_gradient(MPI.COMM_WORLD)
+    J_ser, g_ser = _barrier_value_and_gradient(MPI.COMM_SELF)
+    assert J_ser > 0 and J_par == pytest.approx(J_ser, rel=RTOL)
+    assert np.abs(g_par - g_ser).max() <= RTOL * np.abs(g_ser).max()

@@ -6,9 +6,10 @@ from diffsolids.objectives.barriers import (
     sdf_barrier,
     series_barrier,
 )
-from diffsolids.objectives.collision import RestCollisionBarrier
+from diffsolids.objectives.collision import DeformedCollisionBarrier, RestCollisionBarrier
 from diffsolids.objectives.functional import (
     Integral,
+    NumericIntegral,
     Objective,
     ObjectiveError,
     Regulariser,
@@ -45,8 +46,10 @@ from diffsolids.objectives.values import objective_series, series_values, step_v
 
 __all__ = [
     "BoundarySmoothing",
+    "DeformedCollisionBarrier",
     "Integral",
     "MaterialSmoothing",
+    "NumericIntegral",
     "Objective",
     "ObjectiveError",
     "Regulariser",

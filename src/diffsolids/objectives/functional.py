@@ -21,6 +21,7 @@ from diffsolids.errors import DiffsolidsError
 
 __all__ = [
     "Integral",
+    "NumericIntegral",
     "Objective",
     "ObjectiveError",
     "Regulariser",
@@ -142,6 +143,49 @@ class Integral(Series):
     def form(self, fields) -> ufl.Form:
         """The scalar UFL form of this integral."""
         return self.integrand(fields)
+
+    @override
+    def leaves(self):
+        return [self]
+
+    @override
+    def values(self, table):
+        return table[self]
+
+    @override
+    def backward(self, table, seed, out):
+        out[self] = out.get(self, 0.0) + seed
+
+
+class NumericIntegral(Series):
+    """A per-step leaf computed by numeric code instead of a UFL form (e.g. ipctk distances).
+
+    Subclasses give the value at the state held by the model's fields (u^i, v^i, the step's
+    time) and its partial derivatives; the ReducedFunctional evaluates it where an Integral
+    would be assembled, and the backward sweep adds ``c_i dJ/du`` to the adjoint's right-hand
+    side of step i and ``c_i dJ/dX`` to the shape sensitivity, with c_i the chain-rule weight.
+    """
+
+    name = "numeric integral"
+
+    def form(self, fields) -> ufl.Form:
+        """Refused: a numeric leaf has no UFL form."""
+        raise ObjectiveError(
+            f"{self.name!r} is computed by numeric code, not a UFL form: it needs a "
+            "ReducedFunctional that evaluates numeric objective leaves"
+        )
+
+    def evaluate(self, model) -> float:
+        """The value at the state in ``model.fields`` (collective; the same on every rank)."""
+        raise NotImplementedError
+
+    def state_gradient(self, model) -> np.ndarray:
+        """dJ/du as a local array of the displacement space (owned entries; ghosts zero)."""
+        raise NotImplementedError
+
+    def shape_gradient(self, model) -> np.ndarray | None:
+        """dJ/dX on the owned entries of ``model.shape_space`` (None: no shape dependence)."""
+        return None
 
     @override
     def leaves(self):

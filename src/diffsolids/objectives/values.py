@@ -16,7 +16,7 @@ import numpy as np
 from dolfinx import fem
 from mpi4py import MPI
 
-from diffsolids.objectives.functional import ObjectiveError, Series
+from diffsolids.objectives.functional import NumericIntegral, ObjectiveError, Series
 from diffsolids.objectives.terms import series_label
 from diffsolids.parallel import collective_comm
 from diffsolids.solvers.forms import compile_form
@@ -71,7 +71,9 @@ def series_values(
     num_states = len(trajectory.u)
     wanted = _state_indices(steps, num_states)
     leaves = list(dict.fromkeys(leaf for s in parts for leaf in s.leaves()))
-    forms = {leaf: compile_form(leaf.form(f)) for leaf in leaves}
+    forms = {
+        leaf: compile_form(leaf.form(f)) for leaf in leaves if not isinstance(leaf, NumericIntegral)
+    }
     comm = collective_comm(model.domain.comm)
     table = {leaf: np.full(num_states, np.nan) for leaf in leaves}
     saved_u, saved_v = f.u.x.array.copy(), f.v.x.array.copy()
@@ -86,10 +88,13 @@ def series_values(
                 f.u_tilde.x.array[:] = trajectory.u[0]
             f.u.x.array[:] = trajectory.u[i]
             f.v.x.array[:] = trajectory.v[i]
-            for leaf, form in forms.items():
-                table[leaf][i] = collective_comm(comm).allreduce(
-                    fem.assemble_scalar(form), op=MPI.SUM
-                )
+            for leaf in leaves:
+                if isinstance(leaf, NumericIntegral):
+                    table[leaf][i] = leaf.evaluate(model)
+                else:
+                    table[leaf][i] = collective_comm(comm).allreduce(
+                        fem.assemble_scalar(forms[leaf]), op=MPI.SUM
+                    )
     finally:
         f.u.x.array[:] = saved_u
         f.v.x.array[:] = saved_v
