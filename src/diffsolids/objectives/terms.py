@@ -51,7 +51,7 @@ def series_label(s: Series) -> str:
         return f"({series_label(s.a)}{s.op}{series_label(s.b)})"
     if isinstance(s, MappedSeries):
         return f"{s.name}({series_label(s.a)})"
-    return type(s).__name__
+    return str(getattr(s, "name", None) or type(s).__name__)
 
 
 def term_label(node: Objective) -> str:
