@@ -20,7 +20,7 @@ from diffsolids.controls import FrictionControl, InitialCondition, ShapeControl
 from diffsolids.errors import IntersectionError, MeshError, ParameterError
 from diffsolids.mesh.scene import combine_meshes, simplex_box
 from diffsolids.objectives import Integral, final_value, time_integral
-from diffsolids.optimize.invariants import check_trajectories
+from diffsolids.optimize.invariants import BoundaryIntersection, check_trajectories
 from diffsolids.reduced_functional import ReducedFunctional
 
 DHAT = 1e-2
@@ -394,3 +394,19 @@ def test_initial_velocity_gradient_moving_belt():
     rf = ReducedFunctional(sim, objective, InitialCondition(sim, "velocity"))
     check_gradient(rf, contact, _direction(rf.size, 2e-3))
     assert _friction_active(contact)
+
+
+def test_boundary_intersection_sees_obstacles():
+    """BoundaryIntersection (the optimiser's iterate check) places obstacles at the step's time."""
+    integ = ds.BDF(1, 0.01, 4)
+    belt = ground(motion=lambda t: np.array([0.0, -0.5 * t]), name="sinking")
+    model, _, sim = block_scene(belt, integ, gravity=(0, 0))
+    traj = sim.run()  # the steps' times
+    check = BoundaryIntersection(model)
+    assert not check.intersects()
+    assert not check.intersects(traj.u[-1], step=len(traj.u) - 1)
+    down = np.zeros(
+        model.V.dofmap.index_map.size_local * 2 + model.V.dofmap.index_map.num_ghosts * 2
+    )
+    down.reshape(-1, 2)[:, 1] = -0.02
+    assert check.intersects(down, step=0) and not check.intersects(down, step=4)

@@ -16,7 +16,7 @@ with contextlib.suppress(ImportError):
 from diffsolids import errors
 
 # Everything a problem script needs is importable from here (the modules stay the reference).
-from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
+from diffsolids.contact import ContactTerm, Obstacle, suggest_barrier_stiffness
 from diffsolids.controls import (
     DirichletControl,
     FrictionControl,
@@ -85,6 +85,7 @@ __all__ = [
     "NewtonConvergenceError",
     "NewtonSolver",
     "NumericTerm",
+    "Obstacle",
     "ParameterControl",
     "ParameterError",
     "PortabilityError",

@@ -24,6 +24,7 @@ import numpy as np
 from mpi4py import MPI
 
 from diffsolids.contact.surface import CollisionSurface
+from diffsolids.contact.term import ContactTerm
 from diffsolids.errors import IntersectionError
 from diffsolids.io.geometry import nodal_displacement
 from diffsolids.mesh import inverted_cells, signed_cell_volumes
@@ -138,9 +139,18 @@ class BoundaryIntersection:
     def __init__(self, model: "Model"):
         self.model = model
         self.surface = CollisionSurface(model.domain, model.V)
+        # kinematic obstacles are seen through their contact terms' own check
+        self.contacts = [
+            t for t in model.numeric_terms if isinstance(t, ContactTerm) and t.obstacles
+        ]
 
-    def intersects(self, u: np.ndarray | None = None) -> bool:
-        """Whether the boundary at rest (``u`` None) or deformed, ``X + u``, intersects."""
+    def intersects(self, u: np.ndarray | None = None, step: int = 0) -> bool:
+        """Whether the boundary at rest (``u`` None) or deformed, ``X + u``, intersects.
+
+        Obstacles of the model's contact terms are placed where they are at step ``step``.
+        """
+        if any(c.intersects(u, step) for c in self.contacts):
+            return True
         s = self.surface
         s.update_rest_positions()
         x = s.rest_positions.copy()

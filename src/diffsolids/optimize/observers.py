@@ -69,5 +69,6 @@ class InvariantMonitor:
         self.inverted += int(inverted_rest_cells(model) > 0)
         self.intersecting += int(check.intersects())
         if self.deformed:
-            self.intersecting_deformed += int(check.intersects(rf.trajectory.u[-1]))
+            last = len(rf.trajectory.u) - 1
+            self.intersecting_deformed += int(check.intersects(rf.trajectory.u[-1], last))
         self.checked += 1
