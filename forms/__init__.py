@@ -30,6 +30,7 @@ from diffsolids.forms.loads import body_force_potential, traction_potential
 from diffsolids.forms.objectives import (
     deformed_position,
     graph_misfit,
+    log_barrier,
     penalty,
     stress_norm,
     stress_norm_power,
@@ -55,6 +56,7 @@ __all__ = [
     "inertia_energy",
     "lame_parameters",
     "linear_energy",
+    "log_barrier",
     "neo_hookean_energy",
     "penalty",
     "plane_strain_normal_stress",

@@ -52,8 +52,11 @@ from diffsolids.objectives import (
     center_of_mass,
     final_value,
     series_values,
+    soft_min,
+    step_values,
     stress_lp_norm,
     target_displacement,
+    target_trajectory,
     time_integral,
 )
 from diffsolids.optimize import LBFGSOptions, minimize
@@ -110,9 +113,12 @@ __all__ = [
     "read_mesh",
     "select_facets",
     "series_values",
+    "soft_min",
+    "step_values",
     "stress_lp_norm",
     "suggest_barrier_stiffness",
     "target_displacement",
+    "target_trajectory",
     "taylor_test",
     "time_integral",
 ]
