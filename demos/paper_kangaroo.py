@@ -11,8 +11,13 @@ boundary; L-BFGS-B, max_change 1, 20 iterations, grad_norm 1e-3).
 The controls are the kangaroo's log E and nu (the paper's parameters are log lambda, log mu
 per body, started from opt.json's [12, 13.8], which is not the E, nu of run-new.json; we start
 from run-new.json's E = 3e6, nu = 0.5, the outcome the paper states; the ground's cells have
-only clamped nodes, their material has no effect). The outcome checked (``--check``): E and nu
-within 1% of 1e7 and 0.3, no intersection or inverted element in the three runs.
+only clamped nodes, their material has no effect). nu is bounded to [0, 0.5], the range of a
+3D material: plane stress admits nu up to 1, and there L-BFGS slid into a valley at E = 8.6e6,
+nu = 0.81 where the trajectory matches the target to 2e-5 m (J 6e-9 from 3.7e-2). Within
+[0, 0.5] E comes within 1.5% in four iterations; nu is weakly determined by this trajectory (J
+changes by ~1e-9 between nu = 0.48 and 0.30) and creeps toward 0.3. The outcome checked
+(``--check``): E and nu within 1% of 1e7 and 0.3, no intersection or inverted element in the
+three runs.
 
 Sizes: ``--tiny`` (35 steps, reaching the first impact; 2 iterations), default and ``--full``
 (the paper's 60 steps). The barrier stiffness is ``suggest_barrier_stiffness``'s (``--kappa
@@ -65,7 +70,7 @@ def setup(args, comm):
     model, contact, sim = build(run_scene, comm, args.steps, args.kappa)
     controls = [
         ParameterControl(model, "E", "bodies", [KANGAROO], log=True, lower=np.log(1e4)),
-        ParameterControl(model, "nu", "bodies", [KANGAROO], lower=0.0, upper=0.9),
+        ParameterControl(model, "nu", "bodies", [KANGAROO], lower=0.0, upper=0.5),
     ]
     objective = target_objective(sim, opt)
     rf = ReducedFunctional(sim, objective, controls)

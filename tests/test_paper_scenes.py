@@ -282,3 +282,18 @@ def test_missing_data_folder_is_named(tmp_path):
 
     with pytest.raises(FileNotFoundError, match="--data"):
         load_demo("paper_puzzle").main(["--tiny", "--no-plot", "--data", str(tmp_path)])
+
+
+@pytest.mark.slow
+def test_paper_throw_bunnies_demo_tiny(tmp_path):
+    from demo_modules import load_demo
+
+    _scene_file("fig1_bunnies/opt.json")
+    report = load_demo("paper_throw_bunnies").main(
+        ["--tiny", "--no-plot", "--out", str(tmp_path), "--data", str(DIFFIPC)]
+    )
+    assert report.passed, report.summary()
+    assert report.extra["dofs"] == 6183 and report.extra["steps"] == 2
+    # the second bunny (rest centre x = 0.875), hit in the first step, moved along +x, the more
+    # with the optimised throw
+    assert report.extra["centre_final"][0] > report.extra["centre_initial"][0] > 0.876

@@ -1,0 +1,187 @@
+"""The paper's experiments on the paper's data, timed next to the paper's Table 4.
+
+Scenes read from their PolyFEM JSON (``diffsolids.io.polyfem_scene``; data in
+``$DIFFSOLIDS_DATA/diffipc`` or ``--data``), each with the paper's objective and control:
+
+- ``puzzle`` (Fig. 14): run-new.json, 30 BDF1 steps, 740 dofs; the piece's initial velocity;
+  10 x the uniform time integral of int_Gamma1 |u - u_target|^2 ds (target: target-new.json).
+- ``kangaroo`` (Fig. 20): run-new.json, 60 steps, 462 dofs; log E and nu of the kangaroo; the
+  same objective (target: target-new.json).
+- ``throw`` (Fig. 1, 3D): run.json, pool + two bunnies, 6 183 dofs; the thrown bunny's initial
+  velocity; the squared distance of the second bunny's final centre of mass (x, z) to
+  (3.67854, 0.137261). ``--throw-steps`` of the paper's 40 (default 8: a partial run; the
+  per-Newton-iteration cost is what it measures; 0 skips it).
+
+Per scene: forward seconds (wall and process CPU: the machine is shared; the objective's
+forward run at the scene's parameters, on a warm JIT cache), Newton iterations, seconds per
+Newton iteration, gradient seconds (the adjoint sweep), gradient / forward, the paper's Table 4
+solve and gradient seconds, and the top entries of a cProfile of forward + gradient
+(``--profile``; clocked by the thread's CPU time, so work in other threads, e.g. TBB's in
+ipctk, is not in it). The barrier stiffness is ``suggest_barrier_stiffness``'s (``--kappa
+scene``: the scenes' 1e5 as PolyFEM means it).
+
+Run ``python tests/benchmarks/bench_paper.py [--scenes puzzle kangaroo throw]``. The last line
+printed is a JSON object with the numbers.
+"""
+
+import argparse
+import cProfile
+import io
+import json
+import os
+import pstats
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+ROOT = Path(__file__).resolve().parents[2]
+TABLE4 = {  # the paper's Table 4: solve / gradient seconds
+    "puzzle": (1.5877, 0.2129),
+    "kangaroo": (1.6704, 0.1624),
+    "sliding_bunny": (547.36, 1.6478),
+    "throw": (209.30, 4.3731),
+}
+FOLDERS = {"puzzle": "fig14_puzzle_piece", "kangaroo": "fig20_kangaroo", "throw": "fig1_bunnies"}
+THROW_TARGET = (3.67854, 0.137261)
+
+
+def _parse(argv):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--scenes", nargs="+", default=["puzzle", "kangaroo", "throw"])
+    p.add_argument("--data", type=Path, default=None, help="folder of the paper's scene data")
+    p.add_argument("--kappa", default="suggest", help="'suggest', 'scene' or a number")
+    p.add_argument("--throw-steps", type=int, default=8, help="BDF1 steps of fig1 (paper: 40)")
+    p.add_argument("--profile", action="store_true", help="cProfile forward + gradient")
+    p.add_argument("--top", type=int, default=8, help="profile entries printed")
+    return p.parse_args(argv)
+
+
+def build(name: str, data: Path, kappa, steps: int | None, comm):
+    """(ReducedFunctional, q) of a scene with its paper objective and control."""
+    import numpy as np
+    from paper_common import build as build_scene
+    from paper_common import experiment, scenes, target_objective
+
+    from diffsolids.controls import ParameterControl, RigidVelocity
+    from diffsolids.objectives import center_of_mass, final_value
+    from diffsolids.reduced_functional import ReducedFunctional
+
+    path, opt = experiment(data, FOLDERS[name])
+    run, target = scenes(path, opt)
+    if name == "throw":
+        # area-weighted pairs: with PolyFEM's unweighted pairs the suggested kappa is 3.9e13
+        # and step 2 fails (50 Newton iterations, 44 cut by a step bound)
+        model, _contact, sim = build_scene(run, comm, steps, kappa, 1e-8, area_weighting=True)
+        control = RigidVelocity(sim, 2, angular=False)
+        cx, _, cz = center_of_mass(model, 3)
+        x, z = THROW_TARGET
+        objective = (final_value(cx) - x) ** 2 + (final_value(cz) - z) ** 2
+        q = np.array(run.initial_velocity[0].value)
+        return ReducedFunctional(sim, objective, control), q, sim
+    model, _contact, sim = build_scene(run, comm, steps, kappa)
+    if name == "puzzle":
+        controls = RigidVelocity(sim, 1, angular=False)
+        truth = np.array(target.initial_velocity[0].value)
+        q = np.array(run.initial_velocity[0].value)
+    else:
+        controls = [
+            ParameterControl(model, "E", "bodies", [1], log=True),
+            ParameterControl(model, "nu", "bodies", [1]),
+        ]
+        truth = np.array([np.log(target.materials[1].E), target.materials[1].nu])
+        q = np.array([np.log(run.materials[1].E), run.materials[1].nu])
+    rf = ReducedFunctional(sim, target_objective(sim, opt), controls)
+    rf.controls.assign(truth)
+    sim.targets = [u.copy() for u in sim.run().u]
+    return rf, q, sim
+
+
+def measure(name: str, args, comm) -> dict:
+    """Forward and gradient seconds of one scene (after an untimed warm-up of 2 steps)."""
+    steps = args.throw_steps if name == "throw" else None
+    warm, q_warm, _ = build(name, args.data, args.kappa, 2, comm)
+    warm(q_warm)
+    warm.gradient(q_warm)
+    rf, q, sim = build(name, args.data, args.kappa, steps, comm)
+    # CPU time of this thread as the profiler's clock: on a loaded machine a wall-clock profile
+    # charges the time spent waiting for a core to whatever runs when the process is descheduled
+    # (system calls above all: time.process_time showed 8 of 18 s in a kangaroo profile)
+    profiler = cProfile.Profile(time.thread_time) if args.profile else None
+    if profiler:
+        profiler.enable()
+    t0, c0 = time.perf_counter(), time.process_time()
+    J = rf(q)
+    forward, forward_cpu = time.perf_counter() - t0, time.process_time() - c0
+    its = rf.trajectory.newton_iterations()
+    t0, c0 = time.perf_counter(), time.process_time()
+    g = rf.gradient(q)
+    gradient, gradient_cpu = time.perf_counter() - t0, time.process_time() - c0
+    if profiler:
+        profiler.disable()
+    paper_solve, paper_grad = TABLE4[name]
+    out = {
+        "dofs": sim.model.V.dofmap.index_map.size_global * sim.model.dim,
+        "steps": sim.integrator.num_steps,
+        "kappa": next(t.stiffness for t in sim.model.numeric_terms),
+        "objective": float(J),
+        "gradient_norm": float((g @ g) ** 0.5),
+        "forward_s": forward,
+        "forward_cpu_s": forward_cpu,
+        "newton_iterations": its,
+        "s_per_newton_iteration": forward / max(its, 1),
+        "gradient_s": gradient,
+        "gradient_cpu_s": gradient_cpu,
+        "gradient_over_forward": gradient / forward,
+        "paper_solve_s": paper_solve,
+        "paper_gradient_s": paper_grad,
+        "forward_over_paper": forward / paper_solve,
+    }
+    if profiler and comm.rank == 0:
+        stream = io.StringIO()
+        stats = pstats.Stats(profiler, stream=stream).sort_stats("tottime")
+        stats.print_stats(args.top)
+        print(f"--- {name}: cProfile (thread CPU time) of forward + gradient, by own time ---")
+        print(stream.getvalue().split("ncalls", 1)[-1][:4000])
+        total = sum(v[2] for v in stats.stats.values())
+        top = sorted(stats.stats.items(), key=lambda kv: -kv[1][2])[: args.top]
+        out["profile_top_own_s"] = {
+            f"{Path(k[0]).name}:{k[1]}:{k[2]}": round(v[2], 3) for k, v in top
+        }
+        out["profile_total_s"] = total
+    return out
+
+
+def main(argv=None) -> dict:
+    args = _parse(argv)
+    sys.path.insert(0, str(ROOT / "demos"))
+    from mpi4py import MPI
+    from paper_common import DEFAULT_DATA
+
+    args.data = args.data or DEFAULT_DATA
+    comm = MPI.COMM_WORLD
+    results = {}
+    for name in args.scenes:
+        if name == "throw" and args.throw_steps == 0:
+            continue
+        results[name] = measure(name, args, comm)
+        if comm.rank == 0:
+            r = results[name]
+            print(
+                f"{name}: {r['dofs']} dofs, {r['steps']} steps, forward {r['forward_s']:.2f} s "
+                f"(CPU {r['forward_cpu_s']:.2f} s) "
+                f"({r['newton_iterations']} Newton its, {r['s_per_newton_iteration']:.4f} s "
+                f"each), gradient {r['gradient_s']:.3f} s ({r['gradient_over_forward']:.3f} "
+                f"of forward); paper {r['paper_solve_s']} / {r['paper_gradient_s']} s",
+                flush=True,
+            )
+    results["ranks"] = comm.size
+    results["kappa_option"] = args.kappa
+    if comm.rank == 0:
+        print(json.dumps(results), flush=True)
+    return results
+
+
+if __name__ == "__main__":
+    main()
