@@ -58,6 +58,7 @@ from petsc4py import PETSc
 from diffsolids.contact.obstacle import Obstacle
 from diffsolids.contact.reach import reach_blocks
 from diffsolids.contact.shape import barrier_shape_derivative
+from diffsolids.contact.stiffness import suggest_barrier_stiffness
 from diffsolids.contact.surface import CollisionSurface, _contains, block_pattern
 from diffsolids.errors import IntersectionError, ParameterError
 from diffsolids.model.numeric import NumericTerm
@@ -144,7 +145,12 @@ class ContactTerm(NumericTerm):
     Args:
         model: The Model.
         dhat: Barrier activation distance (length).
-        stiffness: Barrier stiffness kappa (fixed; see :func:`suggest_barrier_stiffness`).
+        stiffness: Barrier stiffness kappa, fixed for the life of the term. None: the term
+            chooses it at the first step it takes part in, with
+            :func:`~diffsolids.contact.suggest_barrier_stiffness` for that simulation's
+            integrator at the state before the step, and keeps it (later runs, e.g. of an
+            optimisation, use the same kappa, so the objective stays a smooth function of the
+            parameters).
         friction: Friction coefficient of all pairs of bodies (float), or
             ``{(body_a, body_b): mu}`` by id or name (unlisted pairs: 0).
         eps_v: Velocity below which friction is smoothed to static (velocity units).
@@ -172,7 +178,7 @@ class ContactTerm(NumericTerm):
         self,
         model,
         dhat: float,
-        stiffness: float,
+        stiffness: float | None = None,
         friction: float | Mapping = 0.0,
         eps_v: float = 1e-3,
         narrow_phase: str = "additive",
@@ -181,14 +187,17 @@ class ContactTerm(NumericTerm):
         num_threads: int | None = None,
         obstacles: Sequence[Obstacle] = (),
     ):
-        for label, value in (("dhat", dhat), ("stiffness", stiffness), ("eps_v", eps_v)):
+        checked = (("dhat", dhat), ("stiffness", stiffness), ("eps_v", eps_v))
+        for label, value in checked:
+            if value is None and label == "stiffness":
+                continue
             if not (np.isfinite(value) and value > 0):
                 raise ParameterError(f"contact {label} = {value} must be positive and finite")
         self.model = model
         self.comm = model.domain.comm
         self.dim = model.dim
         self.dhat = float(dhat)
-        self.stiffness = float(stiffness)
+        self.stiffness = None if stiffness is None else float(stiffness)
         self.eps_v = float(eps_v)
         self.area_weighting = bool(area_weighting)
         self.min_gap = float(min_gap)
@@ -208,7 +217,9 @@ class ContactTerm(NumericTerm):
         self._obstacle_names = {o.name: b for o, b in pairs if o.name}
         self._clock = None
         self._dynamic = True
-        self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness)
+        self.barrier = None
+        if self.stiffness is not None:
+            self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness)
         self.friction_potential = ipctk.FrictionPotential(self.eps_v)
         self.broad_phase = ipctk.LBVH()
         if narrow_phase == "additive":
@@ -309,6 +320,14 @@ class ContactTerm(NumericTerm):
         self.friction_coefficients = values
 
     # -- per-step set-up ---------------------------------------------------------------------
+    def _choose_stiffness(self, integrator, u: np.ndarray) -> None:
+        """Fix kappa from the scene (collective): suggest_barrier_stiffness at ``u``."""
+        state = fem.Function(self.model.V)
+        state.x.array[:] = u
+        self.stiffness = suggest_barrier_stiffness(self, integrator, state)
+        self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness)
+        logger.info("contact: barrier stiffness chosen: kappa = %.4g", self.stiffness)
+
     def begin_step(self, i: int, traj, coeffs, sim=None) -> None:
         """Lag friction from u^{i-1} and store the BDF history of step ``i`` (collective)."""
         surf = self.surface
@@ -320,6 +339,8 @@ class ContactTerm(NumericTerm):
             self._dynamic = sim.integrator.dynamic
         elif self._clock is None:
             self._clock = lambda k, dt=coeffs.dt: k * dt
+        if self.stiffness is None:
+            self._choose_stiffness(sim.integrator if sim is not None else None, traj.u[i - 1])
         m = len(coeffs.alpha)
         obstacle = [self._obstacle_at(i - j) for j in range(m + 1)]
         hist = [surf.gather(traj.u[i - j]) + obstacle[j] for j in range(1, m + 1)]
