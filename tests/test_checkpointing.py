@@ -140,6 +140,21 @@ def test_beam_gradient_equals_all_in_memory(name, tmp_path):
         assert list(tmp_path.iterdir()) == []
 
 
+def test_without_factor_store_the_gradient_is_still_that_of_all_in_memory():
+    """factor_memory_mb=0: the adjoint starts from step N's factors in both runs."""
+    sim, J, controls = beam()
+    ref = ReducedFunctional(sim, J, controls(), factor_memory_mb=0, checkpointing=None)
+    q = ref.initial_parameters()
+    assert ref.checkpointing.resolve(sim).policy == "all"  # auto, on a tiny run
+    g_ref = ref.gradient(q)
+    rf = ReducedFunctional(
+        sim, J, controls(), factor_memory_mb=0, checkpointing=Checkpointing("memory", snaps=3)
+    )
+    assert sim.solver.factor_store is None
+    assert _relative(rf.gradient(q), g_ref) <= RTOL
+    assert _relative(rf.derivative(), g_ref) <= RTOL  # again: a new forward, the same factors
+
+
 def test_beam_checkpointed_gradient_against_finite_differences():
     rf = reduced_functional(beam(), Checkpointing("memory", snaps=3))
     q = rf.initial_parameters()

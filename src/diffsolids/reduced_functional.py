@@ -92,6 +92,8 @@ class ReducedFunctional:
         self._sweep: BackwardSweep | None = None
         if factor_memory_mb != 0 and simulation.integrator.num_steps > 1:
             simulation.solver.factor_store = FactorStore(factor_memory_mb)
+        elif factor_memory_mb == 0:  # disabled: not another functional's store either
+            simulation.solver.factor_store = None
         self.checkpointing = checkpointing or Checkpointing()
         self._run: CheckpointedRun | None = None  # of the last forward, when checkpointed
         self._state = None  # (q, trajectory, table, reg values, J)
@@ -214,8 +216,7 @@ class ReducedFunctional:
         if run is None:
             sens = self._sweep.run(traj, leaf_weights)
         else:
-            freed = run.reversed and self.simulation.solver.factor_store is not None
-            if run.closed or run.exhausted or freed:
+            if run.closed or run.exhausted or run.reversed:
                 # its schedule allowed one reverse, a later forward freed its checkpoints, or
                 # the last reverse freed the factors: the same forward again (the same states
                 # and factors: the same gradient)

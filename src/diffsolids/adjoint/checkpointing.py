@@ -77,8 +77,9 @@ class Checkpointing:
         ``"multistage"``: the multistage schedule of Stumm and Walther).
         ``"disk"``: ``snaps=None`` writes every state to disk (no recomputation, memory of a
         few states); ``snaps=k`` keeps k multistage checkpoints on disk and recomputes. Each
-        rank writes its owned and ghost entries to its own HDF5 files in a temporary directory
-        (under ``directory`` if given), removed when the run is dropped.
+        rank writes its owned and ghost entries to its own HDF5 file in a temporary directory
+        (under ``directory`` if given), removed when the run is closed (by the next forward) or
+        dropped.
         ``"auto"`` (default): chosen at each forward run from the memory this node has
         available (``MemAvailable`` of ``/proc/meminfo``, or the container's cgroup limit):
         the states of all ranks on the node may take ``memory_fraction`` of what the factor
@@ -213,7 +214,7 @@ class _MemoryStorage:
 
 
 class _DiskStorage:
-    """Checkpoints in HDF5 files, one per checkpoint and rank (owned and ghost entries)."""
+    """Checkpoints in one HDF5 file per rank (its owned and ghost entries), a group each."""
 
     def __init__(self, comm: MPI.Comm, directory):
         root = None
@@ -222,32 +223,36 @@ class _DiskStorage:
         self.root = Path(collective_comm(comm).bcast(root, root=0))
         self.comm = comm
         self.rank = comm.rank
-        self.kinds: dict[int, str] = {}
+        self.path = self.root / f"rank{self.rank}.h5"
+        self._file = None
 
-    def _path(self, n: int) -> Path:
-        return self.root / f"checkpoint_{n}_rank{self.rank}.h5"
+    def _open(self):
+        if self._file is None:
+            import h5py
+
+            self._file = h5py.File(self.path, "a")
+        return self._file
 
     def put(self, n: int, record: dict) -> None:
-        import h5py
-
-        with h5py.File(self._path(n), "w") as f:
-            f.attrs["kind"] = record["kind"]
-            for j, (u, v) in record["states"].items():
-                f.create_dataset(f"u/{j}", data=u)
-                f.create_dataset(f"v/{j}", data=v)
-        self.kinds[n] = record["kind"]
+        f = self._open()
+        name = str(n)
+        if name in f:
+            del f[name]
+        group = f.create_group(name)
+        group.attrs["kind"] = record["kind"]
+        for j, (u, v) in record["states"].items():
+            group.create_dataset(f"u/{j}", data=u)
+            group.create_dataset(f"v/{j}", data=v)
 
     def get(self, n: int) -> dict:
-        import h5py
-
-        with h5py.File(self._path(n), "r") as f:
-            states = {int(j): (f["u"][j][...], f["v"][j][...]) for j in f.get("u", {})}
-            return {"kind": str(f.attrs["kind"]), "states": states}
+        group = self._open()[str(n)]
+        states = {int(j): (group["u"][j][...], group["v"][j][...]) for j in group.get("u", {})}
+        return {"kind": str(group.attrs["kind"]), "states": states}
 
     def delete(self, n: int) -> None:
-        self.kinds.pop(n, None)
-        with contextlib.suppress(FileNotFoundError):
-            self._path(n).unlink()
+        f = self._open()
+        if str(n) in f:
+            del f[str(n)]
 
     def close(self) -> None:
         """Remove the files (collective: rank 0 removes the directory after all ranks)."""
@@ -257,9 +262,12 @@ class _DiskStorage:
             shutil.rmtree(self.root, ignore_errors=True)
 
     def close_local(self) -> None:
-        """Remove this rank's files (not collective; the directory stays if others remain)."""
-        for n in list(self.kinds):
-            self.delete(n)
+        """Remove this rank's file (not collective; the directory stays if others remain)."""
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+        with contextlib.suppress(OSError):
+            self.path.unlink()
         with contextlib.suppress(OSError):
             self.root.rmdir()
 
