@@ -137,9 +137,9 @@ class Checkpointing:
         depth = state_depth(simulation)
         state_mb = 2 * 8 * len(simulation.u0) / 2**20  # u and v, owned and ghost entries
         budget = _state_budget_mb(simulation, self.memory_fraction)
-        comm = collective_comm(simulation.model.domain.comm)
         # the most demanding rank decides for all
-        states = comm.allreduce(int(budget // max(state_mb, 1e-300)), op=MPI.MIN)
+        fitting = int(budget // max(state_mb, 1e-300))
+        states = collective_comm(simulation.model.domain.comm).allreduce(fitting, op=MPI.MIN)
         if states >= N + 1:
             return Checkpointing("all")
         snaps = states // depth
