@@ -62,7 +62,7 @@ def build(comm: MPI.Comm, args):
     model.add_gravity(9.81)
     model.add_dirichlet("plank_ends", 0.0)
     integrator = ds.BDF(2, args.dt, args.steps)
-    contact = add_contact(model, integrator, DHAT)
+    contact = add_contact(model, DHAT)
     # the ball lies above the plank's top face (height 0): throw it down
     X = model.V.tabulate_dof_coordinates()[:, :dim]
     v0 = np.zeros_like(X)

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from common import check_decrease
 
-from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
+from diffsolids.contact import ContactTerm
 from diffsolids.io import write_trajectory
 from diffsolids.optimize import StateChecks
 
@@ -27,11 +27,9 @@ __all__ = [
 ]
 
 
-def add_contact(model, integrator, dhat: float, **kwargs) -> ContactTerm:
-    """A ContactTerm with the barrier stiffness of ``suggest_barrier_stiffness``, in the model."""
-    probe = ContactTerm(model, dhat=dhat, stiffness=1.0, **kwargs)
-    kappa = suggest_barrier_stiffness(probe, integrator)
-    contact = ContactTerm(model, dhat=dhat, stiffness=kappa, **kwargs)
+def add_contact(model, dhat: float, **kwargs) -> ContactTerm:
+    """A ContactTerm in the model; it chooses its barrier stiffness at its first step."""
+    contact = ContactTerm(model, dhat=dhat, **kwargs)
     model.add_numeric_term(contact)
     return contact
 

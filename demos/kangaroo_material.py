@@ -70,7 +70,7 @@ def build(comm: MPI.Comm, args):
     model.add_dirichlet(lambda x: x[1] <= 1e-9, 0.0)  # the whole ground (top face y = 0)
     integrator = ds.BDF(2, args.dt, args.steps)
     friction = {("ground", "kangaroo"): FRICTION}
-    contact = add_contact(model, integrator, DHAT, friction=friction, eps_v=EPS_V)
+    contact = add_contact(model, DHAT, friction=friction, eps_v=EPS_V)
     X = model.V.tabulate_dof_coordinates()[:, :2]
     v0 = np.zeros_like(X)
     v0[X[:, 1] > 1e-9] = VELOCITY

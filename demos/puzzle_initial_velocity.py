@@ -85,7 +85,7 @@ def build_scene(args, comm):
     model.add_gravity(9.81)
     model.add_dirichlet(lambda x: x[1] < 0.1, 0.0)  # the ground (the piece starts above 0.2)
     integrator = ds.BDF(2, args.dt, args.steps)
-    contact = add_contact(model, integrator, DHAT, friction=FRICTION, eps_v=EPS_V)
+    contact = add_contact(model, DHAT, friction=FRICTION, eps_v=EPS_V)
     sim = TargetSimulation(model, integrator, ds.SolverOptions(rtol=1e-9), progress=False)
     return model, contact, sim
 

@@ -125,7 +125,7 @@ def build_scene(args, comm):
     model.add_gravity(9.81)
     model.add_dirichlet("base", 0.0)
     integrator = ds.BDF(2, args.dt, args.steps)
-    contact = add_contact(model, integrator, DHAT, friction=FRICTION, eps_v=EPS_V)
+    contact = add_contact(model, DHAT, friction=FRICTION, eps_v=EPS_V)
     v0 = np.zeros_like(model.fields.u.x.array)
     v0.reshape(-1, 2)[body_nodes(model, "load"), 1] = -SPEED
     options = ds.SolverOptions(rtol=1e-8, max_iterations=100)

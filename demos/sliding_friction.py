@@ -25,6 +25,7 @@ from dynamic_common import add_contact, body_nodes, check_invariants, finish_tra
 from mpi4py import MPI
 
 import diffsolids as ds
+from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
 from diffsolids.controls import FrictionControl
 from diffsolids.io import boundary_edges
 from diffsolids.mesh import from_geo
@@ -64,9 +65,10 @@ def build_scene(args, comm):
     top = 2.0 * np.tan(t) * np.cos(t)  # the slope is the line n.x = top, n = (sin t, cos t)
     model.add_dirichlet(lambda x: np.sin(t) * x[0] + np.cos(t) * x[1] < top + 1e-9, 0.0)
     integrator = ds.BDF(2, args.dt, args.steps)
-    contact = add_contact(
-        model, integrator, DHAT, friction={("ramp", "block"): args.mu_start}, eps_v=EPS_V
-    )
+    # kappa of the sliding run's integrator (the settling run below would otherwise choose it)
+    kappa = suggest_barrier_stiffness(ContactTerm(model, dhat=DHAT, stiffness=1.0), integrator)
+    friction = {("ramp", "block"): args.mu_start}
+    contact = add_contact(model, DHAT, stiffness=kappa, friction=friction, eps_v=EPS_V)
     options = ds.SolverOptions(rtol=1e-8)
     u0 = settle(model, contact, args.dt, options)
     sim = ds.Simulation(model, integrator, options, u0=u0, progress=False)

@@ -97,7 +97,7 @@ def build_scene(args, comm):
     up = args.dim - 1
     model.add_dirichlet(lambda x: x[up] < 1e-9, 0.0)  # the ground: every node with z <= 0
     integrator = ds.BDF(2, args.dt, args.steps)
-    contact = add_contact(model, integrator, DHAT, friction=FRICTION, eps_v=EPS_V)
+    contact = add_contact(model, DHAT, friction=FRICTION, eps_v=EPS_V)
     options = ds.SolverOptions(rtol=1e-8)
     sim = ds.Simulation(
         model, integrator, options, u0=settle(model, args.dt, options), progress=False
