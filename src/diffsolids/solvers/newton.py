@@ -64,9 +64,10 @@ class SolverOptions:
             reuses are those of the exact Jacobian). With contact the step potential is not
             convex: Newton on the exact (indefinite) Hessian, projected only when its step is not
             a descent direction, can end at a different stationary point after a tiny change
-            of the parameters (a saddle, 2e-3 above the minimum in the box-on-slab scene of
-            tests/test_friction_smoothness.py), so J jumps and finite differences do not
-            verify gradients. Projected steps descend into a minimum, as in IPC and PolyFEM.
+            of the parameters (2.3e-3 above the minimum the neighbouring parameters reach in
+            the box-on-slab scene of tests/test_friction_smoothness.py), so J jumps and finite
+            differences do not verify gradients. Projected steps descend into a minimum, as in
+            IPC and PolyFEM.
             ``inf``: the exact Hessian from the start (the behaviour before this option);
             ``0``: always projected.
     """
