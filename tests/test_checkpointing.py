@@ -182,8 +182,11 @@ def test_contact_friction_gradient_equals_all_in_memory(name, tmp_path):
     J, g = rf.value_and_gradient(q)
     assert pytest.approx(J_ref, rel=RTOL, abs=0) == J
     assert _relative(g, g_ref) <= RTOL
-    # the contact records are those of the first forward (recomputations record nothing)
-    assert _records(scene) == records
+    # the contact records are those of the first forward (recomputations record nothing);
+    # two runs agree to round-off (ipctk's threaded sums), not bit for bit
+    got = _records(scene)
+    assert [n for n, _ in got] == [n for n, _ in records]
+    assert np.allclose([d for _, d in got], [d for _, d in records], rtol=1e-12, atol=0)
     assert all(n > 0 for n, _ in records)
     assert np.abs(g[-1]) > 0  # the friction coefficient acts
 

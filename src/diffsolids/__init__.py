@@ -14,6 +14,7 @@ with contextlib.suppress(ImportError):
     import dolfinx_solver  # noqa: F401
 
 from diffsolids import errors
+from diffsolids.adjoint.checkpointing import Checkpointing
 
 # Everything a problem script needs is importable from here (the modules stay the reference).
 from diffsolids.contact import ContactTerm, Obstacle, suggest_barrier_stiffness
@@ -67,6 +68,7 @@ from diffsolids.verification import check_reproducible, finite_difference_check,
 
 __all__ = [
     "BDF",
+    "Checkpointing",
     "ContactTerm",
     "ConvergenceError",
     "DiffsolidsError",

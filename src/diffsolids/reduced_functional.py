@@ -14,7 +14,7 @@ from diffsolids.adjoint.checkpointing import CheckpointedRun, Checkpointing
 from diffsolids.adjoint.forms import check_objective_fields
 from diffsolids.controls import Control, ControlSet
 from diffsolids.errors import DiffsolidsError, ParameterError
-from diffsolids.objectives import Objective, ObjectiveError, TimeGrid
+from diffsolids.objectives import NumericIntegral, Objective, ObjectiveError, TimeGrid
 from diffsolids.objectives.terms import objective_terms
 from diffsolids.parallel import collective_comm
 from diffsolids.solvers import compile_form
@@ -87,7 +87,9 @@ class ReducedFunctional:
         self.regularisers = list(dict.fromkeys(objective.regularisers()))
         check_objective_fields(objective, self.model.fields, self.grid)
         self._value_forms = {
-            leaf: compile_form(leaf.form(self.model.fields)) for leaf in self.leaves
+            leaf: compile_form(leaf.form(self.model.fields))
+            for leaf in self.leaves
+            if not isinstance(leaf, NumericIntegral)
         }
         self._sweep: BackwardSweep | None = None
         if factor_memory_mb != 0 and simulation.integrator.num_steps > 1:
@@ -165,7 +167,9 @@ class ReducedFunctional:
         f.u.x.array[:] = traj.u[i]
         f.v.x.array[:] = traj.v[i]
         for leaf, leaf_steps in needed.items():
-            if i in leaf_steps:
+            if i in leaf_steps and isinstance(leaf, NumericIntegral):
+                table[leaf][i] = leaf.evaluate(self.model)
+            elif i in leaf_steps:
                 local = fem.assemble_scalar(self._value_forms[leaf])
                 table[leaf][i] = collective_comm(self.comm).allreduce(local, op=MPI.SUM)
 

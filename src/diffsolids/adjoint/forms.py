@@ -23,6 +23,7 @@ from ufl.algorithms import expand_derivatives, extract_coefficients
 
 from diffsolids.adjoint.sensitivities import Targets
 from diffsolids.errors import ParameterError
+from diffsolids.objectives.functional import NumericIntegral
 from diffsolids.solvers.forms import compile_form
 
 if TYPE_CHECKING:
@@ -76,6 +77,8 @@ def check_objective_fields(objective: "Objective", fields: "StepFields", grid: "
     """
     steps = None
     for leaf in dict.fromkeys(objective.leaves()):
+        if isinstance(leaf, NumericIntegral):  # reads u^i only
+            continue
         read = state_fields_read(leaf.form(fields), fields)
         if "u_tilde" in read and not grid.dynamic:
             raise ParameterError(
@@ -112,6 +115,9 @@ class AdjointForms:
         mesh = V.mesh
         w = ufl.TestFunction(V)
         self.lam = fem.Function(V, name="adjoint")
+        # numeric leaves (NumericIntegral) give their partials themselves; the others are UFL
+        self.numeric = {leaf: 0.0 for leaf in leaves if isinstance(leaf, NumericIntegral)}
+        leaves = [leaf for leaf in leaves if leaf not in self.numeric]
         self.weights = {leaf: fem.Constant(mesh, default_scalar_type(0.0)) for leaf in leaves}
         L = ufl.derivative(model.potential(dynamic), f.u, self.lam)
         parts = [c * leaf.form(f) for leaf, c in self.weights.items()]
@@ -156,4 +162,6 @@ class AdjointForms:
             value = float(weights[leaf][step]) if leaf in weights else 0.0
             const.value = value
             active |= value != 0.0
+        for leaf in self.numeric:
+            self.numeric[leaf] = float(weights[leaf][step]) if leaf in weights else 0.0
         return active

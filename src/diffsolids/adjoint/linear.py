@@ -82,6 +82,10 @@ class AdjointLinearSolver:
         self.stats = {"krylov_iterations": 0, "factorisations": 0, "direct_solves": 0}
         self._quadratic_cache = {}
 
+    def refresh(self, factors: dict) -> None:
+        """Use ``factors`` (step -> KSP) as the forward's own factors (after recomputed steps)."""
+        self._stored = dict(factors)
+
     def _factorise(self, A: PETSc.Mat) -> PETSc.KSP:
         ksp = PETSc.KSP().create(self.comm)
         ksp.setOperators(A)

@@ -128,7 +128,7 @@ class BackwardSweep:
 
         def step(i: int, view) -> None:
             if store is not None:  # the factors of steps recomputed since the last step
-                self.linear._stored = dict(store.factors)
+                self.linear.refresh(store.factors)
             self._step(i, view)
             if store is not None:
                 store.discard_after(i)
@@ -191,6 +191,7 @@ class BackwardSweep:
                 if forms.objective_tilde is not None:
                     g = self._assemble(forms.objective_tilde)
                     self._push_predictor(ubar, vbar, i, c, g)
+        self._numeric_objective(ubar[i], sens)
         # 1. v^i = (u^i + sum_j alpha_j u^{i-j}) / (beta dt)
         ubar[i] += vbar[i] / c.beta_dt
         for j, a in enumerate(c.alpha, start=1):
@@ -303,6 +304,17 @@ class BackwardSweep:
                     contrib = term.adjoint_parameter(name, self.model.fields.u, lam)
                     sens.contact[name] = sens.contact.get(name, 0.0) + contrib
 
+    def _numeric_objective(self, ubar_i: np.ndarray, sens: Sensitivities) -> None:
+        """c_i dJ/du^i and c_i dJ/dX of the numeric objective leaves (weights set for step i)."""
+        for leaf, weight in self.forms.numeric.items():
+            if weight == 0.0:
+                continue
+            ubar_i[: self.owned] += weight * leaf.state_gradient(self.model)[: self.owned]
+            if sens.shape is not None:
+                g = leaf.shape_gradient(self.model)
+                if g is not None:
+                    sens.shape += weight * g[: len(sens.shape)]
+
     def _initial_step(self, state0, leaf_weights, ubar, vbar, sens) -> None:
         """Step 0: objective partials at u^0, v^0 (lambda = 0) and the initial sensitivities."""
         forms = self.forms
@@ -314,6 +326,7 @@ class BackwardSweep:
             self._add(ubar[0], forms.objective_u)
             self._add(vbar[0], forms.objective_v)
             self._partials(sens, 1)
+        self._numeric_objective(ubar[0], sens)
         sens.u0, sens.v0 = ubar[0], vbar[0]
         if self.targets.dirichlet:
             sens.dirichlet[0] = ubar[0]

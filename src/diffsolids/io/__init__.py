@@ -1,4 +1,4 @@
-"""Output (VTX/XDMF time series), deformed geometry for figures, logging and progress bars."""
+"""Output (VTX/XDMF series), geometry for figures, logging, progress bars, PolyFEM scenes."""
 
 from diffsolids.io.geometry import (
     boundary_edges,
@@ -8,15 +8,18 @@ from diffsolids.io.geometry import (
 )
 from diffsolids.io.logging import configure_logging
 from diffsolids.io.output import TrajectoryWriter, von_mises_field, write_trajectory
+from diffsolids.io.polyfem_scene import PolyFEMScene, read_polyfem_scene
 from diffsolids.io.progress import progress_bar
 
 __all__ = [
+    "PolyFEMScene",
     "TrajectoryWriter",
     "boundary_edges",
     "configure_logging",
     "deformed_triangles",
     "nodal_displacement",
     "progress_bar",
+    "read_polyfem_scene",
     "silhouette_edges",
     "von_mises_field",
     "write_trajectory",
