@@ -7,9 +7,8 @@ direction and along the gradient (as serially).
 
 import numpy as np
 from mpi4py import MPI
-from test_friction_smoothness import FD_TOLERANCE, MU, box_on_slab, friction_checks
+from test_friction_smoothness import FD_TOLERANCE, MU, SMOOTH, box_on_slab, friction_checks
 
-import diffsolids as ds
 from diffsolids.controls import FrictionControl
 from diffsolids.reduced_functional import ReducedFunctional
 
@@ -17,7 +16,7 @@ RTOL = 1e-8
 
 
 def _value_and_gradient(comm):
-    contact, sim, objective = box_on_slab(ds.SolverOptions(), comm)
+    contact, sim, objective = box_on_slab(SMOOTH, comm)
     rf = ReducedFunctional(sim, objective, FrictionControl(contact, pairs=[("slab", "block")]))
     q = np.array([MU])
     return rf(q), rf.gradient(q)
@@ -32,6 +31,6 @@ def test_friction_gradient_parallel_equals_serial():
 
 
 def test_friction_gradient_parallel_central_differences():
-    for name, res in friction_checks(ds.SolverOptions(), MPI.COMM_WORLD).items():
+    for name, res in friction_checks(SMOOTH, MPI.COMM_WORLD).items():
         assert abs(res.adjoint) > 1e-5, f"{name}: friction does not act\n{res}"
         assert res.relative_error <= FD_TOLERANCE, f"{name}\n{res}"
