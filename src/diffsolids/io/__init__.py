@@ -8,11 +8,22 @@ from diffsolids.io.geometry import (
 )
 from diffsolids.io.logging import configure_logging
 from diffsolids.io.output import TrajectoryWriter, von_mises_field, write_trajectory
-from diffsolids.io.polyfem_scene import PolyFEMScene, read_polyfem_scene
+from diffsolids.io.polyfem_scene import (
+    PolyFEMBoundaryValue,
+    PolyFEMGeometry,
+    PolyFEMMaterial,
+    PolyFEMScene,
+    PolyFEMSetup,
+    read_polyfem_scene,
+)
 from diffsolids.io.progress import progress_bar
 
 __all__ = [
+    "PolyFEMBoundaryValue",
+    "PolyFEMGeometry",
+    "PolyFEMMaterial",
     "PolyFEMScene",
+    "PolyFEMSetup",
     "TrajectoryWriter",
     "boundary_edges",
     "configure_logging",

@@ -142,6 +142,7 @@ class NewtonSolver:
         self._restarted_after = 0
         self.reference_force = 0.0
         self._energy_cache: tuple[PETSc.Vec, float] | None = None
+        self._line_search: dict | None = None
         self.factor_store: FactorStore | None = None
         self._jacobian_key = None
         self._length_scale = 1e-8 * model.domain.characteristic_length()
@@ -331,7 +332,15 @@ class NewtonSolver:
             self._last_cut = scale
         else:
             self._cut_streak = 0
+        self._drop_line_search()
         self._line_search = {"f0": None, "x0": x.copy(), "F0": F.copy()}
+
+    def _drop_line_search(self) -> None:
+        """Free the PETSc copies of the previous line search's start point."""
+        if self._line_search is not None:
+            self._line_search["x0"].destroy()
+            self._line_search["F0"].destroy()
+        self._line_search = None
 
     def _march(self, x: PETSc.Vec, y: PETSc.Vec, t: float) -> float:
         """How far along the Newton step, x - s y with s in [t, 1], a cut step is extended.
@@ -561,7 +570,7 @@ class NewtonSolver:
         Raises:
             NewtonConvergenceError: The solve failed; names the step, iterations and residual.
         """
-        self._line_search = None
+        self._drop_line_search()
         self._fnorm = self._f_char = float("nan")  # PETSc may stop before the first test
         if self._energy_cache is not None:  # loads, history or parameters may have changed
             self._energy_cache[0].destroy()
