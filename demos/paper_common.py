@@ -23,6 +23,7 @@ from dolfinx import fem
 import diffsolids as ds
 from diffsolids.io.polyfem_scene import PolyFEMScene, read_polyfem_scene
 from diffsolids.objectives import target_displacement, time_integral
+from diffsolids.optimize import LBFGSOptions
 
 __all__ = [
     "DEFAULT_DATA",
@@ -177,6 +178,13 @@ def build(
         progress=False,
     )
     return model, contact, sim
+
+
+def gradient_stop_options(opt: dict, iterations: int, **kwargs) -> LBFGSOptions:
+    """L-BFGS options stopping at opt.json's gradient norm (``grad_norm`` x 1e-3, absolute)."""
+    nonlinear = opt["solver"]["nonlinear"]
+    atol = float(nonlinear.get("grad_norm", 1e-4)) * 1e-3
+    return LBFGSOptions(max_iterations=iterations, gradient_atol=atol, gradient_rtol=0.0, **kwargs)
 
 
 def plot_paths(path, paths: dict, result, title: str, comm) -> None:

@@ -33,6 +33,7 @@ from paper_common import (
     add_data_argument,
     build,
     experiment,
+    gradient_stop_options,
     plot_paths,
     scenes,
     target_objective,
@@ -40,7 +41,7 @@ from paper_common import (
 
 from diffsolids.controls import RigidVelocity
 from diffsolids.objectives import center_of_mass, series_values
-from diffsolids.optimize import LBFGSOptions, check_trajectories
+from diffsolids.optimize import check_trajectories
 from diffsolids.reduced_functional import ReducedFunctional
 
 FOLDER = "fig14_puzzle_piece"
@@ -85,13 +86,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     model, contact, sim, rf, target, true, q0, opt = setup(args, comm)
     args.steps = sim.integrator.num_steps
     args.dt = sim.integrator.dt
-    nonlinear = opt["solver"]["nonlinear"]
-    options = LBFGSOptions(
-        max_iterations=args.iterations,
-        gradient_atol=float(nonlinear.get("grad_norm", 1e-4)) * 1e-3,
-        gradient_rtol=0.0,
-        max_change=2.0,
-    )
+    options = gradient_stop_options(opt, args.iterations, max_change=2.0)
     result, keeper = run.optimise(rf, q0, options, write_parameters=True)
     trajs = {"target": target, "initial": keeper.first, "final": keeper.last}
     com = center_of_mass(model, PIECE)

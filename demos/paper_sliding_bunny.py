@@ -29,13 +29,13 @@ import numpy as np
 from common import DemoReport, DemoRun, by_size, run_demo
 from dynamic_common import check_invariants, finish_transient
 from mpi4py import MPI
-from paper_common import add_data_argument, build, experiment, plot_paths
+from paper_common import add_data_argument, build, experiment, gradient_stop_options, plot_paths
 
 import diffsolids as ds
 from diffsolids.controls import FrictionControl
 from diffsolids.io.polyfem_scene import read_polyfem_scene
 from diffsolids.objectives import center_of_mass, final_value, series_values
-from diffsolids.optimize import LBFGSOptions, check_trajectories
+from diffsolids.optimize import check_trajectories
 from diffsolids.reduced_functional import ReducedFunctional
 
 FOLDER = "fig21_friction_bunny"
@@ -99,14 +99,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     model, contact, sim, rf, target, true, q0, opt = setup(args, comm)
     args.steps = sim.integrator.num_steps
     args.dt = sim.integrator.dt
-    nonlinear = opt["solver"]["nonlinear"]
-    options = LBFGSOptions(
-        max_iterations=args.iterations,
-        gradient_atol=float(nonlinear.get("grad_norm", 1e-4)) * 1e-3,
-        gradient_rtol=0.0,
-        initial_step=0.5,
-        max_change=0.5,
-    )
+    options = gradient_stop_options(opt, args.iterations, initial_step=0.5, max_change=0.5)
     result, keeper = run.optimise(rf, np.log(q0), options, write_parameters=True)
     trajs = {"target": target, "initial": keeper.first, "final": keeper.last}
     com = center_of_mass(model, BUNNY)
