@@ -33,6 +33,7 @@ from petsc4py import PETSc
 from diffsolids.adjoint.forms import AdjointForms
 from diffsolids.adjoint.linear import AdjointLinearSolver, AdjointSolverOptions
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
+from diffsolids.io.progress import progress_bar
 from diffsolids.parallel import collective_comm
 
 __all__ = ["BackwardSweep"]
@@ -110,9 +111,15 @@ class BackwardSweep:
     def run(self, traj, leaf_weights: dict) -> Sensitivities:
         """Backward sweep over ``traj`` with chain-rule weights ``leaf_weights[leaf][i]``."""
         self._begin(traj.num_steps, len(traj.u[0]), leaf_weights)
-        for i in range(traj.num_steps, 0, -1):
-            self._step(i, traj)
+        with self._progress(traj.num_steps) as bar:
+            for i in range(traj.num_steps, 0, -1):
+                self._step(i, traj)
+                bar.update()
         return self._finish((traj.u[0], traj.v[0]))
+
+    def _progress(self, num_steps: int):
+        """The adjoint's progress bar (shown where the simulation shows its own)."""
+        return progress_bar(num_steps, self.model.domain.comm, self.sim.progress, "adjoint")
 
     def run_checkpointed(self, run, leaf_weights: dict) -> Sensitivities:
         """Backward sweep of a :class:`~diffsolids.adjoint.checkpointing.CheckpointedRun`.
@@ -132,9 +139,11 @@ class BackwardSweep:
             self._step(i, view)
             if store is not None:
                 store.discard_after(i)
+            bar.update()
 
         try:
-            run.reverse(step)
+            with self._progress(run.N) as bar:
+                run.reverse(step)
         finally:
             if store is not None:
                 store.clear()
