@@ -12,12 +12,15 @@ from pathlib import Path
 
 import numpy as np
 from common import check_decrease
+from dolfinx import fem
 
+import diffsolids as ds
 from diffsolids.contact import ContactTerm
 from diffsolids.io import write_trajectory
 from diffsolids.optimize import StateChecks
 
 __all__ = [
+    "TargetSimulation",
     "add_contact",
     "body_nodes",
     "check_invariants",
@@ -25,6 +28,26 @@ __all__ = [
     "scene_figure",
     "write_runs",
 ]
+
+
+class TargetSimulation(ds.Simulation):
+    """A Simulation that also loads the target displacement of step i into a Function.
+
+    ``load_step`` is called by the forward run, the objective evaluation and the adjoint
+    sweep before anything of step i is assembled, so a ``target_displacement`` objective with
+    ``self.target`` compares u^i with the target of the same step.
+    """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.target = fem.Function(self.model.V, name="target")
+        self.targets: list[np.ndarray] | None = None
+
+    def load_step(self, i, traj):
+        """Set step ``i`` (see Simulation.load_step) and the target displacement u^i_target."""
+        if self.targets is not None:
+            self.target.x.array[:] = self.targets[i]
+        return super().load_step(i, traj)
 
 
 def add_contact(model, dhat: float, **kwargs) -> ContactTerm:

@@ -16,9 +16,8 @@ import json
 import os
 from pathlib import Path
 
-import numpy as np
 from common import ROOT
-from dolfinx import fem
+from dynamic_common import TargetSimulation
 
 import diffsolids as ds
 from diffsolids.io.polyfem_scene import PolyFEMScene, read_polyfem_scene
@@ -95,25 +94,6 @@ def kappa_argument(value: str | None):
     if value == "suggest":
         return value
     return float(value)
-
-
-class TargetSimulation(ds.Simulation):
-    """A Simulation that loads the target displacement of step i into ``self.target``.
-
-    ``load_step`` runs before anything of step i is assembled (forward, objective, adjoint), so
-    an objective on ``self.target`` compares u^i with the target of the same step.
-    """
-
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        self.target = fem.Function(self.model.V, name="target")
-        self.targets: list[np.ndarray] | None = None
-
-    def load_step(self, i, traj):
-        """Set step ``i`` (see Simulation.load_step) and the target displacement of step i."""
-        if self.targets is not None:
-            self.target.x.array[:] = self.targets[i]
-        return super().load_step(i, traj)
 
 
 def target_objective(sim: TargetSimulation, opt: dict):

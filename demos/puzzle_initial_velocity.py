@@ -24,7 +24,13 @@ Run ``python demos/puzzle_initial_velocity.py`` or under ``mpiexec -n 2``.
 import numpy as np
 from common import MESHES, DemoReport, DemoRun, plot_history, run_demo, save_figure
 from dolfinx import fem
-from dynamic_common import add_contact, check_invariants, finish_transient, write_runs
+from dynamic_common import (
+    TargetSimulation,
+    add_contact,
+    check_invariants,
+    finish_transient,
+    write_runs,
+)
 from mpi4py import MPI
 
 import diffsolids as ds
@@ -55,26 +61,6 @@ def parse_args(argv, comm: MPI.Comm) -> DemoRun:
     return DemoRun(
         DemoRun.parser(__doc__.splitlines()[0], "puzzle_initial_velocity"), argv, comm, SIZES
     )
-
-
-class TargetSimulation(ds.Simulation):
-    """A Simulation that also loads the target displacement of step i into a Function.
-
-    ``load_step`` is called by the forward run, the objective evaluation and the adjoint
-    sweep before anything of step i is assembled, so a ``target_displacement`` objective with
-    ``self.target`` compares u^i with the target of the same step.
-    """
-
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        self.target = fem.Function(self.model.V, name="target")
-        self.targets: list[np.ndarray] | None = None
-
-    def load_step(self, i, traj):
-        """Set step ``i`` (see Simulation.load_step) and the target displacement u^i_target."""
-        if self.targets is not None:
-            self.target.x.array[:] = self.targets[i]
-        return super().load_step(i, traj)
 
 
 def build_scene(args, comm):

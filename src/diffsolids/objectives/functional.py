@@ -130,19 +130,8 @@ class Series(_Algebra):
         raise NotImplementedError
 
 
-class Integral(Series):
-    """A UFL integral of the step fields: ``integrand(fields) -> scalar form``.
-
-    ``fields`` is the model's :class:`~diffsolids.model.StepFields` (u, v, X, t, dx, ds,
-    coefficients) holding u^i, v^i when step i is evaluated; any UFL expression of them works.
-    """
-
-    def __init__(self, integrand: Callable, name: str = "integral"):
-        self.integrand, self.name = integrand, name
-
-    def form(self, fields) -> ufl.Form:
-        """The scalar UFL form of this integral."""
-        return self.integrand(fields)
+class _Leaf(Series):
+    """A series whose per-step values are evaluated directly (a leaf of the value table)."""
 
     @override
     def leaves(self):
@@ -157,7 +146,22 @@ class Integral(Series):
         out[self] = out.get(self, 0.0) + seed
 
 
-class NumericIntegral(Series):
+class Integral(_Leaf):
+    """A UFL integral of the step fields: ``integrand(fields) -> scalar form``.
+
+    ``fields`` is the model's :class:`~diffsolids.model.StepFields` (u, v, X, t, dx, ds,
+    coefficients) holding u^i, v^i when step i is evaluated; any UFL expression of them works.
+    """
+
+    def __init__(self, integrand: Callable, name: str = "integral"):
+        self.integrand, self.name = integrand, name
+
+    def form(self, fields) -> ufl.Form:
+        """The scalar UFL form of this integral."""
+        return self.integrand(fields)
+
+
+class NumericIntegral(_Leaf):
     """A per-step leaf computed by numeric code instead of a UFL form (e.g. ipctk distances).
 
     Subclasses give the value at the state held by the model's fields (u^i, v^i, the step's
@@ -186,18 +190,6 @@ class NumericIntegral(Series):
     def shape_gradient(self, model) -> np.ndarray | None:
         """dJ/dX on the owned entries of ``model.shape_space`` (None: no shape dependence)."""
         return None
-
-    @override
-    def leaves(self):
-        return [self]
-
-    @override
-    def values(self, table):
-        return table[self]
-
-    @override
-    def backward(self, table, seed, out):
-        out[self] = out.get(self, 0.0) + seed
 
 
 class DataSeries(Series):
