@@ -13,6 +13,7 @@ import ipctk
 import numpy as np
 import pytest
 import ufl
+from contact_checks import IntersectionMonitor
 from mpi4py import MPI
 from test_gradients_contact import _direction, check_gradient
 
@@ -54,25 +55,8 @@ def _indenter_scene(dynamic: bool, friction: float = 0.0, comm=MPI.COMM_SELF):
     return model, contact, sim, objective
 
 
-class _IntersectionMonitor:
-    """Checks every Newton iterate (intermediate solves included) for intersections."""
-
-    def __init__(self, sim, contact):
-        self.surface = contact.surface
-        self.checked = 0
-        self.bad: list[int] = []
-        sim.solver.snes.setMonitor(self)
-
-    def __call__(self, snes, it, fnorm):
-        s = self.surface
-        x = s.rest_positions + s.gather(snes.getSolution().array_r)
-        self.checked += 1
-        if ipctk.has_intersections(s.mesh, np.asfortranarray(x)):
-            self.bad.append(it)
-
-
 def _check_indentation(model, contact, sim):
-    monitor = _IntersectionMonitor(sim, contact)
+    monitor = IntersectionMonitor(sim, contact)
     traj = sim.run()
     assert sim.substeps, "the scene should need intermediate solves (continuation)"
     assert monitor.checked > 0 and not monitor.bad

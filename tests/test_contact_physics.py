@@ -1,9 +1,9 @@
 """Contact physics: friction on an incline, a ball dropped on a slab, self-contact, bad scenes."""
 
-import ipctk
 import numpy as np
 import pytest
 import ufl
+from contact_checks import IntersectionMonitor
 from dolfinx import fem
 from mpi4py import MPI
 
@@ -25,23 +25,6 @@ def _contact(model, integrator, **kwargs) -> ContactTerm:
     contact = ContactTerm(model, dhat=DHAT, stiffness=kappa, **kwargs)
     model.add_numeric_term(contact)
     return contact
-
-
-class _IntersectionMonitor:
-    """Checks every Newton iterate of the solver (SNES monitor) for intersections."""
-
-    def __init__(self, sim, contact):
-        self.surface = contact.surface
-        self.checked = 0
-        self.bad: list[int] = []
-        sim.solver.snes.setMonitor(self)
-
-    def __call__(self, snes, it, fnorm):
-        s = self.surface
-        x = s.rest_positions + s.gather(snes.getSolution().array_r)
-        self.checked += 1
-        if ipctk.has_intersections(s.mesh, np.asfortranarray(x)):
-            self.bad.append(it)
 
 
 def _mean(model, arr, nodes, comp):
@@ -102,7 +85,7 @@ def test_ball_dropped_on_slab(dim):
     v0 = np.zeros((len(X), dim))
     v0[ball_nodes, dim - 1] = -2.0
     sim = ds.Simulation(model, integ, ds.SolverOptions(rtol=1e-9), v0=v0.ravel())
-    monitor = _IntersectionMonitor(sim, contact)
+    monitor = IntersectionMonitor(sim, contact)
     traj = sim.run()
     assert monitor.checked > steps and monitor.bad == []
     vz = [_mean(model, v, ball_nodes, dim - 1) for v in traj.v]
@@ -151,7 +134,7 @@ def test_c_shape_closed_by_a_load_never_self_intersects():
     integ = ds.Static(num_steps=5, dt=0.2)
     contact = _contact(model, integ)
     sim = ds.Simulation(model, integ, ds.SolverOptions(rtol=1e-9))
-    monitor = _IntersectionMonitor(sim, contact)
+    monitor = IntersectionMonitor(sim, contact)
     sim.run()
     assert monitor.checked > 5 and monitor.bad == []
     last = contact.records[-1]

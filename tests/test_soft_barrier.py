@@ -12,6 +12,7 @@ from decimal import Decimal, getcontext
 import ipctk
 import numpy as np
 import pytest
+from contact_checks import IntersectionMonitor
 from mpi4py import MPI
 
 import diffsolids as ds
@@ -22,23 +23,6 @@ from diffsolids.mesh.scene import combine_meshes, simplex_box
 COMM = MPI.COMM_WORLD
 DHAT = 1e-3
 G, MU, V0, DT = 9.81, 0.5, 0.5, 0.02
-
-
-class _IntersectionMonitor:
-    """Checks every Newton iterate (SNES monitor) for intersections."""
-
-    def __init__(self, sim, contact):
-        self.surface = contact.surface
-        self.checked = 0
-        self.bad: list[int] = []
-        sim.solver.snes.setMonitor(self)
-
-    def __call__(self, snes, it, fnorm):
-        s = self.surface
-        x = s.rest_positions + s.gather(snes.getSolution().array_r)
-        self.checked += 1
-        if ipctk.has_intersections(s.mesh, np.asfortranarray(x)):
-            self.bad.append(it)
 
 
 def test_soft_barrier_block_slides_to_rest():
@@ -67,7 +51,7 @@ def test_soft_barrier_block_slides_to_rest():
     v0[on_block, 0] = V0
     steps = 12
     sim = ds.Simulation(model, ds.BDF(1, DT, steps), v0=v0.ravel())
-    monitor = _IntersectionMonitor(sim, contact)
+    monitor = IntersectionMonitor(sim, contact)
     traj = sim.run()
     assert monitor.checked > steps and monitor.bad == []
     s = contact.surface
@@ -213,7 +197,7 @@ def test_too_soft_for_double_precision_says_so():
     contact = ContactTerm(model, dhat=DHAT, stiffness=5e-4, area_weighting=False)
     model.add_numeric_term(contact)
     sim = ds.Simulation(model, ds.BDF(1, DT, 3), ds.SolverOptions(max_iterations=12))
-    monitor = _IntersectionMonitor(sim, contact)
+    monitor = IntersectionMonitor(sim, contact)
     with pytest.raises(ds.NewtonConvergenceError) as info:
         sim.run()
     assert monitor.checked >= 12 and monitor.bad == []
