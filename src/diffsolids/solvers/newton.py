@@ -6,6 +6,7 @@ and a residual tolerance scaled by a characteristic force of the simulation.
 """
 
 from dataclasses import dataclass, field
+from numbers import Real
 
 import dolfinx.fem.petsc as fem_petsc
 import dolfinx.la.petsc
@@ -23,7 +24,10 @@ from diffsolids.solvers.forms import compile_form
 from diffsolids.solvers.inversion import InversionGuard
 from diffsolids.solvers.sparsity import GrowingPattern
 
-__all__ = ["NewtonResult", "NewtonSolver", "SolverOptions"]
+__all__ = ["INITIAL_GUESSES", "NewtonResult", "NewtonSolver", "SolverOptions"]
+
+#: The choices of :attr:`SolverOptions.initial_guess`.
+INITIAL_GUESSES = ("predictor", "previous", "zero")
 
 _DEFAULT_PETSC = {
     "snes_type": "newtonls",
@@ -39,8 +43,12 @@ class SolverOptions:
     """Options of the per-step Newton solve.
 
     Attributes:
-        rtol: Converged when ||residual|| <= rtol * f_char, f_char the larger of the simulation's
-            reference force (residual of the initial state) and the step's initial residual.
+        rtol: Converged when ||residual|| <= max(atol, rtol * f_char), f_char the larger of the
+            simulation's reference force (residual of the initial state) and the step's initial
+            residual.
+        atol: Absolute residual tolerance (same units as the residual, a force): a step is
+            also converged once ||residual|| <= atol, whatever ``rtol * f_char`` is. 0 (default):
+            only the relative test.
         max_iterations: Newton iteration limit per step.
         petsc_options: PETSc options under the solver prefix (override the defaults: newtonls,
             bt line search, preonly + MUMPS LU).
@@ -72,6 +80,18 @@ class SolverOptions:
             yet the default: on the Fig. 21 bunny (suggested kappa, mu = 0.501) 1e-3 fails at
             step 7 with 48 of 50 Newton steps cut by a step bound, and ``0`` at step 4
             (linear convergence), where ``inf`` converges all 7 steps in 161 iterations.
+        initial_guess: Where a dynamic step's Newton iteration starts (read by the Simulation;
+            the step's Dirichlet values are applied to it, and a guess that inverts elements
+            or collides falls back to ``"previous"``). One of ``INITIAL_GUESSES``:
+
+            - ``"predictor"`` (default, the behaviour before this option existed): the
+              constant-velocity extrapolation u^{i-1} + dt v^{i-1} in dynamic simulations,
+              u^{i-1} in static ones;
+            - ``"previous"``: the previous state u^{i-1};
+            - ``"zero"``: the reference configuration (u = 0).
+
+            A warm start the Simulation is given (a Trajectory of an earlier run) comes first
+            whatever this option says.
     """
 
     rtol: float = 1e-9
@@ -84,6 +104,23 @@ class SolverOptions:
     march_below: float = 0.03
     march_substeps: int = 25
     exact_hessian_below: float = np.inf
+    atol: float = 0.0
+    initial_guess: str = "predictor"
+
+    def __post_init__(self):
+        if self.initial_guess not in INITIAL_GUESSES:
+            raise ValueError(
+                f"SolverOptions(initial_guess={self.initial_guess!r}): not one of "
+                f"{', '.join(repr(g) for g in INITIAL_GUESSES)}"
+            )
+        for name in ("rtol", "atol"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (isinstance(value, Real) and value >= 0.0):
+                raise ValueError(
+                    f"SolverOptions({name}={value!r}): must be a number >= 0 (a residual tolerance)"
+                )
+        if not self.rtol > 0.0 and not self.atol > 0.0:
+            raise ValueError("SolverOptions: rtol and atol are both 0; no step could converge")
 
 
 @dataclass
@@ -406,7 +443,7 @@ class NewtonSolver:
         R = PETSc.SNES.ConvergedReason
         if not np.isfinite(fnorm):
             return R.DIVERGED_FNORM_NAN
-        if fnorm <= self.options.rtol * self._f_char:
+        if fnorm <= self._tolerance():
             return R.CONVERGED_FNORM_ABS
         if it >= self.options.max_iterations:
             return R.DIVERGED_MAX_IT
@@ -415,6 +452,11 @@ class NewtonSolver:
             self._restart = True
             return R.DIVERGED_JACOBIAN_DOMAIN
         return R.ITERATING
+
+    def _tolerance(self) -> float:
+        """The residual norm below which the step is converged: max(atol, rtol * f_char)."""
+        relative = self.options.rtol * self._f_char  # nan before the first residual
+        return self.options.atol if self.options.atol > relative else relative
 
     def _failure_details(self, iterations: int) -> str:
         """The step bounds' and numeric terms' account of a failed solve."""
@@ -603,7 +645,7 @@ class NewtonSolver:
         reason = self.snes.getConvergedReason()
         its = self._restarted_after + self.snes.getIterationNumber()
         self._assign(self.x)
-        tolerance = self.options.rtol * self._f_char
+        tolerance = self._tolerance()
         # Success means the residual test passed, or the Newton increment reached round-off;
         # whatever else PETSc may report (e.g. a user snes_stol) is not convergence.
         converged = self._roundoff_converged or (reason > 0 and self._fnorm <= tolerance)
