@@ -1,11 +1,12 @@
-"""Progress bars for long runs (rank 0 only)."""
+"""Progress bars and log lines of long runs (rank 0 only)."""
 
 import contextlib
 import sys
+from typing import TextIO
 
 from mpi4py import MPI
 
-__all__ = ["progress_bar"]
+__all__ = ["progress_bar", "write_line"]
 
 
 class _NullBar:
@@ -25,3 +26,19 @@ def progress_bar(total: int, comm: MPI.Comm, enabled: bool | None = None, desc: 
 
     with tqdm(total=total, desc=desc, leave=False, dynamic_ncols=True) as bar:
         yield bar
+
+
+def write_line(text: str, file: TextIO | None = None) -> None:
+    """Print one line (to stdout by default) without breaking a progress bar being shown.
+
+    Call it on the rank that prints (it does not check the rank): the bars of
+    :func:`progress_bar` are cleared, the line written and the bars drawn again below it.
+    """
+    out = sys.stdout if file is None else file
+    try:
+        from tqdm import tqdm
+    except ImportError:  # no bars without tqdm either
+        print(text, file=out, flush=True)
+        return
+    tqdm.write(text, file=out)
+    out.flush()

@@ -1,5 +1,7 @@
 """What an optimisation run shows and writes: log lines, history, plots, selected iterates."""
 
+import csv
+import io
 import json
 import logging
 import os
@@ -17,7 +19,16 @@ if TYPE_CHECKING:
     from diffsolids.model import Model
     from diffsolids.simulation import Trajectory
 
-__all__ = ["IterationRecord", "OptimizationOutput", "log_iteration", "plot_history"]
+__all__ = [
+    "IterationLog",
+    "IterationRecord",
+    "OptimizationOutput",
+    "control_summary",
+    "log_iteration",
+    "plot_history",
+    "plot_log",
+    "read_log",
+]
 
 logger = logging.getLogger("diffsolids")
 
@@ -41,6 +52,9 @@ class IterationRecord:
         seconds: Wall time since the run (or its resumption) started.
         remeshed: The mesh was rebuilt after this iterate (J, gradient are on the new mesh).
         objective_before_remesh: J on the old mesh when ``remeshed``.
+        parameter_norm: ``|q_k|_2``.
+        parameter_summary: The controls at the iterate in a few characters (see
+            :func:`control_summary`).
         q: Parameters (only when the run records them).
     """
 
@@ -57,6 +71,8 @@ class IterationRecord:
     seconds: float = 0.0
     remeshed: bool = False
     objective_before_remesh: float | None = None
+    parameter_norm: float = 0.0
+    parameter_summary: str = ""
     q: list[float] | None = None
 
     def to_json(self) -> str:
@@ -67,6 +83,34 @@ class IterationRecord:
     def from_dict(cls, d: dict) -> "IterationRecord":
         """Inverse of :meth:`to_json` (after ``json.loads``)."""
         return cls(**d)
+
+
+def control_summary(controls, q: np.ndarray, max_values: int = 3) -> str:
+    """The controls at ``q`` in a few characters, for a log line.
+
+    A control with at most ``max_values`` parameters shows them (``E=1.2e+05``,
+    ``v0=[1.61, 0.39]``), a larger one its Euclidean norm (``|shape|=0.0213``).
+
+    Args:
+        controls: The reduced functional's ControlSet (``controls``, ``offsets``).
+        q: The parameters.
+        max_values: Largest control shown value by value.
+    """
+    q = np.asarray(q, dtype=float)
+    blocks = getattr(controls, "controls", None)
+    if blocks is None:
+        return f"|q|={np.linalg.norm(q):.4g}"
+    offsets = controls.offsets
+    parts = []
+    for c, a, b in zip(blocks, offsets[:-1], offsets[1:], strict=True):
+        name = getattr(c, "name", "q")
+        if b - a == 1:
+            parts.append(f"{name}={q[a]:.4g}")
+        elif b - a <= max_values:
+            parts.append(f"{name}=[" + ", ".join(f"{x:.4g}" for x in q[a:b]) + "]")
+        else:
+            parts.append(f"|{name}|={np.linalg.norm(q[a:b]):.4g}")
+    return " ".join(parts)
 
 
 def log_iteration(rec: IterationRecord) -> None:
@@ -83,6 +127,182 @@ def log_iteration(rec: IterationRecord) -> None:
     if rec.remeshed:
         line += f"  remeshed (J before {rec.objective_before_remesh:.10e})"
     logger.info(line)
+
+
+# the columns of the printed log: (title, width, value of a record)
+_COLUMNS = (
+    ("iter", 5, lambda r: f"{r.iteration:d}"),
+    ("J", 17, lambda r: f"{r.objective:.9e}"),
+    ("|grad|", 10, lambda r: f"{r.gradient_norm:.3e}"),
+    ("|step|", 10, lambda r: f"{r.step_norm:.3e}" if r.iteration else "-"),
+    ("t", 8, lambda r: f"{r.step_length:.3g}" if r.iteration else "-"),
+    ("trials", 7, lambda r: f"{r.trials}" + (f"({r.invalid_trials}!)" if r.invalid_trials else "")),
+    ("fwd s", 8, lambda r: f"{r.forward_seconds:.2f}"),
+    ("grad s", 8, lambda r: f"{r.gradient_seconds:.2f}"),
+)
+
+# the scalar fields of a CSV log, in order (then one ``J:<term>`` column per objective term)
+CSV_FIELDS = (
+    "iteration",
+    "objective",
+    "gradient_norm",
+    "step_norm",
+    "step_length",
+    "trials",
+    "invalid_trials",
+    "forward_seconds",
+    "gradient_seconds",
+    "seconds",
+    "parameter_norm",
+    "parameter_summary",
+    "remeshed",
+    "objective_before_remesh",
+)
+
+
+class IterationLog:
+    """The optimisation log: one line per accepted iterate, printed and/or written to a file.
+
+    ``LBFGS(rf, log=True, log_file="log.csv")`` (or :func:`~diffsolids.optimize.minimize`) makes
+    one; it is called like an ``on_accept`` observer, once per accepted iterate. The printed
+    table has a header line, then per iterate: the iteration, J, the projected gradient norm,
+    the step ``|q_k - q_{k-1}|_2`` and its line-search factor t, the line-search trials (with
+    ``(k!)`` for k invalid ones), the seconds of the forward solves and of the gradient, and
+    the controls (:func:`control_summary`); after a remesh a note follows. The lines go to
+    rank 0's stdout, past any progress bar.
+
+    The file (rank 0) is CSV when its name ends in ``.csv`` (the columns ``CSV_FIELDS``,
+    then ``J:<name>`` per objective term) and JSON lines when it ends in ``.jsonl`` or
+    ``.json`` (one :meth:`IterationRecord.to_json` per line, the format of ``history.jsonl``).
+    Every line is flushed when written; :func:`read_log` reads either format back.
+
+    Args:
+        comm: Communicator of the run (rank 0 prints and writes).
+        show: Print the lines.
+        path: The log file (None: no file).
+
+    Raises:
+        OptimizationError: A file name with another ending.
+    """
+
+    def __init__(
+        self, comm: MPI.Comm, show: bool = True, path: str | os.PathLike | None = None
+    ) -> None:
+        self.comm = comm
+        self.show = bool(show)
+        self.path = None if path is None else Path(path)
+        self.format = None if self.path is None else _log_format(self.path)
+        self._terms: list[str] | None = None
+        self._header = False
+
+    def header(self) -> str:
+        """The title line of the printed table."""
+        return "".join(f"{t:>{w}}" for t, w, _ in _COLUMNS) + "  controls"
+
+    def line(self, rec: IterationRecord) -> str:
+        """The printed line of one record."""
+        text = "".join(f"{f(rec):>{w}}" for _, w, f in _COLUMNS) + "  " + rec.parameter_summary
+        if rec.remeshed:
+            text += f"  (remeshed; J was {rec.objective_before_remesh:.9e})"
+        return text
+
+    def start(self, history: list[IterationRecord]) -> None:
+        """Begin the file with ``history`` (empty, or the records before a resumption)."""
+        if self.comm.rank != 0:
+            return
+        if self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.path.write_text("")
+            self._terms = None
+            for rec in history:
+                self._write(rec)
+        if self.show and history:
+            self._print(self.header())
+            self._header = True
+            self._print(f"(resumed after iteration {history[-1].iteration})")
+
+    def __call__(self, rec: IterationRecord, optimizer: object = None) -> None:
+        """Print and write one accepted iterate (rank 0; the other ranks return)."""
+        if self.comm.rank != 0:
+            return
+        if self.show:
+            if not self._header:
+                self._print(self.header())
+                self._header = True
+            self._print(self.line(rec))
+        if self.path is not None:
+            self._write(rec)
+
+    @staticmethod
+    def _print(text: str) -> None:
+        from diffsolids.io.progress import write_line
+
+        write_line(text)
+
+    def _write(self, rec: IterationRecord) -> None:
+        if self.format == "jsonl":
+            text = rec.to_json() + "\n"
+        else:
+            buf = io.StringIO()
+            writer = csv.writer(buf, lineterminator="\n")
+            if self._terms is None:
+                self._terms = list(rec.terms)
+                if self.path.stat().st_size == 0:
+                    writer.writerow([*CSV_FIELDS, *(f"J:{t}" for t in self._terms)])
+            row = [_csv_value(getattr(rec, f)) for f in CSV_FIELDS]
+            writer.writerow(row + [_csv_value(rec.terms.get(t)) for t in self._terms])
+            text = buf.getvalue()
+        with open(self.path, "a") as f:
+            f.write(text)
+            f.flush()
+
+
+def _log_format(path: Path) -> str:
+    suffix = path.suffix.lower()
+    if suffix == ".csv":
+        return "csv"
+    if suffix in (".jsonl", ".json"):
+        return "jsonl"
+    raise OptimizationError(
+        f"log_file {str(path)!r}: the name must end in .csv (CSV) or .jsonl/.json (JSON lines)"
+    )
+
+
+def _csv_value(value) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return repr(value)  # all digits: read_log gives the numbers back exactly
+    return str(value)
+
+
+def read_log(path: str | os.PathLike) -> list[IterationRecord]:
+    """The records of an optimisation log (CSV or JSON lines) or of a ``history.jsonl``.
+
+    Raises:
+        OptimizationError: A file name that is neither ``.csv`` nor ``.jsonl``/``.json``.
+    """
+    path = Path(path)
+    if _log_format(path) == "jsonl":
+        lines = path.read_text().splitlines()
+        return [IterationRecord.from_dict(json.loads(s)) for s in lines if s.strip()]
+    records = []
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            terms = {k[2:]: float(v) for k, v in row.items() if k.startswith("J:") and v != ""}
+            d = {k: _from_csv(k, row[k]) for k in CSV_FIELDS if k in row}
+            records.append(IterationRecord(terms=terms, **d))
+    return records
+
+
+def _from_csv(field_name: str, text: str):
+    if field_name in ("iteration", "trials", "invalid_trials"):
+        return int(text)
+    if field_name == "parameter_summary":
+        return text
+    if field_name == "remeshed":
+        return text == "True"
+    return float(text) if text != "" else None
 
 
 def plot_history(history: list[IterationRecord], directory: Path) -> None:
@@ -121,9 +341,68 @@ def plot_history(history: list[IterationRecord], directory: Path) -> None:
     _save(fig, directory / "gradient_norm.png")
 
 
-def _save(fig, path: Path) -> None:
-    import io
+def plot_log(
+    history: list[IterationRecord], path: str | os.PathLike, title: str | None = None
+) -> Path:
+    """One figure of a run: J (and its terms) and the projected gradient norm per iteration.
 
+    Two panels over the iteration, logarithmic where the values are positive, a grey line at
+    each remesh; the format follows the name (``.svg``, ``.png``, ``.pdf``). Plot a finished
+    run with ``plot_log(read_log("log.csv"), "log.svg")``.
+
+    Args:
+        history: The records (``result.history`` or :func:`read_log`).
+        path: The figure file.
+        title: Title above the panels.
+
+    Returns:
+        The path written.
+    """
+    from matplotlib.figure import Figure  # Agg canvas, no pyplot state
+
+    if not history:
+        raise OptimizationError("plot_log needs at least one record")
+    path = Path(path)
+    it = [r.iteration for r in history]
+    fig = Figure(figsize=(6.4, 4.8), layout="constrained")
+    ax_j, ax_g = fig.subplots(2, 1, sharex=True)
+    series = [("J", [r.objective for r in history], "o-")]
+    if len(history[-1].terms) > 1:
+        for label in history[-1].terms:
+            values = [r.terms.get(label, np.nan) for r in history]
+            series.append((label, values, ".--"))
+    for ax, curves, ylabel in (
+        (ax_j, series, "objective J"),
+        (ax_g, [("|grad|", [r.gradient_norm for r in history], "s-")], "projected |grad J|"),
+    ):
+        positive = True
+        for label, values, style in curves:
+            values = np.asarray(values, dtype=float)
+            positive = positive and bool(np.all(values[np.isfinite(values)] > 0))
+            ax.plot(it, values, style, label=label, ms=4)
+        if positive:
+            ax.set_yscale("log")
+        for r in history:
+            if r.remeshed:
+                ax.axvline(r.iteration, color="0.7", lw=0.8)
+        ax.set_ylabel(ylabel)
+        ax.grid(True, which="major", color="0.9")
+        if len(curves) > 1:
+            ax.legend(fontsize="small")
+    ax_g.set_xlabel("iteration")
+    ax_g.xaxis.get_major_locator().set_params(integer=True)
+    if title:
+        ax_j.set_title(title)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    buf = io.BytesIO()
+    fmt = path.suffix.lstrip(".").lower() or "png"
+    metadata = {"Date": None} if fmt == "svg" else None  # the same file for the same run
+    fig.savefig(buf, format=fmt, dpi=100, metadata=metadata)
+    atomic_write_bytes(path, buf.getvalue())
+    return path
+
+
+def _save(fig, path: Path) -> None:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)
     atomic_write_bytes(path, buf.getvalue())

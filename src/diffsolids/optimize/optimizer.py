@@ -32,6 +32,7 @@ import time
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from os import PathLike
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -50,8 +51,10 @@ from diffsolids.optimize.bounds import (
 from diffsolids.optimize.checkpoint import Checkpoint
 from diffsolids.optimize.lbfgs import LBFGSMemory
 from diffsolids.optimize.monitor import (
+    IterationLog,
     IterationRecord,
     OptimizationOutput,
+    control_summary,
     log_iteration,
 )
 from diffsolids.optimize.options import LBFGSOptions, OptimizationError, OptimizationWarning
@@ -147,6 +150,13 @@ class LBFGS:
         checkpoint_dir: Directory for checkpoints (written after every iterate).
         resume: Continue from the checkpoint in ``checkpoint_dir`` if there is one.
         progress: Progress bar of the iterations (None: when stderr is a terminal).
+        log: Print the optimisation log on rank 0's stdout: a header, then one line per
+            accepted iterate (iteration, J, projected gradient norm, step norm and
+            line-search factor, trials, forward and gradient seconds, the controls); the
+            same numbers as the history of the result.
+        log_file: Also write the log to this file (rank 0; a ``.csv`` or ``.jsonl`` name
+            chooses the format), one flushed line per accepted iterate. Independent of
+            ``log``; a resumed run rewrites it from its checkpointed history.
         write_parameters: Record q in the history file.
         plot_every: Update PNG plots of the objective and gradient norm every k iterations and
             at the end (0: no plots).
@@ -167,6 +177,8 @@ class LBFGS:
         checkpoint_dir=None,
         resume: bool = True,
         progress: bool | None = None,
+        log: bool = False,
+        log_file: str | PathLike | None = None,
         write_parameters: bool = False,
         plot_every: int = 10,
         iterate_every: int = 0,
@@ -191,6 +203,7 @@ class LBFGS:
             else None
         )
         self.write_parameters = write_parameters
+        self.log = IterationLog(self.comm, log, log_file) if log or log_file else None
         self.checkpoint = Checkpoint(checkpoint_dir, self.comm) if checkpoint_dir else None
         self.memory = LBFGSMemory(
             self.options.history_size, inner_product, self.options.curvature_tol
@@ -355,6 +368,8 @@ class LBFGS:
         self.history = [IterationRecord.from_dict(d) for d in meta["history"]]
         if self.output is not None:
             self.output.start(self.history)
+        if self.log is not None:
+            self.log.start(self.history)
         logger.info("opt resuming from the checkpoint of iteration %d", self.iteration)
 
     def _save_checkpoint(self) -> None:
@@ -396,6 +411,8 @@ class LBFGS:
             forward_seconds=t_forward,
             gradient_seconds=t_grad,
             seconds=time.perf_counter() - self._t_start,
+            parameter_norm=float(np.linalg.norm(p.q)),
+            parameter_summary=control_summary(self.rf.controls, p.q),
             q=p.q.tolist() if self.write_parameters else None,
         )
 
@@ -405,6 +422,8 @@ class LBFGS:
             self._maybe_remesh(rec)
         self.history.append(rec)
         log_iteration(rec)
+        if self.log is not None:
+            self.log(rec, self)
         if self.output is not None:
             self.output.record(rec, self.history)
             if self.output.wants_iterate(self.iteration) and self.point.trajectory is not None:
@@ -448,6 +467,8 @@ class LBFGS:
         rec.gradient_norm = float(np.linalg.norm(projected_gradient(q, g, lo, hi)))
         rec.gradient_seconds += t_grad
         rec.q = q.tolist() if self.write_parameters else None
+        rec.parameter_norm = float(np.linalg.norm(q))
+        rec.parameter_summary = control_summary(new_rf.controls, q)
         if self.checkpoint is not None:
             save = getattr(self.remesher, "save_checkpoint", None)
             if save is None:
@@ -576,6 +597,8 @@ class LBFGS:
         else:
             if self.output is not None:
                 self.output.start([])
+            if self.log is not None:
+                self.log.start([])
             self._start(q0)
         opts = self.options
         with progress_bar(opts.max_iterations, self.comm, self.progress, "optimisation") as bar:
