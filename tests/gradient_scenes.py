@@ -157,13 +157,17 @@ def scene_model(name: str) -> ds.Model:
 @functools.cache
 def simulation(scene: str, integrator: str) -> ds.Simulation:
     """A cached Simulation of a scene (v0 nonzero for dynamic runs)."""
-    model = scene_model(scene)
-    integ = INTEGRATORS[integrator]()
+    return model_simulation(scene_model(scene), INTEGRATORS[integrator]())
+
+
+def model_simulation(model: ds.Model, integrator: ds.Integrator) -> ds.Simulation:
+    """A Simulation of ``model`` at the Newton tolerance of the gradient tests (v0 = 0.3 upward
+    for dynamic runs)."""
     v0 = None
-    if integ.dynamic:
+    if integrator.dynamic:
         v0 = np.zeros(model.dim)
         v0[-1] = 0.3
-    return ds.Simulation(model, integ, NEWTON, v0=v0, progress=False)
+    return ds.Simulation(model, integrator, NEWTON, v0=v0, progress=False)
 
 
 # -- controls ---------------------------------------------------------------------------------

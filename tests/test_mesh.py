@@ -223,17 +223,17 @@ def _meshio_cube() -> meshio.Mesh:
 
 # meshio's XDMF writer and reader need h5py, which diffsolids does not depend on: VTU and legacy
 # VTK cover the meshio path of read_mesh.
-def _write_meshio(path: Path, mesh: meshio.Mesh) -> None:
-    meshio.write(path, mesh)
+def _write_and_read(path: Path, mesh: meshio.Mesh) -> Domain:
+    """Writes ``mesh`` on rank 0 with meshio and reads it back with ``read_mesh`` on every rank."""
+    if MPI.COMM_WORLD.rank == 0:
+        meshio.write(path, mesh)
+    MPI.COMM_WORLD.barrier()
+    return read_mesh(path, MPI.COMM_WORLD)
 
 
 @pytest.mark.parametrize("suffix", [".vtu", ".vtk"])
 def test_meshio_2d(tmp_path, suffix):
-    path = tmp_path / f"square{suffix}"
-    if MPI.COMM_WORLD.rank == 0:
-        _write_meshio(path, _meshio_square())
-    MPI.COMM_WORLD.barrier()
-    dom = read_mesh(path, MPI.COMM_WORLD)
+    dom = _write_and_read(tmp_path / f"square{suffix}", _meshio_square())
     assert dom.dim == 2
     assert dom.body_ids == [1, 2] and dom.facet_ids == [4]
     assert _measure(dom, "dx", 1) == pytest.approx(1.0)
@@ -246,11 +246,7 @@ def test_meshio_2d(tmp_path, suffix):
 
 @pytest.mark.parametrize("suffix", [".vtu", ".vtk"])
 def test_meshio_3d(tmp_path, suffix):
-    path = tmp_path / f"cube{suffix}"
-    if MPI.COMM_WORLD.rank == 0:
-        _write_meshio(path, _meshio_cube())
-    MPI.COMM_WORLD.barrier()
-    dom = read_mesh(path, MPI.COMM_WORLD)
+    dom = _write_and_read(tmp_path / f"cube{suffix}", _meshio_cube())
     assert dom.dim == 3
     assert dom.body_ids == [1, 3] and dom.facet_ids == [8]
     assert _measure(dom, "dx", 1) == pytest.approx(0.5)

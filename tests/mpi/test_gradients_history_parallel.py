@@ -4,7 +4,7 @@ and that gradient agrees with central differences of the distributed run."""
 
 import numpy as np
 import pytest
-from gradient_scenes import CONTROLS, SCENES, build_model, objective
+from gradient_scenes import CONTROLS, SCENES, build_model, model_simulation, objective
 from mpi4py import MPI
 
 import diffsolids as ds
@@ -24,15 +24,7 @@ def _value_and_gradient(comm, case: str, fd: bool = False):
     scene_name, integrator, kind = CASES[case]
     scene = SCENES[scene_name]
     model = build_model(scene, comm)
-    v0 = np.zeros(scene.dim)
-    v0[-1] = 0.3
-    sim = ds.Simulation(
-        model,
-        integrator,
-        ds.SolverOptions(rtol=1e-13),
-        v0=v0 if integrator.dynamic else None,
-        progress=False,
-    )
+    sim = model_simulation(model, integrator)
     keys = ["young-field-log", "initial-u0"] + (["initial-v0"] if integrator.dynamic else [])
     rf = ReducedFunctional(
         sim, objective(kind, model, integrator.dynamic), [CONTROLS[k](sim) for k in keys]
