@@ -10,6 +10,9 @@ Newton solver assembles (``NewtonSolver.energy``, ``assemble_residual``, ``assem
 * symmetry of the Jacobian (it is a Hessian).
 """
 
+import contextlib
+from collections.abc import Iterator
+
 import numpy as np
 import pytest
 from mpi4py import MPI
@@ -216,32 +219,35 @@ def test_damping(damping_probe, direction):
     assert probe.jacobian_asymmetry(u) < 1e-13
 
 
+@contextlib.contextmanager
+def _damping_off(probe: Probe) -> Iterator[None]:
+    """Sets the damping coefficients to zero inside the block and restores them after it."""
+    fields = [probe.model.coefficients[k] for k in ("damping_psi", "damping_phi")]
+    saved = [c.x.array.copy() for c in fields]
+    for c in fields:
+        c.x.array[:] = 0.0
+    try:
+        yield
+    finally:
+        for c, values in zip(fields, saved, strict=True):
+            c.x.array[:] = values
+
+
 def test_damping_is_a_sizeable_nonlinear_term(damping_probe):
     """Guard for test_damping: the damping term changes energy, residual and Jacobian."""
     probe = damping_probe
     u = _random(probe, 7, 0.1)
     f = probe.model.fields
     with_damping = (probe.energy(u), probe.residual(u))
-    psi = probe.model.coefficients["damping_psi"]
-    phi = probe.model.coefficients["damping_phi"]
-    saved = psi.x.array.copy(), phi.x.array.copy()
-    psi.x.array[:] = 0.0
-    phi.x.array[:] = 0.0
-    try:
+    with _damping_off(probe):
         without = (probe.energy(u), probe.residual(u))
-    finally:
-        psi.x.array[:], phi.x.array[:] = saved
     assert abs(with_damping[0] - without[0]) > 0.1 * abs(without[0])
     assert probe.norm(with_damping[1] - without[1]) > 0.1 * probe.norm(without[1])
     # damping vanishes with the strain rate: at u = u_prev it is zero with zero force
     u_prev = f.u_prev.x.array[: probe.n].copy()
     E_at_prev = probe.energy(u_prev)
-    psi.x.array[:] = 0.0
-    phi.x.array[:] = 0.0
-    try:
+    with _damping_off(probe):
         assert probe.energy(u_prev) == pytest.approx(E_at_prev, rel=1e-13)
-    finally:
-        psi.x.array[:], phi.x.array[:] = saved
 
 
 @pytest.fixture(scope="module")

@@ -184,7 +184,8 @@ def test_domain_checkpoint_roundtrip_keeps_canonical_order(tmp_path):
 BOTTOM, TOP = 1, 2
 
 
-def _block(comm=COMM) -> Domain:
+def block_domain(comm: MPI.Comm = COMM) -> Domain:
+    """A two-body block [0, 2] x [0, 1] with tagged bottom and top (also used on 2 ranks)."""
     return create_rectangle(
         comm,
         [[0, 0], [2, 1]],
@@ -195,8 +196,9 @@ def _block(comm=COMM) -> Domain:
     )
 
 
-def build_block(domain: Domain) -> ReducedFunctional:
-    """Clamped block under gravity; its deformed top should follow a lowered wavy profile."""
+def build_block(domain: Domain, displacement_weight: float = 0.0) -> ReducedFunctional:
+    """Clamped block under gravity; its deformed top should follow a lowered wavy profile
+    (plus ``displacement_weight`` times the squared displacement over the block)."""
     model = ds.Model(domain, ds.LinearElastic(E=100.0, nu=0.3, density=1.0))
     model.add_dirichlet("bottom", 0.0)
     model.add_gravity(1.0)
@@ -204,7 +206,8 @@ def build_block(domain: Domain) -> ReducedFunctional:
 
     def misfit(f):
         target = 0.55 + 0.1 * ufl.cos(np.pi * f.X[0])
-        return (f.X[1] + f.u[1] - target) ** 2 * f.ds(TOP)
+        misfit = (f.X[1] + f.u[1] - target) ** 2 * f.ds(TOP)
+        return misfit + displacement_weight * ufl.inner(f.u, f.u) * f.dx
 
     control = MeshMotionControl(model, "boundary", exclude_facets=["bottom"])
     return ReducedFunctional(sim, final_value(Integral(misfit)), control)
@@ -239,7 +242,7 @@ def _descent(rf, remesher, iterations):
 
 
 def test_shape_optimisation_continues_through_a_remesh():
-    rf = build_block(_block())
+    rf = build_block(block_domain())
     remesher = Remesher(build_block, threshold=0.6)
     rf, q, log = _descent(rf, remesher, 6)
     for kind, J, quality in log:
@@ -280,7 +283,7 @@ def test_remesh_transfers_controlled_fields():
         objective = final_value(Integral(lambda f: ufl.inner(f.u, f.u) * f.dx))
         return ReducedFunctional(sim, objective, controls)
 
-    rf = build(_block())
+    rf = build(block_domain())
     E_ctrl, rho_ctrl, _, shape = rf.controls.controls
     # the current iterate: a moved shape and fields set on it
     q_shape = 0.1 * np.sin(np.arange(shape.size))
@@ -311,7 +314,7 @@ def test_optimiser_hook_remeshes_checkpoints_and_resumes(tmp_path):
     from diffsolids.optimize import LBFGSOptions, minimize
 
     ckpt = COMM.bcast(str(tmp_path / "ckpt"), root=0)
-    rf = build_block(_block())
+    rf = build_block(block_domain())
     remesher = Remesher(build_block, threshold=0.6)
     options = LBFGSOptions(max_iterations=6, gradient_rtol=0.0)
     result = minimize(
@@ -328,7 +331,7 @@ def test_optimiser_hook_remeshes_checkpoints_and_resumes(tmp_path):
     assert result.history[-1].objective < 1e-2 * J_first
     # resume from the checkpoint with a fresh problem on the original mesh
     again = Remesher(build_block, threshold=0.6)
-    fresh = build_block(_block())
+    fresh = build_block(block_domain())
     resumed = minimize(
         fresh,
         options=LBFGSOptions(max_iterations=7, gradient_rtol=0.0),
@@ -342,7 +345,7 @@ def test_optimiser_hook_remeshes_checkpoints_and_resumes(tmp_path):
 
 
 def test_remesher_trigger_limits_and_errors():
-    rf = build_block(_block())
+    rf = build_block(block_domain())
     q = np.zeros(rf.size)
     assert Remesher(build_block, threshold=0.9).needs_remesh(rf, q)  # rest quality 0.816
     assert not Remesher(build_block, threshold=1e-3).needs_remesh(rf, q)
@@ -352,7 +355,7 @@ def test_remesher_trigger_limits_and_errors():
     with pytest.raises(TypeError, match="factory"):
         Remesher(None)
     with pytest.raises(MeshError, match="domain it is given"):
-        Remesher(lambda domain: build_block(_block())).remesh(rf, q)
+        Remesher(lambda domain: build_block(block_domain())).remesh(rf, q)
 
     def other_controls(domain):
         out = build_block(domain)
@@ -404,7 +407,7 @@ def test_remesh_transfers_initial_conditions():
         ]
         return ReducedFunctional(sim, objective, controls)
 
-    rf = build(_block())
+    rf = build(block_domain())
     velocity, shape = rf.controls.controls
     shape.assign(0.05 * np.cos(np.arange(shape.size)))
     V = rf.model.V

@@ -6,44 +6,20 @@ parameter vectors are in the canonical (partition-independent) order, so they mu
 
 import numpy as np
 import pytest
-import ufl
 from mpi4py import MPI
+from test_remesh import BOTTOM, block_domain, build_block
 
-import diffsolids as ds
-from diffsolids.mesh import create_rectangle
-from diffsolids.objectives import Integral, final_value
-from diffsolids.optimize.mesh_motion import MeshMotion, MeshMotionControl
+from diffsolids.mesh import Domain
+from diffsolids.optimize.mesh_motion import MeshMotion
 from diffsolids.optimize.remesh import Remesher, gather_mesh
 from diffsolids.reduced_functional import ReducedFunctional
 
 WORLD, SELF = MPI.COMM_WORLD, MPI.COMM_SELF
 KEYS = ("points", "cells", "cell_values", "facets", "facet_values")
-BOTTOM, TOP = 1, 2
 
 
-def _block(comm):
-    return create_rectangle(
-        comm,
-        [[0, 0], [2, 1]],
-        [8, 4],
-        facets={BOTTOM: lambda x: np.isclose(x[1], 0.0), TOP: lambda x: np.isclose(x[1], 1.0)},
-        bodies={2: lambda x: x[0] > 1.0},
-        names={"bottom": BOTTOM, "top": TOP},
-    )
-
-
-def build_block(domain):
-    model = ds.Model(domain, ds.LinearElastic(E=100.0, nu=0.3, density=1.0))
-    model.add_dirichlet("bottom", 0.0)
-    model.add_gravity(1.0)
-    sim = ds.Simulation(model, ds.Static(), ds.SolverOptions(rtol=1e-12))
-
-    def misfit(f):
-        target = 0.55 + 0.1 * ufl.cos(np.pi * f.X[0])
-        return (f.X[1] + f.u[1] - target) ** 2 * f.ds(TOP) + 1e-2 * ufl.inner(f.u, f.u) * f.dx
-
-    control = MeshMotionControl(model, "boundary", exclude_facets=["bottom"])
-    return ReducedFunctional(sim, final_value(Integral(misfit)), control)
+def _build_block(domain: Domain) -> ReducedFunctional:
+    return build_block(domain, displacement_weight=1e-2)
 
 
 def _agree(a, b, rtol) -> bool:
@@ -57,7 +33,7 @@ def test_mesh_motion_and_riesz_map_match_serial(extension):
     rng = np.random.default_rng(11)
     out = {}
     for name, comm in (("world", WORLD), ("self", SELF)):
-        P = MeshMotion(_block(comm), "boundary", exclude_facets=[BOTTOM], extension=extension)
+        P = MeshMotion(block_domain(comm), "boundary", exclude_facets=[BOTTOM], extension=extension)
         q = rng.standard_normal(P.shape[1]) if name == "world" else out["q"]
         g = rng.standard_normal(P.shape[0]) if name == "world" else out["g"]
         if name == "world":
@@ -71,7 +47,7 @@ def test_mesh_motion_and_riesz_map_match_serial(extension):
 def test_mesh_motion_gradient_matches_serial():
     results = []
     for comm in (WORLD, SELF):
-        rf = build_block(_block(comm))
+        rf = _build_block(block_domain(comm))
         q = 0.02 * np.cos(np.arange(rf.size))
         J, g = rf.value_and_gradient(q)
         results.append((np.array([J]), g))
@@ -83,15 +59,15 @@ def test_remesh_matches_serial_and_checkpoint_restores(tmp_path):
     path = WORLD.bcast(str(tmp_path), root=0)
     out = {}
     for name, comm in (("world", WORLD), ("self", SELF)):
-        domain = _block(comm)
+        domain = block_domain(comm)
         arrays = gather_mesh(domain)  # collective
         points = comm.bcast(arrays.points if comm.rank == 0 else None, root=0)
-        rf = build_block(domain)
+        rf = _build_block(domain)
         design = rf.controls.controls[0].motion.design
         q = np.zeros((len(design), 2))
         q[:, 1] = -0.4 * points[design, 1] * (1.0 + 0.3 * np.sin(3.0 * points[design, 0]))
         q = q.ravel()  # squash the block
-        remesher = Remesher(build_block, threshold=0.9)
+        remesher = Remesher(_build_block, threshold=0.9)
         assert remesher.needs_remesh(rf, q)
         new_rf, new_q = remesher.remesh(rf, q)
         arrays = gather_mesh(new_rf.model.domain)
@@ -99,7 +75,7 @@ def test_remesh_matches_serial_and_checkpoint_restores(tmp_path):
         out[name] = (arrays, J, remesher.history[0].quality_after, new_rf)
         if name == "world":
             remesher.save_checkpoint(path, new_rf)
-            restored = remesher.load_checkpoint(path, build_block(_block(WORLD)))
+            restored = remesher.load_checkpoint(path, _build_block(block_domain(WORLD)))
             assert restored.size == new_rf.size
             assert restored(new_q) == pytest.approx(J, rel=1e-12)
     (a_world, J_world, q_world, _), (a_self, J_self, q_self, _) = out["world"], out["self"]
