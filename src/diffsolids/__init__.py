@@ -46,6 +46,7 @@ from diffsolids.model import (
     Model,
     NeoHookean,
     NumericTerm,
+    OnBody,
     StVenantKirchhoff,
 )
 from diffsolids.objectives import (
@@ -91,6 +92,7 @@ __all__ = [
     "NewtonSolver",
     "NumericTerm",
     "Obstacle",
+    "OnBody",
     "ParameterControl",
     "ParameterError",
     "PortabilityError",

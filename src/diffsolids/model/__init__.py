@@ -1,6 +1,6 @@
 """Model definition: materials, terms of the incremental potential, boundary conditions."""
 
-from diffsolids.model.boundary_conditions import DirichletCondition, RealisedDirichlet
+from diffsolids.model.boundary_conditions import DirichletCondition, OnBody, RealisedDirichlet
 from diffsolids.model.materials import LinearElastic, Material, NeoHookean, StVenantKirchhoff
 from diffsolids.model.model import Model
 from diffsolids.model.numeric import NumericTerm
@@ -27,6 +27,7 @@ __all__ = [
     "Model",
     "NeoHookean",
     "NumericTerm",
+    "OnBody",
     "RealisedDirichlet",
     "StVenantKirchhoff",
     "StepFields",

@@ -1,4 +1,4 @@
-"""Dirichlet conditions on tagged facets or located nodes, constant or time dependent."""
+"""Dirichlet conditions on tagged facets, whole bodies or located nodes, constant or in time."""
 
 import inspect
 from collections.abc import Callable, Sequence
@@ -11,9 +11,25 @@ from mpi4py import MPI
 from diffsolids.errors import ParameterError, TagError
 from diffsolids.parallel import collective_comm
 
-__all__ = ["DirichletCondition", "RealisedDirichlet"]
+__all__ = ["DirichletCondition", "OnBody", "RealisedDirichlet"]
 
 Value = float | Sequence[float] | Callable
+
+
+@dataclass(frozen=True)
+class OnBody:
+    """Where a Dirichlet condition holds: every node of a body (all dofs of its cells).
+
+    A body meshed together with another (shared interface nodes) constrains the interface too.
+    Prescribing a body's whole motion is how a driven rigid part (a PolyFEM volume selection
+    with a Dirichlet condition, an indenter, a moving support) enters the FE system; geometry
+    that only collides is better a kinematic :class:`~diffsolids.contact.Obstacle`.
+
+    Attributes:
+        body: The body's cell tag (id or name).
+    """
+
+    body: int | str
 
 
 @dataclass
@@ -21,13 +37,14 @@ class DirichletCondition:
     """Prescribed displacement.
 
     Attributes:
-        where: A facet tag (id or name) or a node locator ``marker(x) -> bool mask``.
+        where: A facet tag (id or name), a whole body (:class:`OnBody`), or a node locator
+            ``marker(x) -> bool mask``.
         value: Displacement: a scalar (all constrained components), a vector, ``value(t)``
             returning a vector, or ``value(x, t)`` returning an array of shape (d, num_points).
         components: Constrained components (default: all).
     """
 
-    where: int | str | Callable
+    where: int | str | OnBody | Callable
     value: Value = 0.0
     components: Sequence[int] | None = None
 
@@ -55,16 +72,15 @@ class RealisedDirichlet:
             raise ParameterError(f"Dirichlet components {comps} invalid for dimension {self.dim}")
         self.components = comps
         self._nparams = _num_params(condition.value)
-        fdim = mesh.topology.dim - 1
-        facets = None if callable(condition.where) else domain.facets_of(condition.where)
+        dim, entities = _located_entities(condition.where, mesh, domain)
         self._parts = []  # (component, function in collapsed space, collapsed dof indices)
         self.bcs = []
         for c in comps:
             Vc, _ = V.sub(c).collapse()
-            if facets is None:
+            if entities is None:
                 pair = fem.locate_dofs_geometrical((V.sub(c), Vc), condition.where)
             else:
-                pair = fem.locate_dofs_topological((V.sub(c), Vc), fdim, facets)
+                pair = fem.locate_dofs_topological((V.sub(c), Vc), dim, entities)
             gc = fem.Function(Vc)
             self._parts.append((c, gc, pair[1], Vc))
             self.bcs.append(fem.dirichletbc(gc, pair, V.sub(c)))
@@ -105,6 +121,17 @@ class RealisedDirichlet:
                 if not np.all(np.isfinite(vals)):
                     raise ParameterError(f"Dirichlet value at t = {t} is not finite")
                 gc.x.array[cdofs] = vals[c]
+
+
+def _located_entities(where, mesh, domain) -> tuple[int, np.ndarray | None]:
+    """The entity dimension and local entities a condition's ``where`` names (None: a locator)."""
+    if isinstance(where, OnBody):
+        tdim = mesh.topology.dim
+        mesh.topology.create_connectivity(tdim, tdim)  # locate_dofs_topological on cells
+        return tdim, domain.cells_of(where.body)
+    if callable(where):
+        return 0, None
+    return mesh.topology.dim - 1, domain.facets_of(where)
 
 
 def _num_params(value) -> int:

@@ -18,7 +18,7 @@ from mpi4py import MPI
 from diffsolids import forms
 from diffsolids.errors import ParameterError, TagError
 from diffsolids.mesh import Domain, check_orientation
-from diffsolids.model.boundary_conditions import DirichletCondition, RealisedDirichlet
+from diffsolids.model.boundary_conditions import DirichletCondition, OnBody, RealisedDirichlet
 from diffsolids.model.materials import Material
 from diffsolids.model.numeric import NumericTerm
 from diffsolids.model.terms import (
@@ -318,9 +318,15 @@ class Model:
         return self.add_term(Traction(name, tag))
 
     def add_dirichlet(
-        self, where: int | str | Callable, value=0.0, components: Sequence[int] | None = None
+        self,
+        where: int | str | OnBody | Callable,
+        value: float | Sequence[float] | Callable = 0.0,
+        components: Sequence[int] | None = None,
     ) -> RealisedDirichlet:
-        """Prescribe displacements on tagged facets or located nodes (see DirichletCondition).
+        """Prescribe displacements on facets, a body or located nodes (see DirichletCondition).
+
+        ``where`` is a facet tag (id or name), ``OnBody(body)`` for every node of a body, or a
+        node locator ``marker(x) -> bool mask``.
 
         Raises:
             ParameterError: A Simulation already uses the model.
