@@ -2,18 +2,32 @@
 
 BDF_m (paper eq. 4): u^i + sum_{j=1}^{m_i} alpha_j u^{i-j} = beta dt v^i, and the same relation
 between velocities and accelerations, with m_i = min(i, m) (lower-order start-up steps).
+
+Everything a step's time discretisation means is held by one object, the :class:`TimeStep` of
+step i (``integrator.step(i)``): its coefficients, the history fields it sets for the Newton
+solve and for the objective (``u_prev``, the predictor ``u_tilde``, ``dt``, ``beta dt``), the
+velocity v^i it assigns to the converged u^i, and the transposes (vector-Jacobian products) of
+the predictor and the velocity that the backward sweep pushes adjoints through. A static step
+is the same object with no predictor history (u_tilde = 0, nothing to transpose) and the
+first-order difference v^i = (u^i - u^{i-1}) / dt as its rate.
 """
 
 import math
 import numbers
 from abc import ABC, abstractmethod
+from collections.abc import MutableMapping, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
-from typing import override
+from typing import TYPE_CHECKING, override
+
+import numpy as np
 
 from diffsolids.errors import ParameterError
 
-__all__ = ["BDF", "Integrator", "Static", "StepCoefficients", "bdf_coefficients"]
+if TYPE_CHECKING:
+    from diffsolids.model.terms import StepFields
+
+__all__ = ["BDF", "Integrator", "Static", "TimeStep", "bdf_coefficients"]
 
 
 def bdf_coefficients(order: int) -> tuple[list[float], float]:
@@ -30,18 +44,146 @@ def bdf_coefficients(order: int) -> tuple[list[float], float]:
 
 
 @dataclass(frozen=True)
-class StepCoefficients:
-    """Coefficients of step i: order m_i, alpha_1..alpha_{m_i}, beta and dt."""
+class TimeStep:
+    """The time discretisation of one step i, shared by the forward solve and the adjoint.
+
+    The velocity (rate) of the step (paper eq. 4):
+
+        v^i = (u^i + sum_{j=1}^{m_i} alpha_j u^{i-j}) / (beta dt),
+
+    and, for inertial (BDF) steps, the predictor the inertia term reads (paper eq. 4, the
+    velocity relation applied to v^{i-j}):
+
+        u_tilde^i = -sum_{j=1}^{m_i} alpha_j (u^{i-j} + beta dt v^{i-j}),
+
+    so that (u^i - u_tilde^i) / (beta dt)^2 is the BDF acceleration. A static step has
+    ``inertial=False``: no predictor history (u_tilde^i = 0, its transpose pushes nothing) and
+    the first-order difference alpha = (-1,), beta = 1 as the rate of lagged terms.
+
+    The methods take the states as sequences indexed by the absolute step (``traj.u``,
+    ``traj.v`` of a Trajectory or of a checkpointing view); they read u^{i-j}, v^{i-j} for
+    j = 1..``order`` only.
+
+    Attributes:
+        order: The order m_i used by the step (start-up steps use lower orders).
+        alpha: alpha_1..alpha_{m_i}.
+        beta: beta of the order m_i.
+        dt: The step size.
+        index: The step i (1-based; 0 for coefficients not attached to a step).
+        time: t_i (the load parameter of a static step).
+        inertial: Whether the step has inertia, i.e. a predictor (BDF) or not (static).
+    """
 
     order: int
     alpha: tuple[float, ...]
     beta: float
     dt: float
+    index: int = 0
+    time: float = 0.0
+    inertial: bool = False
 
     @property
     def beta_dt(self) -> float:
         """Beta * dt."""
         return self.beta * self.dt
+
+    @property
+    def lags(self) -> range:
+        """The j = 1..m_i of the earlier states u^{i-j}, v^{i-j} the step reads."""
+        return range(1, self.order + 1)
+
+    # -- forward --------------------------------------------------------------------------
+    def predictor(
+        self, u: Sequence[np.ndarray], v: Sequence[np.ndarray], out: np.ndarray | None = None
+    ) -> np.ndarray:
+        """u_tilde^i = -sum_j alpha_j (u^{i-j} + beta dt v^{i-j}) (zeros for a static step).
+
+        Args:
+            u: Displacements by step (u[i - j] is read for j in :attr:`lags`).
+            v: Velocities by step.
+            out: Array to write into (default: a new one).
+        """
+        i = self.index
+        if out is None:
+            out = np.zeros_like(u[i - 1])
+        else:
+            out[:] = 0.0
+        if self.inertial:
+            for j, a in enumerate(self.alpha, start=1):
+                out -= a * (u[i - j] + self.beta_dt * v[i - j])
+        return out
+
+    def velocity(self, u_i: np.ndarray, u: Sequence[np.ndarray]) -> np.ndarray:
+        """v^i = (u^i + sum_j alpha_j u^{i-j}) / (beta dt) of the converged u^i.
+
+        Args:
+            u_i: The step's displacement.
+            u: Displacements by step (u[i - j] is read for j in :attr:`lags`).
+        """
+        i = self.index
+        v = u_i.copy()
+        for j, a in enumerate(self.alpha, start=1):
+            v += a * u[i - j]
+        return v / self.beta_dt
+
+    def set_fields(
+        self, fields: "StepFields", u: Sequence[np.ndarray], v: Sequence[np.ndarray]
+    ) -> None:
+        """Write the step's ``dt``, ``beta_dt``, ``u_prev`` and ``u_tilde`` into the fields.
+
+        What the step's incremental potential (Newton) and the objective integrals of the step
+        read besides u^i, v^i. A static step leaves ``u_tilde`` as it is (no predictor: no form
+        of a static run reads it).
+        """
+        fields.dt.value = self.dt
+        fields.beta_dt.value = self.beta_dt
+        fields.u_prev.x.array[:] = u[self.index - 1]
+        if self.inertial:
+            self.predictor(u, v, out=fields.u_tilde.x.array)
+
+    # -- transposes (the backward sweep) --------------------------------------------------
+    def add_velocity_transpose(
+        self, vbar: np.ndarray, ubar: MutableMapping[int, np.ndarray]
+    ) -> None:
+        """Push the adjoint vbar^i of v^i into ubar^i and ubar^{i-j} (transpose of velocity).
+
+        ubar^i += vbar^i / (beta dt) and ubar^{i-j} += alpha_j vbar^i / (beta dt).
+
+        Args:
+            vbar: The complete adjoint of v^i.
+            ubar: Accumulated adjoints of the displacements by step (updated in place).
+        """
+        i = self.index
+        ubar[i] += vbar / self.beta_dt
+        for j, a in enumerate(self.alpha, start=1):
+            ubar[i - j] += a * vbar / self.beta_dt
+
+    def add_predictor_transpose(
+        self,
+        g: np.ndarray,
+        ubar: MutableMapping[int, np.ndarray],
+        vbar: MutableMapping[int, np.ndarray],
+    ) -> None:
+        """Push a partial g = dJ/du_tilde^i into ubar^{i-j}, vbar^{i-j} (transpose of predictor).
+
+        ubar^{i-j} -= alpha_j g and vbar^{i-j} -= alpha_j beta dt g for the leading ``len(g)``
+        entries (e.g. the owned dofs); nothing for a static step.
+
+        Args:
+            g: The partial with respect to u_tilde^i.
+            ubar: Accumulated adjoints of the displacements by step (updated in place).
+            vbar: Accumulated adjoints of the velocities by step (updated in place).
+        """
+        if not self.inertial:
+            return
+        i, n = self.index, len(g)
+        for j, a in enumerate(self.alpha, start=1):
+            ubar[i - j][:n] -= a * g
+            vbar[i - j][:n] -= a * self.beta_dt * g
+
+
+#: The former name of :class:`TimeStep` (its coefficients).
+StepCoefficients = TimeStep
 
 
 class Integrator(ABC):
@@ -68,8 +210,17 @@ class Integrator(ABC):
         return step * self.dt
 
     @abstractmethod
-    def coefficients(self, step: int) -> StepCoefficients:
-        """Coefficients of step ``step`` (1-based)."""
+    def step(self, step: int) -> TimeStep:
+        """The :class:`TimeStep` of step ``step`` (1-based)."""
+
+    def coefficients(self, step: int) -> TimeStep:
+        """The coefficients of step ``step``: its :class:`TimeStep` (same as :meth:`step`)."""
+        return self.step(step)
+
+    @property
+    def history_depth(self) -> int:
+        """The most earlier states u^{i-j}, v^{i-j} any step reads (max_i m_i)."""
+        return max(self.step(i).order for i in range(1, self.num_steps + 1))
 
 
 class Static(Integrator):
@@ -85,8 +236,13 @@ class Static(Integrator):
         super().__init__(dt, num_steps)
 
     @override
-    def coefficients(self, step: int) -> StepCoefficients:
-        return StepCoefficients(1, (-1.0,), 1.0, self.dt)
+    def step(self, step: int) -> TimeStep:
+        return TimeStep(1, (-1.0,), 1.0, self.dt, step, self.time(step), inertial=False)
+
+    @property
+    @override
+    def history_depth(self) -> int:
+        return 1
 
 
 class BDF(Integrator):
@@ -115,7 +271,12 @@ class BDF(Integrator):
         self.order = order
 
     @override
-    def coefficients(self, step: int) -> StepCoefficients:
+    def step(self, step: int) -> TimeStep:
         m = min(step, self.order)
         alpha, beta = bdf_coefficients(m)
-        return StepCoefficients(m, tuple(alpha), beta, self.dt)
+        return TimeStep(m, tuple(alpha), beta, self.dt, step, self.time(step), inertial=True)
+
+    @property
+    @override
+    def history_depth(self) -> int:
+        return min(self.order, self.num_steps)

@@ -2,17 +2,24 @@
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from dolfinx import fem
 
 from diffsolids.errors import InvertedElementError, NewtonConvergenceError, ParameterError
-from diffsolids.integrators import Integrator, StepCoefficients
+from diffsolids.integrators import Integrator, TimeStep
 from diffsolids.solvers import NewtonSolver, SolverOptions
 
-__all__ = ["Simulation", "StepRecord", "Trajectory"]
+if TYPE_CHECKING:
+    import os
+
+    from diffsolids.io.output import TrajectoryWriter
+    from diffsolids.model import Model
+
+__all__ = ["CanonicalValues", "Simulation", "StateHistory", "StepRecord", "Trajectory"]
 
 logger = logging.getLogger("diffsolids")
 
@@ -28,6 +35,22 @@ class StepRecord:
     residual: float
     energy: float
     seconds: float
+
+
+class StateHistory(Protocol):
+    """The states a step reads: u^k, v^k by absolute step k (local arrays incl. ghosts).
+
+    A :class:`Trajectory`, or the view of a checkpointed run that holds the states the step
+    reads (u^{i-j}, v^{i-j} for j = 1..d); the forward also appends the step's state to it.
+    """
+
+    @property
+    def u(self) -> Sequence[np.ndarray]:
+        """Displacements by step."""
+
+    @property
+    def v(self) -> Sequence[np.ndarray]:
+        """Velocities by step."""
 
 
 @dataclass
@@ -56,9 +79,38 @@ class Trajectory:
         self.records.append(record)
 
 
-def _initial_array(V: fem.FunctionSpace, value, name: str) -> np.ndarray:
+@dataclass(frozen=True)
+class CanonicalValues:
+    """Nodal values of the displacement space in the canonical (partition-independent) order.
+
+    The order of the controls' parameter vectors (``diffsolids.controls.ordering``): P1
+    nodes in the input vertex order, other spaces in the lexicographic order of their node
+    coordinates, the components of a node after each other. The array has the global length
+    (number of nodes x dimension), or the shape (number of nodes, dimension), and the same
+    values on every rank, e.g. ``InitialCondition(sim, "velocity").value()`` of any run. Given
+    as ``u0``, ``v0`` or a start-up state of a :class:`Simulation`, it sets the same field on
+    any number of ranks (a plain array is a local array, ordered as the rank's dofs).
+
+    Attributes:
+        values: The nodal values.
+
+    Example:
+        ``ds.Simulation(model, ds.BDF(2, 0.01, 50), v0=CanonicalValues(v))``.
+    """
+
+    values: np.ndarray
+
+
+#: What ``u0``, ``v0`` and the start-up states of a Simulation may be given as.
+InitialValue = np.ndarray | Sequence[float] | fem.Function | Callable | CanonicalValues | None
+
+
+def _initial_array(V: fem.FunctionSpace, value: InitialValue, name: str) -> np.ndarray:
     f = fem.Function(V)
     if value is None:
+        return f.x.array.copy()
+    if isinstance(value, CanonicalValues):
+        _scatter_canonical(f, value, name)
         return f.x.array.copy()
     if isinstance(value, fem.Function) or callable(value):
         f.interpolate(value)
@@ -70,11 +122,37 @@ def _initial_array(V: fem.FunctionSpace, value, name: str) -> np.ndarray:
         elif vec.shape == f.x.array.shape:
             f.x.array[:] = vec
         else:
-            raise ParameterError(f"{name}: expected a vector of length {d} or a nodal array")
+            imap = V.dofmap.index_map
+            hint = (
+                "; an array of the global size in the canonical node order (as the controls' "
+                "parameters) is given as CanonicalValues(array)"
+                if vec.size == imap.size_global * V.dofmap.index_map_bs
+                else ""
+            )
+            raise ParameterError(
+                f"{name}: expected a vector of length {d} or a local nodal array of "
+                f"{f.x.array.size} entries (owned and ghost dofs), got shape {vec.shape}{hint}"
+            )
     if not np.all(np.isfinite(f.x.array)):
         raise ParameterError(f"{name} has non-finite values")
     f.x.scatter_forward()
     return f.x.array.copy()
+
+
+def _scatter_canonical(f: fem.Function, value: CanonicalValues, name: str) -> None:
+    """Write canonical nodal values into ``f`` (the same on every rank: errors are collective)."""
+    from diffsolids.controls.ordering import CanonicalLayout  # controls import this module
+
+    layout = CanonicalLayout(f.function_space)
+    vec = np.asarray(value.values, dtype=float)
+    if vec.size != layout.size or vec.ndim > 2 or (vec.ndim == 2 and vec.shape[1] != layout.bs):
+        raise ParameterError(
+            f"{name}: canonical values need {layout.size} entries ({layout.num_global} nodes x "
+            f"{layout.bs} components), got shape {vec.shape}"
+        )
+    if not np.all(np.isfinite(vec)):
+        raise ParameterError(f"{name} has non-finite values")
+    layout.scatter(vec.ravel(), f)
 
 
 class Simulation:
@@ -84,8 +162,12 @@ class Simulation:
         model: The scene.
         integrator: Static or BDF.
         solver_options: Newton options.
-        u0: Initial displacement (function of x, vector, nodal array or Function; default 0).
-        v0: Initial velocity (BDF only; default 0).
+        u0: Initial displacement (default 0): a function of x, a constant vector, a Function,
+            a local nodal array (the rank's owned and ghost dofs, e.g. ``sim.u0`` of another
+            Simulation of the same model) or :class:`CanonicalValues` (the global array in the
+            controls' canonical node order, the same on every rank and for any number of
+            ranks).
+        v0: Initial velocity (BDF only; default 0), given as ``u0``.
         output: Optional TrajectoryWriter (or path ending in .bp / .xdmf) for time series.
         progress: Show a progress bar (default: when stderr is a terminal).
         callback: Called as ``callback(step, simulation)`` after every step.
@@ -114,15 +196,15 @@ class Simulation:
 
     def __init__(
         self,
-        model,
+        model: "Model",
         integrator: Integrator,
         solver_options: SolverOptions | None = None,
-        u0=None,
-        v0=None,
-        output=None,
+        u0: InitialValue = None,
+        v0: InitialValue = None,
+        output: "TrajectoryWriter | str | os.PathLike | None" = None,
         progress: bool | None = None,
         callback: Callable | None = None,
-        startup=None,
+        startup: Sequence[tuple[InitialValue, InitialValue]] | None = None,
     ):
         self.model = model
         self.integrator = integrator
@@ -162,30 +244,25 @@ class Simulation:
         model.freeze()
 
     # -- step set-up shared with the adjoint -----------------------------------------------------
-    def load_step(self, i: int, traj: Trajectory) -> StepCoefficients:
-        """Set time, loads, Dirichlet values and history coefficients of step ``i``."""
-        integ = self.integrator
-        c = integ.coefficients(i)
-        f = self.model.fields
-        self.model.update_time(integ.time(i))
-        f.dt.value = integ.dt
-        f.beta_dt.value = c.beta_dt
-        f.u_prev.x.array[:] = traj.u[i - 1]
-        if integ.dynamic:
-            u_tilde = f.u_tilde.x.array
-            u_tilde[:] = 0.0
-            for j, a in enumerate(c.alpha, start=1):
-                u_tilde -= a * (traj.u[i - j] + c.beta_dt * traj.v[i - j])
-        return c
+    def load_step(self, i: int, traj: StateHistory) -> TimeStep:
+        """Set time, loads, Dirichlet values and history fields of step ``i``; its TimeStep.
 
-    def velocity(
-        self, i: int, u_i: np.ndarray, traj: Trajectory, c: StepCoefficients
-    ) -> np.ndarray:
-        """v^i = (u^i + sum_j alpha_j u^{i-j}) / (beta dt)."""
-        v = u_i.copy()
-        for j, a in enumerate(c.alpha, start=1):
-            v += a * traj.u[i - j]
-        return v / c.beta_dt
+        The step's :class:`~diffsolids.integrators.TimeStep` writes ``dt``, ``beta_dt``,
+        ``u_prev`` and the predictor ``u_tilde`` from the states of ``traj``. Called by the
+        forward solve, the objective evaluation and the backward sweep (a subclass may extend
+        it, e.g. to set a per-step target).
+        """
+        step = self.integrator.step(i)
+        self.model.update_time(step.time)
+        step.set_fields(self.model.fields, traj.u, traj.v)
+        return step
+
+    def begin_step(self, i: int, traj: StateHistory) -> TimeStep:
+        """:meth:`load_step`, then the numeric terms' ``begin_step`` hooks (forward and adjoint)."""
+        step = self.load_step(i, traj)
+        for term in self.model.numeric_terms:
+            term.begin_step(i, traj, step, self)
+        return step
 
     def _initial_guess(self, i: int, traj: Trajectory) -> None:
         """Warm start, extrapolated (BDF) or previous state with the step's Dirichlet values.
@@ -336,7 +413,7 @@ class Simulation:
         if self.solver.factor_store is not None:
             self.solver.factor_store.clear()
 
-    def advance(self, i: int, traj, replay: bool = False) -> None:
+    def advance(self, i: int, traj: StateHistory, replay: bool = False) -> None:
         """Solve (or prescribe) step ``i`` from the states of ``traj`` and append u^i, v^i.
 
         Args:
@@ -351,11 +428,9 @@ class Simulation:
         else:
             self._step(i, traj, replay)
 
-    def _step(self, i: int, traj, replay: bool = False) -> None:
+    def _step(self, i: int, traj: StateHistory, replay: bool = False) -> None:
         t0 = time.perf_counter()
-        c = self.load_step(i, traj)
-        for term in self.model.numeric_terms:
-            term.begin_step(i, traj, c, self)
+        c = self.begin_step(i, traj)
         if i == len(self.startup) + 1:  # first solved step
             u = self.model.fields.u
             u.x.array[:] = traj.u[i - 1]
@@ -371,14 +446,10 @@ class Simulation:
             logger.error("step %d (t = %g) failed", i, self.integrator.time(i))
             raise
         u_i = self.model.fields.u.x.array.copy()
-        v_i = (
-            self.velocity(i, u_i, traj, c)
-            if self.integrator.dynamic
-            else ((u_i - traj.u[i - 1]) / c.dt)
-        )
+        v_i = c.velocity(u_i, traj.u)
         rec = StepRecord(
             i,
-            self.integrator.time(i),
+            c.time,
             c.order,
             result.iterations,
             result.residual,
@@ -401,7 +472,7 @@ class Simulation:
             rec.seconds,
         )
 
-    def _prescribe(self, i: int, traj) -> None:
+    def _prescribe(self, i: int, traj: StateHistory) -> None:
         u_i, v_i = self.startup[i - 1]
         t = self.integrator.time(i)
         traj.append_state(t, u_i.copy(), v_i.copy(), StepRecord(i, t, 0, 0, np.nan, np.nan, 0.0))

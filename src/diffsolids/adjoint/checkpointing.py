@@ -28,6 +28,7 @@ import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from checkpoint_schedules import (
@@ -48,6 +49,9 @@ from mpi4py import MPI
 from diffsolids.errors import DiffsolidsError, ParameterError
 from diffsolids.parallel import collective_comm
 from diffsolids.solvers.factor_store import node_memory_mb
+
+if TYPE_CHECKING:
+    from diffsolids.simulation import Simulation
 
 __all__ = [
     "CheckpointedRun",
@@ -184,13 +188,13 @@ def _state_budget_mb(simulation, fraction: float) -> float:
     return max(spare, 0.0) * fraction / ranks
 
 
-def state_depth(simulation) -> int:
+def state_depth(simulation: "Simulation") -> int:
     """d: a step reads u^{i-j}, v^{i-j} for j = 1..d (BDF order, at least 2; static: 1)."""
     integ = simulation.integrator
-    if not integ.dynamic:
-        return 2 if simulation.model.numeric_terms else 1
-    order = max(len(integ.coefficients(i).alpha) for i in range(1, integ.num_steps + 1))
-    return max(order, 2)
+    if not integ.dynamic and not simulation.model.numeric_terms:
+        return integ.history_depth  # a static step reads u^{i-1}
+    # contact's step motion reads the last two states
+    return max(integ.history_depth, 2)
 
 
 # -- storage of checkpoints --------------------------------------------------------------------

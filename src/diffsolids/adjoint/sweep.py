@@ -10,7 +10,10 @@ ubar^i, vbar^i (seeded with dJ/du^i, dJ/dv^i):
   3. push lambda_i into the inputs of G_i: ubar^{i-j} and vbar^{i-j} through u_tilde, ubar^{i-1}
      through damping (and contact through lagged friction and the BDF velocity), and X, q.
 The objective's partials with respect to u_prev and u_tilde of step i (integrals reading the
-history fields) take the same paths into ubar^{i-1} and ubar^{i-j}, vbar^{i-j}.
+history fields) take the same paths into ubar^{i-1} and ubar^{i-j}, vbar^{i-j}. Step i is
+set up as the forward set it up (:meth:`~diffsolids.simulation.Simulation.begin_step`), and
+the pushes through the velocity and the predictor are the transposes that the step's
+:class:`~diffsolids.integrators.TimeStep` holds (static: no predictor, v^i = (u^i - u^{i-1})/dt).
 At i = 0, ubar^0 and vbar^0 are dJ/du^0 and dJ/dv^0. This is the recurrence of paper eqs. 12-15
 and appendix A.2 written with the eliminated velocity: lambda_i plays the role of p_i (scaled by
 beta dt), the pushes of step 1 and 3 are the mu/nu recurrences, the start-up steps use their own
@@ -23,6 +26,7 @@ import time
 from collections import defaultdict
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import TYPE_CHECKING
 
 import dolfinx.la
 import numpy as np
@@ -33,8 +37,12 @@ from petsc4py import PETSc
 from diffsolids.adjoint.forms import AdjointForms
 from diffsolids.adjoint.linear import AdjointLinearSolver, AdjointSolverOptions
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
+from diffsolids.integrators import TimeStep
 from diffsolids.io.progress import progress_bar
 from diffsolids.parallel import collective_comm
+
+if TYPE_CHECKING:
+    from diffsolids.simulation import StateHistory
 
 __all__ = ["BackwardSweep"]
 
@@ -183,14 +191,12 @@ class BackwardSweep:
         self.linear.begin()
         self._krylov = []
 
-    def _step(self, i: int, traj) -> None:
+    def _step(self, i: int, traj: "StateHistory") -> None:
         """Adjoint of step i: reads u^{i-d..i}, v^{i-d..i} of ``traj``."""
-        sim, forms = self.sim, self.forms
+        forms = self.forms
         ubar, vbar, sens = self._ubar, self._vbar, self._sens
-        c = sim.load_step(i, traj)
+        step = self.sim.begin_step(i, traj)  # the forward's set-up of step i
         self._load_state(traj, i)
-        for term in self.model.numeric_terms:
-            term.begin_step(i, traj, c, sim)
         active = forms.set_weights(self._weights, i)
         if active:
             with self._phase("objective_state"):
@@ -198,19 +204,16 @@ class BackwardSweep:
                 self._add(vbar[i], forms.objective_v)
                 self._add(ubar[i - 1], forms.objective_prev)
                 if forms.objective_tilde is not None:
-                    g = self._assemble(forms.objective_tilde)
-                    self._push_predictor(ubar, vbar, i, c, g)
+                    step.add_predictor_transpose(self._assemble(forms.objective_tilde), ubar, vbar)
         self._numeric_objective(ubar[i], sens)
-        # 1. v^i = (u^i + sum_j alpha_j u^{i-j}) / (beta dt)
-        ubar[i] += vbar[i] / c.beta_dt
-        for j, a in enumerate(c.alpha, start=1):
-            ubar[i - j] += a * vbar[i] / c.beta_dt
+        # 1. vbar^i is complete: through v^i = (u^i + sum_j alpha_j u^{i-j}) / (beta dt)
+        step.add_velocity_transpose(vbar[i], ubar)
         # 2. K_i lambda_i = -ubar^i on free dofs
         with self._phase("linear_solves"):
             self._krylov.append(self._solve(ubar[i], i))
         # 3. push lambda_i (and the objective's own partials) into the inputs of step i
         with self._phase("history"):
-            self._history(ubar, vbar, i, c)
+            self._history(ubar, vbar, step)
         with self._phase("parameters"):
             self._parameters(sens, active)
         if self.targets.dirichlet:
@@ -263,21 +266,15 @@ class BackwardSweep:
         lam.x.scatter_forward()
         return its
 
-    def _history(self, ubar, vbar, i: int, c) -> None:
+    def _history(self, ubar: _Adjoints, vbar: _Adjoints, step: TimeStep) -> None:
         """lambda_i . G_i pushed into u^{i-j}, v^{i-j} (through u_tilde) and u^{i-1}."""
         forms = self.forms
         if forms.history_tilde is not None:
-            self._push_predictor(ubar, vbar, i, c, self._assemble(forms.history_tilde))
-        self._add(ubar[i - 1], forms.history_prev)
-        self._numeric_history(ubar, i)
+            step.add_predictor_transpose(self._assemble(forms.history_tilde), ubar, vbar)
+        self._add(ubar[step.index - 1], forms.history_prev)
+        self._numeric_history(ubar, step.index)
 
-    def _push_predictor(self, ubar, vbar, i: int, c, g: np.ndarray) -> None:
-        """A partial g w.r.t. u_tilde^i = -sum_j alpha_j (u^{i-j} + beta dt v^{i-j}), pushed."""
-        for j, a in enumerate(c.alpha, start=1):
-            ubar[i - j][: self.owned] -= a * g
-            vbar[i - j][: self.owned] -= a * c.beta_dt * g
-
-    def _numeric_history(self, ubar, i: int) -> None:
+    def _numeric_history(self, ubar: _Adjoints, i: int) -> None:
         lam = self.forms.lam.x.array
         for term in self.model.numeric_terms:
             for j, g in term.adjoint_history(self.model.fields.u, lam).items():
