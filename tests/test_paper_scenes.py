@@ -158,7 +158,6 @@ def test_unsupported_keys_and_bad_values_are_named(tmp_path):
 
     fails(lambda r: r.update(units={"length": "mm"}), r"scene\.units")
     fails(lambda r: r["geometry"][1].update(point_selection=2), r"geometry\[1\]\.point_selection")
-    fails(lambda r: r["geometry"][0].update(is_obstacle=True), r"geometry\[0\]\.is_obstacle")
     fails(lambda r: r["geometry"][0].update(n_refs=1), "n_refs")
     fails(lambda r: r["time"].update(integrator="ImplicitNewmark"), "ImplicitNewmark")
     fails(lambda r: r["contact"].update(alpha_t=0.9), r"contact\.alpha_t")

@@ -33,10 +33,20 @@ mass terms at 2 x degree and strain terms at 2 x degree - 2, exact for P1),
 :class:`~diffsolids.errors.ParameterError` naming it (with its path in the JSON), so a scene
 is never read with part of its meaning dropped.
 
-Obstacles (``is_obstacle: true``) are not kinematic yet: with ``obstacles="clamp"`` the obstacle's
-mesh becomes a body whose boundary is clamped (a warning says so); the default refuses them.
+Obstacles (``is_obstacle: true``) become kinematic :class:`~diffsolids.contact.Obstacle` s of
+the contact term (``obstacles="kinematic"``, the default): the boundary of their mesh, placed
+by its ``transformation``, with no dofs in the FE system; their Dirichlet entries (zero, as
+PolyFEM's fixed obstacles) are not applied to the model. ``obstacles="clamp"`` makes them
+bodies whose boundary is clamped (a warning says so; their dofs stay in the system),
+``obstacles="error"`` refuses them. ``fixed_bodies="obstacles"`` also turns every body whose
+whole boundary is clamped to zero (the paper's grounds and pool, which are volume meshes
+with ``dirichlet_boundary`` value 0 on their ``surface_selection``) into a fixed obstacle: the
+other bodies see the same contact surface (its vertices are at rest in both set-ups), the FE
+system loses the clamped body's dofs, and the clamped body's own interior deformation under
+gravity, which no other body sees, is not computed.
 """
 
+import dataclasses
 import json
 import math
 import os
@@ -138,6 +148,7 @@ class PolyFEMGeometry:
         rotation: Rotation in degrees (an angle in 2D, Euler x, y, z in 3D) or None.
         translation: Translation or None.
         is_obstacle: PolyFEM's ``is_obstacle``.
+        kinematic: Simulated as a kinematic obstacle (no dofs), see the module docstring.
     """
 
     mesh: Path
@@ -147,6 +158,7 @@ class PolyFEMGeometry:
     rotation: float | tuple[float, ...] | None = None
     translation: tuple[float, ...] | None = None
     is_obstacle: bool = False
+    kinematic: bool = False
 
 
 @dataclass(frozen=True)
@@ -242,8 +254,18 @@ class PolyFEMScene:
     # -- derived numbers ----------------------------------------------------------------
     @property
     def body_ids(self) -> list[int]:
-        """Body ids in ``geometry[]`` order (repeated ids appear once)."""
-        return list(dict.fromkeys(g.body_id for g in self.geometry))
+        """Body ids of the FE bodies in ``geometry[]`` order (repeated ids appear once)."""
+        return list(dict.fromkeys(g.body_id for g in self.bodies))
+
+    @property
+    def bodies(self) -> list[PolyFEMGeometry]:
+        """The ``geometry[]`` entries simulated as FE bodies (not kinematic obstacles)."""
+        return [g for g in self.geometry if not g.kinematic]
+
+    @property
+    def obstacle_geometry(self) -> list[PolyFEMGeometry]:
+        """The ``geometry[]`` entries simulated as kinematic obstacles."""
+        return [g for g in self.geometry if g.kinematic]
 
     @property
     def tend(self) -> float:
@@ -268,7 +290,9 @@ class PolyFEMScene:
         """The scene's meshes, placed and combined into one Domain (collective).
 
         Cells are tagged by ``volume_selection``, boundary facets by ``surface_selection``.
+        Kinematic obstacles are not part of it (see :meth:`obstacles`).
         """
+        geometry = self.bodies
         meshes = [
             read_mesh(
                 g.mesh,
@@ -277,7 +301,7 @@ class PolyFEMScene:
                 rotation=g.rotation,
                 translation=g.translation,
             )
-            for g in self.geometry
+            for g in geometry
         ]
         dims = {m.dim for m in meshes}
         if len(dims) != 1:
@@ -291,7 +315,7 @@ class PolyFEMScene:
         fdim = tdim - 1
         entry = np.zeros(_num_cells(mesh), dtype=np.int32)
         entry[domain.cell_tags.indices] = domain.cell_tags.values - 1
-        body_of_entry = np.array([g.body_id for g in self.geometry], dtype=np.int32)
+        body_of_entry = np.array([g.body_id for g in geometry], dtype=np.int32)
         cell_tags = dolfinx.mesh.meshtags(
             mesh,
             tdim,
@@ -304,7 +328,7 @@ class PolyFEMScene:
         facet_entry = entry[f2c.array[f2c.offsets[boundary]]]
         centres = dolfinx.mesh.compute_midpoints(mesh, fdim, boundary)[:, : domain.dim]
         values = np.zeros(len(boundary), dtype=np.int32)
-        for k, g in enumerate(self.geometry):
+        for k, g in enumerate(geometry):
             mine = facet_entry == k
             if isinstance(g.surface, int):
                 values[mine] = g.surface
@@ -330,7 +354,7 @@ class PolyFEMScene:
         """
         from diffsolids.model.model import Model
 
-        mats = {b: m.material() for b, m in self.materials.items()}
+        mats = {b: m.material() for b, m in self.materials.items() if b in self.body_ids}
         mats.update(materials or {})
         model = Model(domain, mats, degree=self.degree, plane_stress=domain.dim == 2, **kwargs)
         self._check_dim(domain.dim)
@@ -338,13 +362,15 @@ class PolyFEMScene:
             model.add_body_force(-np.asarray(self.rhs), name="gravity")
         for n in self.neumann:
             model.add_traction(n.id, np.asarray(n.value))
-        clamped = set()
+        clamped = {g.surface for g in self.obstacle_geometry}  # obstacles: no dofs
         for d in self.dirichlet:
+            if d.id in clamped:
+                continue
             comps = None if d.components is None else list(d.components)
             model.add_dirichlet(d.id, np.asarray(d.value), comps)
             if comps is None and not any(d.value):
                 clamped.add(d.id)
-        for g in self.geometry:
+        for g in self.bodies:
             if g.is_obstacle and isinstance(g.surface, int) and g.surface not in clamped:
                 model.add_dirichlet(g.surface, 0.0)
                 clamped.add(g.surface)
@@ -371,6 +397,29 @@ class PolyFEMScene:
 
         return BDF(self.bdf_order, self.dt, self.num_steps)
 
+    def obstacles(self, dim: int) -> list:
+        """The kinematic obstacles: each obstacle entry's mesh boundary, placed, fixed.
+
+        Args:
+            dim: The scene's geometric dimension (its bodies' domain).
+
+        Returns:
+            A list of :class:`~diffsolids.contact.Obstacle`, named ``"obstacle<volume id>"``.
+        """
+        from diffsolids.contact import Obstacle
+
+        return [
+            Obstacle.from_file(
+                g.mesh,
+                dim=dim,
+                scale=g.scale,
+                rotation=g.rotation,
+                translation=g.translation,
+                name=f"obstacle{g.body_id}",
+            )
+            for g in self.obstacle_geometry
+        ]
+
     def contact_term(self, model, integrator=None, stiffness: float | None = None, **kwargs):
         """The ContactTerm with the scene's contact parameters, added to the model.
 
@@ -379,7 +428,8 @@ class PolyFEMScene:
             integrator: Needed when the barrier stiffness is "adaptive" (or ``stiffness`` is
                 "suggest"): :func:`~diffsolids.contact.suggest_barrier_stiffness` then sets it.
             stiffness: Replace the scene's barrier stiffness (a number, or "suggest").
-            **kwargs: Further ContactTerm arguments (e.g. ``narrow_phase``).
+            **kwargs: Further ContactTerm arguments (e.g. ``narrow_phase``). The scene's
+                kinematic obstacles are passed as ``obstacles`` unless given here.
 
         Returns:
             The ContactTerm, or None when the scene has no contact.
@@ -392,6 +442,8 @@ class PolyFEMScene:
         options = polyfem_contact_options(self.raw, model.domain)
         if stiffness is not None:
             options["stiffness"] = None if stiffness == "suggest" else float(stiffness)
+        if self.obstacle_geometry:
+            options["obstacles"] = self.obstacles(model.dim)
         options.update(kwargs)
         if options["stiffness"] is None:
             probe = ContactTerm(model, **{**options, "stiffness": 1.0})
@@ -472,13 +524,18 @@ def _num_cells(mesh) -> int:
     return imap.size_local + imap.num_ghosts
 
 
-def read_polyfem_scene(path: str | os.PathLike, obstacles: str = "error") -> PolyFEMScene:
+def read_polyfem_scene(
+    path: str | os.PathLike, obstacles: str = "kinematic", fixed_bodies: str = "bodies"
+) -> PolyFEMScene:
     """Read a PolyFEM scene JSON file.
 
     Args:
         path: The JSON file; mesh paths in it are relative to its folder.
-        obstacles: What to do with ``is_obstacle`` geometry: "error" (default) or "clamp"
-            (a body whose boundary is clamped; a warning says so).
+        obstacles: What to do with ``is_obstacle`` geometry: "kinematic" (default: kinematic
+            obstacles of the contact term, no dofs), "clamp" (a body whose boundary is
+            clamped; a warning says so) or "error".
+        fixed_bodies: "bodies" (default: as written) or "obstacles": bodies whose whole
+            boundary is clamped to zero become fixed kinematic obstacles too (module docstring).
 
     Raises:
         ParameterError: A missing file, invalid JSON, an unsupported key (named with its path),
@@ -491,8 +548,10 @@ def read_polyfem_scene(path: str | os.PathLike, obstacles: str = "error") -> Pol
         raw = json.loads(path.read_text())
     except json.JSONDecodeError as error:
         raise ParameterError(f"PolyFEM scene {path} is not valid JSON: {error}") from None
-    if obstacles not in ("error", "clamp"):
-        raise ParameterError(f"obstacles={obstacles!r}: 'error' or 'clamp'")
+    if obstacles not in ("kinematic", "error", "clamp"):
+        raise ParameterError(f"obstacles={obstacles!r}: 'kinematic', 'clamp' or 'error'")
+    if fixed_bodies not in ("bodies", "obstacles"):
+        raise ParameterError(f"fixed_bodies={fixed_bodies!r}: 'bodies' or 'obstacles'")
     _check_keys(raw, _TOP, "scene")
     geometry = _geometry(raw.get("geometry"), path.parent, obstacles)
     space = raw.get("space", {})
@@ -523,7 +582,7 @@ def read_polyfem_scene(path: str | os.PathLike, obstacles: str = "error") -> Pol
     scene = PolyFEMScene(
         path=path,
         geometry=geometry,
-        materials=_materials(raw.get("materials"), [g.body_id for g in geometry]),
+        materials=_materials(raw.get("materials"), _material_ids(geometry, obstacles)),
         degree=degree,
         t0=t0,
         dt=dt,
@@ -537,6 +596,7 @@ def read_polyfem_scene(path: str | os.PathLike, obstacles: str = "error") -> Pol
         contact_enabled=bool(contact.get("enabled", False)),
         raw=raw,
     )
+    scene.geometry = _kinematic_geometry(scene, obstacles, fixed_bodies == "obstacles")
     bodies = set(scene.body_ids)
     for what, entries in (
         ("initial_conditions.velocity", scene.initial_velocity),
@@ -546,6 +606,55 @@ def read_polyfem_scene(path: str | os.PathLike, obstacles: str = "error") -> Pol
             if e.id not in bodies:
                 raise ParameterError(f"{path}: {what} id {e.id} is not a body id {sorted(bodies)}")
     return scene
+
+
+def _material_ids(geometry: list[PolyFEMGeometry], obstacles: str) -> list[int]:
+    """Body ids that need a material (kinematic obstacles need none)."""
+    return [g.body_id for g in geometry if not (g.is_obstacle and obstacles == "kinematic")]
+
+
+def _kinematic_geometry(
+    scene: PolyFEMScene, obstacles: str, fixed_as_obstacles: bool
+) -> list[PolyFEMGeometry]:
+    """The geometry with ``kinematic`` set on the entries simulated as obstacles."""
+    zero = {d.id for d in scene.dirichlet if d.components is None and not any(d.value)}
+    ids = [g.body_id for g in scene.geometry]
+    surfaces = [g.surface for g in scene.geometry if isinstance(g.surface, int)]
+    out = []
+    for k, g in enumerate(scene.geometry):
+        alone = ids.count(g.body_id) == 1 and surfaces.count(g.surface) == 1
+        fixed = isinstance(g.surface, int) and g.surface in zero and alone
+        kinematic = (g.is_obstacle and obstacles == "kinematic") or (fixed_as_obstacles and fixed)
+        if kinematic:
+            _check_obstacle_entry(scene, k, g, alone)
+        out.append(dataclasses.replace(g, kinematic=kinematic))
+    if all(g.kinematic for g in out):
+        raise ParameterError(f"{scene.path}: every geometry entry is an obstacle (no body)")
+    return out
+
+
+def _check_obstacle_entry(scene: PolyFEMScene, k: int, g: PolyFEMGeometry, alone: bool) -> None:
+    where = f"{scene.path}: geometry[{k}] ({g.mesh.name}, an obstacle)"
+    if not alone or not (g.surface is None or isinstance(g.surface, int)):
+        raise ParameterError(
+            f"{where} shares its volume or surface id with another entry or has a surface "
+            "selection by region: read the scene with obstacles='clamp'"
+        )
+    for what, entries in (
+        ("dirichlet_boundary", [d for d in scene.dirichlet if d.id == g.surface]),
+        ("neumann_boundary", [n for n in scene.neumann if n.id == g.surface]),
+        ("initial_conditions.velocity", [v for v in scene.initial_velocity if v.id == g.body_id]),
+        (
+            "initial_conditions.solution",
+            [u for u in scene.initial_displacement if u.id == g.body_id],
+        ),
+    ):
+        if any(any(e.value) for e in entries):
+            raise ParameterError(
+                f"{where} has a non-zero {what} entry: a moving obstacle needs a motion "
+                "(build a diffsolids.contact.Obstacle with motion=...), or read the scene "
+                "with obstacles='clamp'"
+            )
 
 
 def _geometry(entries, folder: Path, obstacles: str) -> list[PolyFEMGeometry]:
@@ -586,13 +695,12 @@ def _geometry(entries, folder: Path, obstacles: str) -> list[PolyFEMGeometry]:
                 f"{g.get('volume_selection')!r}"
             )
         obstacle = bool(g.get("is_obstacle", False))
-        if obstacle:
-            if obstacles == "error":
-                raise ParameterError(
-                    f"{where}.is_obstacle: kinematic obstacles are not supported yet; read the "
-                    "scene with obstacles='clamp' to make the obstacle a body with a clamped "
-                    "boundary"
-                )
+        if obstacle and obstacles == "error":
+            raise ParameterError(
+                f"{where}.is_obstacle: refused (obstacles='error'); read the scene with "
+                "obstacles='kinematic' (kinematic obstacles) or 'clamp' (a clamped body)"
+            )
+        if obstacle and obstacles == "clamp":
             warnings.warn(
                 f"{where} ({mesh.name}) is an obstacle: simulated as a body with a clamped "
                 "boundary (its dofs stay in the system)",
