@@ -126,6 +126,15 @@ class TimeStep:
             v += a * u[i - j]
         return v / self.beta_dt
 
+    def extrapolation(self, u: Sequence[np.ndarray], v: Sequence[np.ndarray]) -> np.ndarray:
+        """u^{i-1} + dt v^{i-1} (constant velocity) for an inertial step, u^{i-1} for a static one.
+
+        The ``"predictor"`` initial Newton guess of the step (not the BDF predictor u_tilde,
+        which is not a displacement the body reaches).
+        """
+        prev = u[self.index - 1]
+        return prev + self.dt * v[self.index - 1] if self.inertial else prev.copy()
+
     def set_fields(
         self, fields: "StepFields", u: Sequence[np.ndarray], v: Sequence[np.ndarray]
     ) -> None:

@@ -264,17 +264,31 @@ class Simulation:
             term.begin_step(i, traj, step, self)
         return step
 
-    def _initial_guess(self, i: int, traj: Trajectory) -> None:
-        """Warm start, extrapolated (BDF) or previous state with the step's Dirichlet values.
+    def _initial_guess(self, i: int, traj: StateHistory, step: TimeStep) -> None:
+        """The step's first Newton iterate, with the step's Dirichlet values applied.
 
-        A guess that inverts elements (or, with contact, collides on the way from u^{i-1}) falls
-        back to the next candidate; if applying the new Dirichlet values to the previous state
-        is still not admissible, they are reached by :meth:`_dirichlet_continuation`.
+        Candidates in turn: the warm start (if any), the guess chosen by
+        :attr:`SolverOptions.initial_guess <diffsolids.solvers.SolverOptions.initial_guess>`
+        (``"predictor"``: the step's :meth:`~diffsolids.integrators.TimeStep.extrapolation`,
+        u^{i-1} + dt v^{i-1} in a dynamic run and u^{i-1} in a static one; ``"previous"``:
+        u^{i-1}; ``"zero"``: u = 0) and u^{i-1}. A guess that inverts elements (or, with
+        contact, collides on the way from u^{i-1}) falls back to the next candidate; if applying
+        the new Dirichlet values to the previous state is still not admissible, they are
+        reached by :meth:`_dirichlet_continuation`.
         """
         u = self.model.fields.u
         prev = traj.u[i - 1]
-        guess = prev + self.integrator.dt * traj.v[i - 1] if self.integrator.dynamic else prev
-        candidates = [guess, prev]
+        choice = getattr(self.solver.options, "initial_guess", "predictor")
+        if choice == "predictor":
+            candidates = [step.extrapolation(traj.u, traj.v), prev]
+        elif choice == "zero":
+            candidates = [np.zeros_like(prev), prev]
+        elif choice == "previous":
+            candidates = [prev]
+        else:  # SolverOptions validates its value: an options object changed afterwards
+            raise ParameterError(
+                f"SolverOptions.initial_guess = {choice!r}: not 'predictor', 'previous' or 'zero'"
+            )
         warm = self.warm_start
         # only a full Trajectory warm-starts (a checkpointed one does not hold every state)
         if isinstance(warm, Trajectory) and i < len(warm.u) and warm.u[i].shape == prev.shape:
@@ -439,7 +453,7 @@ class Simulation:
                     bc.set(u.x.array)
             self.solver.set_reference_force()
         self._guess_origin = traj.u[i - 1]
-        self._initial_guess(i, traj)
+        self._initial_guess(i, traj, c)
         try:
             result = self.solver.solve(i)
         except NewtonConvergenceError:
