@@ -2,7 +2,8 @@
 
 The API pages are written at build time from the ``__all__`` lists of the package and its
 modules (``docs/api/``, not in git), so that every public name is documented and a new one
-needs no edit here. No network access: no intersphinx.
+needs no edit here; so are the plots of the optimisation logs (``docs/api/figures/``). No
+network access: no intersphinx.
 """
 
 import importlib
@@ -36,7 +37,8 @@ myst_heading_anchors = 3
 highlight_language = "text"
 html_theme = "furo"
 html_title = "diffsolids"
-html_static_path = []
+html_static_path = ["_static"]
+html_css_files = ["custom.css"]
 
 # Google-style docstrings (the project's convention)
 napoleon_google_docstring = True
@@ -47,6 +49,9 @@ napoleon_use_ivar = True
 autodoc_default_options = {"members": True, "show-inheritance": True}
 autodoc_member_order = "bysource"
 autodoc_typehints = "description"
+# types of the documented arguments only: a dataclass documents its fields once, as attributes
+# (not again as a list of its __init__ arguments without descriptions)
+autodoc_typehints_description_target = "documented_params"
 autodoc_typehints_format = "short"
 autodoc_preserve_defaults = True
 autosummary_generate = False
@@ -155,7 +160,7 @@ def write_api_pages(app) -> None:
             lines += [f"   ~{_canonical(module, n)}" for n in names]
             lines += ["", "Each name links to its description on the page of its module."]
         else:
-            lines += [f"   {module}.{n}" for n in names]
+            lines += [f"   ~{module}.{n}" for n in names]
             lines += [""] + [_directive(module, n, getattr(mod, n)) for n in names]
         text = "\n".join(lines) + "\n"
         path = api / f"{module}.rst"
@@ -280,9 +285,48 @@ def public_bases(app, name, obj, options, bases) -> None:
             i += 1
 
 
+_MARKER = re.compile(r"^\s*# \[[\w-]+\]\s*$")  # a literalinclude bound: # [optimise]
+
+
+def strip_markers(app, doctree) -> None:
+    """Drop the ``# [name]`` bounds inside an included piece of an example, and its end's blanks.
+
+    ``:start-after:`` and ``:end-before:`` leave the bounds of the pieces in between in the
+    text, ``:pyobject:`` the blank lines after a class.
+    """
+    from docutils import nodes
+
+    for node in doctree.findall(nodes.literal_block):
+        if not str(node.get("source", "")).startswith(str(DOCS / "examples")):
+            continue
+        text = node.astext()
+        kept = "\n".join(s for s in text.split("\n") if not _MARKER.match(s)).rstrip() + "\n"
+        if kept != text:
+            node.rawsource = kept
+            node[:] = [nodes.Text(kept)]
+
+
+def write_figures(app) -> None:
+    """Plot the optimisation logs ``docs/figures/*_log.csv`` to ``docs/api/figures/*.svg``.
+
+    The data are in git (a few lines of text), the figures are not: they are drawn at each
+    build by the library's own ``plot_log`` (matplotlib, a dependency of diffsolids).
+    """
+    from diffsolids.optimize.monitor import plot_log, read_log
+
+    out = DOCS / "api" / "figures"
+    out.mkdir(parents=True, exist_ok=True)
+    for log in sorted((DOCS / "figures").glob("*_log.csv")):
+        svg = out / f"{log.stem}.svg"
+        if not svg.exists() or svg.stat().st_mtime < log.stat().st_mtime:
+            plot_log(read_log(log), svg)
+
+
 def setup(app) -> None:
-    """Write the API pages before Sphinx reads the sources; read docstrings as written."""
+    """Write the API pages and figures before Sphinx reads the sources; read docstrings."""
     app.connect("builder-inited", write_api_pages, priority=100)
+    app.connect("builder-inited", write_figures, priority=100)
     app.connect("autodoc-process-docstring", plain_docstrings)
+    app.connect("doctree-read", strip_markers)
     app.connect("missing-reference", resolve_short_names)
     app.connect("autodoc-process-bases", public_bases)

@@ -5,6 +5,7 @@ prints or writes (Taylor rates, finite-difference errors, objective decrease, ou
 The Sphinx build runs as ``make docs`` does (``-W --keep-going``: any warning fails it).
 """
 
+import itertools
 import os
 import re
 import shutil
@@ -27,6 +28,7 @@ COVERED = {
     "tutorial_3d.py": "test_tutorial_3d",
     "howto_extend.py": "test_howto_extend_gradients_through_the_new_pieces",
     "howto_polyfem.py": "test_howto_polyfem_builds_and_runs_the_scene",
+    "howto_watch.py": "test_howto_watch_logs_every_iteration_and_plots_the_log",
 }
 
 
@@ -78,6 +80,11 @@ def test_tutorial_2d_optimises_and_writes_paraview_files(tmp_path):
     assert "inverted states 0, intersecting 0" in out
     for label in ("initial", "final"):
         assert (tmp_path / f"{label}.bp").is_dir() and (tmp_path / f"{label}_cells.bp").is_dir()
+    rows = _log_rows(out)
+    assert [int(r[0]) for r in rows] == list(range(len(rows))) and len(rows) >= 2
+    assert float(rows[-1][1]) < float(rows[0][1])
+    log = (tmp_path / "log.csv").read_text().splitlines()
+    assert log[0].startswith("iteration,objective,gradient_norm") and len(log) == len(rows) + 1
 
 
 def test_the_tutorials_pytest_gradient_check_passes():
@@ -111,6 +118,32 @@ def test_howto_extend_gradients_through_the_new_pieces():
     errors = re.search(r"relative errors: random ([\d.e+-]+), along the gradient ([\d.e+-]+)", out)
     assert errors, out
     assert max(float(e) for e in errors.groups()) < 1e-6
+
+
+_LOG_ROW = re.compile(r"^\s*\d+\s+-?\d\.\d+e[+-]\d+\s")  # iteration, J, ...
+
+
+def _log_rows(out: str) -> list[list[str]]:
+    """The rows of the optimisation log printed by ``log=True`` (after its header)."""
+    lines = out.splitlines()
+    heads = [i for i, s in enumerate(lines) if s.split()[:2] == ["iter", "J"]]
+    assert len(heads) == 1, out
+    return [s.split() for s in lines[heads[0] + 1 :] if _LOG_ROW.match(s)]
+
+
+def test_howto_watch_logs_every_iteration_and_plots_the_log(tmp_path):
+    out = _run([sys.executable, "docs/examples/howto_watch.py", "--out", str(tmp_path)])
+    rows = _log_rows(out)
+    assert len(rows) >= 10 and "gradient_rtol" in out  # converged
+    J = [float(r[1]) for r in rows]
+    assert all(b <= a for a, b in itertools.pairwise(J)) and J[-1] < 1e-12 * J[0]
+    assert "E = [200000.  50000.]" in out  # the measured moduli recovered
+    log = (tmp_path / "log.csv").read_text().splitlines()
+    assert len(log) == len(rows) + 1 and log[0].endswith(",J:misfit")
+    for line, row in zip(log[1:], rows, strict=True):
+        assert float(line.split(",")[1]) == pytest.approx(float(row[1]), rel=1e-9)
+    svg = (tmp_path / "log.svg").read_text()
+    assert svg.lstrip().startswith("<?xml") and svg.count('id="axes_') == 2
 
 
 @pytest.mark.skipif(not (DATA / "fig20_kangaroo").is_dir(), reason="paper data not found")
@@ -150,3 +183,6 @@ def test_the_documentation_builds_without_a_warning(tmp_path):
     assert not proc.stderr.strip(), proc.stderr[-6000:]
     for page in ("index", "getting_started", "tutorial", "api/index", "api/diffsolids"):
         assert (out / f"{page}.html").is_file(), page
+    # the plot of the tutorial's optimisation log, drawn at build time, is on the how-to page
+    assert (ROOT / "docs" / "api" / "figures" / "tutorial_2d_log.svg").is_file()
+    assert "tutorial_2d_log.svg" in (out / "howto.html").read_text()

@@ -83,7 +83,8 @@ def main(argv: list[str] | None = None) -> None:
         print(f"initial throw {q0}: J = {J0:.6e}")
     # [optimise]
     options = ds.LBFGSOptions(max_iterations=args.iterations, gradient_rtol=1e-6, initial_step=0.2)
-    result = ds.minimize(rf, q0, options)
+    # one line per accepted iterate on stdout, and the same numbers in a CSV file
+    result = ds.minimize(rf, q0, options, log=True, log_file=args.out / "log.csv")
     if comm.rank == 0:
         print(f"optimised throw {np.round(result.q, 4)}: J = {result.objective:.3e}")
         print(f"{result.iterations} iterations, stopped by {result.reason}")

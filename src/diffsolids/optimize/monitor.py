@@ -53,8 +53,8 @@ class IterationRecord:
         remeshed: The mesh was rebuilt after this iterate (J, gradient are on the new mesh).
         objective_before_remesh: J on the old mesh when ``remeshed``.
         parameter_norm: ``|q_k|_2``.
-        parameter_summary: The controls at the iterate in a few characters (see
-            :func:`control_summary`).
+        parameter_summary: The controls at the iterate in a few characters (their values, or
+            the norm of a control of more than three parameters).
         q: Parameters (only when the run records them).
     """
 
@@ -137,8 +137,8 @@ _COLUMNS = (
     ("|step|", 10, lambda r: f"{r.step_norm:.3e}" if r.iteration else "-"),
     ("t", 8, lambda r: f"{r.step_length:.3g}" if r.iteration else "-"),
     ("trials", 7, lambda r: f"{r.trials}" + (f"({r.invalid_trials}!)" if r.invalid_trials else "")),
-    ("fwd s", 8, lambda r: f"{r.forward_seconds:.2f}"),
-    ("grad s", 8, lambda r: f"{r.gradient_seconds:.2f}"),
+    ("fwd(s)", 8, lambda r: f"{r.forward_seconds:.2f}"),
+    ("grad(s)", 8, lambda r: f"{r.gradient_seconds:.2f}"),
 )
 
 # the scalar fields of a CSV log, in order (then one ``J:<term>`` column per objective term)
