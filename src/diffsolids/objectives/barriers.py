@@ -56,6 +56,19 @@ def _scalar_log_barrier_derivative(z: np.ndarray, z_hat: float) -> np.ndarray:
     return np.where(z < z_hat, np.where(z > 0, inside, np.nan), 0.0)
 
 
+def _barrier_objective(
+    model, form: Callable, deformed: bool, deformed_name: str, rest_name: str
+) -> Series | Objective:
+    """A per-step Integral of ``form`` (deformed) or its value at the rest design (a scalar).
+
+    ``form`` is built once here on the model's fields, so bad user input fails at once.
+    """
+    form(model.fields)
+    if deformed:
+        return Integral(form, deformed_name)
+    return final_value(Integral(form, rest_name))
+
+
 def sdf_barrier(
     model,
     sdf: Callable,
@@ -85,10 +98,7 @@ def sdf_barrier(
             raise ParameterError("sdf must map a UFL position vector to a UFL scalar")
         return log_barrier(d, z_hat) * _measure(model, f, facets, bodies)
 
-    form(model.fields)
-    if deformed:
-        return Integral(form, "deformed sdf barrier")
-    return final_value(Integral(form, "rest sdf barrier"))
+    return _barrier_objective(model, form, deformed, "deformed sdf barrier", "rest sdf barrier")
 
 
 def inversion_barrier(
@@ -130,10 +140,7 @@ def inversion_barrier(
         J = ufl.det(forms.deformation_gradient(f.u)) if deformed else detJ / initial
         return log_barrier(J - float(threshold), z_hat) * _volume_measure(model, f, bodies)
 
-    form(model.fields)
-    if deformed:
-        return Integral(form, "inversion barrier")
-    return final_value(Integral(form, "rest inversion barrier"))
+    return _barrier_objective(model, form, deformed, "inversion barrier", "rest inversion barrier")
 
 
 def series_barrier(series: Series, threshold: float, z_hat: float) -> Series:

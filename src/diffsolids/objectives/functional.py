@@ -26,6 +26,7 @@ __all__ = [
     "ObjectiveError",
     "Regulariser",
     "Series",
+    "SeriesObjective",
     "TimeGrid",
     "check_finite_steps",
     "final_value",
@@ -444,11 +445,14 @@ def step_weights(spec, grid: TimeGrid) -> np.ndarray:
     return arr.astype(float)
 
 
-class TimeIntegral(Objective):
-    """sum_i w_i s_i of a series (paper eq. 4 objective with weights w_i)."""
+class SeriesObjective(Objective):
+    """Base of the scalar objectives reduced from one Series over the steps.
 
-    def __init__(self, series: Series, spec):
-        self.series, self.spec = series, spec
+    A subclass sets ``self.series`` and implements ``value`` and ``backward``; the leaves are
+    the series' and there are no regularisers.
+    """
+
+    series: Series
 
     @override
     def leaves(self):
@@ -457,6 +461,13 @@ class TimeIntegral(Objective):
     @override
     def regularisers(self):
         return []
+
+
+class TimeIntegral(SeriesObjective):
+    """sum_i w_i s_i of a series (paper eq. 4 objective with weights w_i)."""
+
+    def __init__(self, series: Series, spec):
+        self.series, self.spec = series, spec
 
     @override
     def value(self, table, reg, grid):

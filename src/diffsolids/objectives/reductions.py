@@ -22,6 +22,7 @@ from diffsolids.objectives.functional import (
     Objective,
     ObjectiveError,
     Series,
+    SeriesObjective,
     TimeGrid,
     check_finite_steps,
     series_name,
@@ -34,7 +35,7 @@ __all__ = ["SoftMin", "min_distance_target", "soft_min"]
 _KINDS = ("logsumexp", "harmonic")
 
 
-class SoftMin(Objective):
+class SoftMin(SeriesObjective):
     """A smooth minimum of a series over steps (see the module docstring).
 
     Args:
@@ -85,14 +86,6 @@ class SoftMin(Objective):
         e = np.exp(-self.alpha * (s - low))
         total = np.sum(e)
         return float(low - np.log(total) / self.alpha), e / total
-
-    @override
-    def leaves(self):
-        return self.series.leaves()
-
-    @override
-    def regularisers(self):
-        return []
 
     @override
     def value(self, table, reg, grid):
