@@ -10,6 +10,10 @@ flags are DOLFINx's portable defaults.
 ``DIFFSOLIDS_JIT_CFLAGS`` (e.g. ``"-O0 -g0"``) overrides the C compiler flags of the generated
 kernels: the test suite compiles hundreds of small forms on a cold cache and uses it to spend
 seconds, not minutes, in the C compiler.
+
+:func:`compile_form` runs the C compiler in the background and returns a form that waits for it
+on first use (:mod:`diffsolids.solvers.jit`): a model's forms compile side by side, and while
+Python generates the next one's code.
 """
 
 import hashlib
@@ -19,6 +23,8 @@ from pathlib import Path
 import numpy as np
 import ufl
 from dolfinx import fem
+
+from diffsolids.solvers.jit import build_form
 
 __all__ = [
     "JIT_OPTIONS",
@@ -63,10 +69,14 @@ JIT_OPTIONS = _jit_options()
 
 
 def compile_form(form: ufl.Form | None) -> fem.Form | None:
-    """Compile a UFL form (None passes through)."""
+    """Compile a UFL form (None passes through).
+
+    Serially the compiler may still be running when this returns: the form waits for it on
+    first use (:func:`diffsolids.solvers.jit.build_form`).
+    """
     if form is None:
         return None
-    return fem.form(form, jit_options=JIT_OPTIONS)
+    return build_form(form, JIT_OPTIONS)
 
 
 def compile_expression(expr, points: np.ndarray) -> fem.Expression:
