@@ -18,7 +18,13 @@ from mpi4py import MPI
 from optimize_script import bar_problem
 
 from diffsolids.optimize import LBFGS, LBFGSOptions, OptimizationError, minimize
-from diffsolids.optimize.monitor import IterationLog, control_summary, read_log
+from diffsolids.optimize.monitor import (
+    IterationLog,
+    IterationRecord,
+    control_summary,
+    plot_log,
+    read_log,
+)
 
 TESTS = Path(__file__).resolve().parent
 OPTIONS = dict(max_iterations=4, gradient_rtol=0)
@@ -183,3 +189,16 @@ def test_two_ranks_print_the_serial_log_once(tmp_path):
         assert b.objective == pytest.approx(a.objective, rel=1e-10)
         assert b.gradient_norm == pytest.approx(a.gradient_norm, rel=1e-8)
         assert b.parameter_summary == a.parameter_summary
+
+
+def test_plot_log_draws_objective_and_gradient_panels(tmp_path):
+    history = [
+        IterationRecord(0, 1.0, {"a": 0.75, "b": 0.25}, gradient_norm=1.0),
+        IterationRecord(1, 0.1, {"a": 0.05, "b": 0.05}, gradient_norm=0.1, remeshed=True),
+        IterationRecord(2, 0.01, {"a": 0.005, "b": 0.005}, gradient_norm=1e-3),
+    ]
+    svg = plot_log(history, tmp_path / "log.svg", title="a run").read_text()
+    assert svg.count('id="axes_') == 2 and "a run" in svg
+    assert plot_log(history, tmp_path / "log.png").read_bytes()[:4] == b"\x89PNG"
+    with pytest.raises(OptimizationError, match="at least one record"):
+        plot_log([], tmp_path / "empty.svg")
