@@ -16,6 +16,7 @@ from diffsolids.solvers import NewtonSolver, SolverOptions
 if TYPE_CHECKING:
     import os
 
+    from diffsolids.adjoint.checkpointing import CheckpointedRun
     from diffsolids.io.output import TrajectoryWriter
     from diffsolids.model import Model
 
@@ -380,7 +381,7 @@ class Simulation:
         return min(b.max_step(x, dx) for b in numeric) <= 1.0
 
     # -- run -----------------------------------------------------------------------------
-    def run(self, checkpoints=None) -> Trajectory:
+    def run(self, checkpoints: "CheckpointedRun | None" = None) -> Trajectory:
         """Solve all steps and return the trajectory (also kept as ``self.trajectory``).
 
         Args:
@@ -402,7 +403,7 @@ class Simulation:
             writer.write(0.0, traj.u[0], traj.v[0])
         with progress_bar(integ.num_steps, self.model.domain.comm, self.progress) as bar:
 
-            def stepped(i: int, states) -> None:
+            def stepped(i: int, states: StateHistory) -> None:
                 if writer:
                     writer.write(traj.times[i], states.u[i], states.v[i])
                 bar.update(1)

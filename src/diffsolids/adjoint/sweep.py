@@ -24,7 +24,7 @@ coordinate derivative of the inertia term inside L_i.
 import logging
 import time
 from collections import defaultdict
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from typing import TYPE_CHECKING
 
@@ -42,7 +42,9 @@ from diffsolids.io.progress import progress_bar
 from diffsolids.parallel import collective_comm
 
 if TYPE_CHECKING:
-    from diffsolids.simulation import StateHistory
+    from diffsolids.adjoint.checkpointing import CheckpointedRun
+    from diffsolids.objectives import Integral, NumericIntegral
+    from diffsolids.simulation import Simulation, StateHistory, Trajectory
 
 __all__ = ["BackwardSweep"]
 
@@ -77,7 +79,11 @@ class BackwardSweep:
     """
 
     def __init__(
-        self, simulation, leaves, targets: Targets, options: AdjointSolverOptions | None = None
+        self,
+        simulation: "Simulation",
+        leaves: Sequence["Integral | NumericIntegral"],
+        targets: Targets,
+        options: AdjointSolverOptions | None = None,
     ):
         self.sim = simulation
         self.model = simulation.model
@@ -104,19 +110,19 @@ class BackwardSweep:
             self._phases[name] += time.perf_counter() - t0
 
     # -- assembly helpers ----------------------------------------------------------------
-    def _assemble(self, form) -> np.ndarray:
+    def _assemble(self, form: fem.Form) -> np.ndarray:
         """Owned entries of an assembled vector form (ghost contributions summed)."""
         vec = fem.assemble_vector(form)
         vec.scatter_reverse(dolfinx.la.InsertMode.add)
         n = vec.index_map.size_local * vec.block_size
         return vec.array[:n]
 
-    def _add(self, target: np.ndarray, form) -> None:
+    def _add(self, target: np.ndarray, form: fem.Form | None) -> None:
         if form is not None:
             target[: self.owned] += self._assemble(form)
 
     # -- the sweep ----------------------------------------------------------------------------
-    def run(self, traj, leaf_weights: dict) -> Sensitivities:
+    def run(self, traj: "Trajectory", leaf_weights: dict) -> Sensitivities:
         """Backward sweep over ``traj`` with chain-rule weights ``leaf_weights[leaf][i]``."""
         self._begin(traj.num_steps, len(traj.u[0]), leaf_weights)
         with self._progress(traj.num_steps) as bar:
@@ -129,7 +135,7 @@ class BackwardSweep:
         """The adjoint's progress bar (shown where the simulation shows its own)."""
         return progress_bar(num_steps, self.model.domain.comm, self.sim.progress, "adjoint")
 
-    def run_checkpointed(self, run, leaf_weights: dict) -> Sensitivities:
+    def run_checkpointed(self, run: "CheckpointedRun", leaf_weights: dict) -> Sensitivities:
         """Backward sweep of a :class:`~diffsolids.adjoint.checkpointing.CheckpointedRun`.
 
         The run's schedule recomputes the states each step needs; the forward factorisations
@@ -141,7 +147,7 @@ class BackwardSweep:
         store = self.sim.solver.factor_store
         frozen = self._freeze_last_factors() if store is None else None
 
-        def step(i: int, view) -> None:
+        def step(i: int, view: "StateHistory") -> None:
             if store is not None:  # the factors of steps recomputed since the last step
                 self.linear.refresh(store.factors)
             self._step(i, view)
@@ -222,7 +228,7 @@ class BackwardSweep:
         ubar.pop(i)
         vbar.pop(i)
 
-    def _finish(self, state0) -> Sensitivities:
+    def _finish(self, state0: tuple[np.ndarray, np.ndarray]) -> Sensitivities:
         sens = self._sens
         self._initial_step(state0, self._weights, self._ubar, self._vbar, sens)
         seconds = time.perf_counter() - self._t0
@@ -250,7 +256,7 @@ class BackwardSweep:
         sens.dirichlet = [None] * (N + 1)
         return sens
 
-    def _load_state(self, traj, i: int) -> None:
+    def _load_state(self, traj: "StateHistory", i: int) -> None:
         f = self.model.fields
         f.u.x.array[:] = traj.u[i]
         f.v.x.array[:] = traj.v[i]
@@ -321,7 +327,14 @@ class BackwardSweep:
                 if g is not None:
                     sens.shape += weight * g[: len(sens.shape)]
 
-    def _initial_step(self, state0, leaf_weights, ubar, vbar, sens) -> None:
+    def _initial_step(
+        self,
+        state0: tuple[np.ndarray, np.ndarray],
+        leaf_weights: dict,
+        ubar: _Adjoints,
+        vbar: _Adjoints,
+        sens: Sensitivities,
+    ) -> None:
         """Step 0: objective partials at u^0, v^0 (lambda = 0) and the initial sensitivities."""
         forms = self.forms
         self.model.update_time(0.0)
