@@ -14,9 +14,14 @@ gives
     exact:      f (m' Hs + m'' gs gs^T + dm'/deps gs geps^T) + gf gxm^T + gf gm^T + gm gf^T + m Hf.
 
 The difference (added here) is f (m'' gs gs^T + dm'/deps (gs geps^T - geps gs^T))
-+ gf gxm^T - gxm gf^T. It is evaluated per mollified pair (a short loop over those pairs only,
-in the adjoint, never in the Newton loop).
++ gf gxm^T - gxm gf^T. It is evaluated for all mollified pairs at once: the edge ids and
+distance types of the edge-edge collisions are read once, everything else (cross norms,
+thresholds, distances of each type and their gradients, the barrier, the 12 x 12 blocks) is
+batched numpy, written with the formulas of ipctk's ``edge_edge_mollifier.cpp``,
+``line_line.cpp``, ``point_line.cpp`` and ``barrier.cpp``.
 """
+
+from dataclasses import dataclass
 
 import ipctk
 import numpy as np
@@ -24,17 +29,121 @@ import scipy.sparse as sp
 
 __all__ = ["barrier_shape_derivative"]
 
+# ipctk's EdgeEdgeDistanceType: point-point (EA0_EB0 .. EA1_EB1), point-line (EA_EB0 .. EA1_EB)
+# and line-line (EA_EB); (point, other point) and (point, line end, line end) vertex slots
+_POINT_POINT = {0: (0, 2), 1: (0, 3), 2: (1, 2), 3: (1, 3)}
+_POINT_LINE = {4: (2, 0, 1), 5: (3, 0, 1), 6: (0, 2, 3), 7: (1, 2, 3)}
+_LINE_LINE = 8
+# edge_edge_mollifier_threshold: eps_x = 1e-3 |ea|^2 |eb|^2 at rest
+_EPS_SCALE = 1e-3
 
-def _mollified_pairs(collisions: ipctk.NormalCollisions, mesh, rest: np.ndarray, x: np.ndarray):
-    E, F = mesh.edges, mesh.faces
-    for c in collisions.ee_collisions:
-        ids = np.asarray(c.vertex_ids(E, F))
-        xr = rest[ids].ravel()
-        xp = x[ids].ravel()
-        eps = c.mollifier_threshold(xr)
-        s = ipctk.edge_edge_cross_squarednorm(*xp.reshape(4, 3))
-        if s < eps:
-            yield c, ids, xr, xp, eps, s
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.einsum("...i,...i->...", a, b)
+
+
+@dataclass
+class _MollifiedPairs:
+    """The mollified edge-edge collisions of a collision set, as arrays (one row per pair)."""
+
+    index: np.ndarray  # position in collisions.ee_collisions
+    edge_ids: np.ndarray  # (n, 2): ea, eb
+    vertex_ids: np.ndarray  # (n, 4): ea0, ea1, eb0, eb1
+    rest: np.ndarray  # (n, 4, 3)
+    positions: np.ndarray  # (n, 4, 3)
+    eps: np.ndarray  # mollifier threshold at rest
+    s: np.ndarray  # cross squared norm at the positions
+
+    def __iter__(self):
+        return iter(self.index)
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+
+def _mollified_pairs(
+    collisions: ipctk.NormalCollisions, mesh: ipctk.CollisionMesh, rest: np.ndarray, x: np.ndarray
+) -> _MollifiedPairs:
+    """Edge-edge collisions whose cross squared norm is below the mollifier threshold.
+
+    Args:
+        collisions: The collision set.
+        mesh: Its collision mesh.
+        rest: (num_vertices, 3) rest positions.
+        x: (num_vertices, 3) positions.
+    """
+    ee = collisions.ee_collisions
+    edges = np.asarray(mesh.edges)
+    pairs = np.array([(c.edge0_id, c.edge1_id) for c in ee], dtype=np.int64).reshape(-1, 2)
+    ids = edges[pairs].reshape(-1, 4)
+    xr, xp = rest[ids], x[ids]
+    ea, eb = xr[:, 0] - xr[:, 1], xr[:, 2] - xr[:, 3]
+    eps = _EPS_SCALE * _dot(ea, ea) * _dot(eb, eb)
+    n = np.cross(xp[:, 1] - xp[:, 0], xp[:, 3] - xp[:, 2])
+    s = _dot(n, n)
+    keep = np.flatnonzero(s < eps)
+    return _MollifiedPairs(keep, pairs[keep], ids[keep], xr[keep], xp[keep], eps[keep], s[keep])
+
+
+def _point_line(p: np.ndarray, e0: np.ndarray, e1: np.ndarray):
+    """Squared distance of points to lines (3D) and its gradients w.r.t. p, e0, e1."""
+    a, b, e = e0 - p, e1 - p, e1 - e0
+    c = np.cross(a, b)
+    num, den = _dot(c, c), _dot(e, e)
+    d = num / den
+    g0 = 2.0 * np.cross(b, c)  # d|a x b|^2 / da
+    g1 = 2.0 * np.cross(c, a)  # d|a x b|^2 / db
+    ge0 = (g0 + 2.0 * d[:, None] * e) / den[:, None]
+    ge1 = (g1 - 2.0 * d[:, None] * e) / den[:, None]
+    gp = -(g0 + g1) / den[:, None]
+    return d, gp, ge0, ge1
+
+
+def _line_line(xp: np.ndarray):
+    """Squared distance between the lines of (ea0, ea1) and (eb0, eb1) and its gradient."""
+    u, v, w = xp[:, 1] - xp[:, 0], xp[:, 3] - xp[:, 2], xp[:, 2] - xp[:, 0]
+    n = np.cross(u, v)
+    L, D = _dot(w, n), _dot(n, n)
+    d = L * L / D
+    two_l = (2.0 * L / D)[:, None]
+    dd = (d / D)[:, None]
+    gu = two_l * np.cross(v, w) - 2.0 * dd * np.cross(v, n)
+    gv = two_l * np.cross(w, u) - 2.0 * dd * np.cross(n, u)
+    gw = two_l * n
+    return d, np.stack([-gu - gw, gu, gw - gv, gv], axis=1)
+
+
+def _edge_edge_distance(xp: np.ndarray, dtype: np.ndarray):
+    """Squared edge-edge distance of the given ipctk distance type, and its (n, 4, 3) gradient."""
+    d = np.empty(len(xp))
+    grad = np.zeros_like(xp)
+    for t, (i, j) in _POINT_POINT.items():
+        k = np.flatnonzero(dtype == t)
+        r = xp[k, i] - xp[k, j]
+        d[k] = _dot(r, r)
+        grad[k, i], grad[k, j] = 2.0 * r, -2.0 * r
+    for t, (i, j, m) in _POINT_LINE.items():
+        k = np.flatnonzero(dtype == t)
+        d[k], grad[k, i], grad[k, j], grad[k, m] = _point_line(xp[k, i], xp[k, j], xp[k, m])
+    k = np.flatnonzero(dtype == _LINE_LINE)
+    d[k], grad[k] = _line_line(xp[k])
+    known = np.isin(dtype, [*_POINT_POINT, *_POINT_LINE, _LINE_LINE])
+    if not known.all():
+        raise ValueError(f"edge-edge distance types {np.unique(dtype[~known])} are not handled")
+    return d, grad
+
+
+def _barrier(kappa_b, d: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """b(d, t) and b'(d, t) of ipctk's barrier function at squared distances d (array)."""
+    if type(kappa_b) is ipctk.ClampedLogBarrier:  # barrier.cpp, vectorised
+        inside = (d > 0) & (d < t)
+        dd = np.where(inside, d, t)
+        log = np.log(dd / t)
+        b = np.where(inside, -((dd - t) ** 2) * log, 0.0)
+        db = np.where(inside, (t - dd) * (2.0 * log - t / dd + 1.0), 0.0)
+        return b, db
+    values = [(kappa_b(float(s), t), kappa_b.first_derivative(float(s), t)) for s in d]
+    return tuple(np.array(v, dtype=float).reshape(len(d)) for v in zip(*values, strict=True))
 
 
 def _ee_correction(
@@ -44,32 +153,48 @@ def _ee_correction(
     barrier: ipctk.BarrierPotential,
     stiffness: float,
 ) -> sp.csc_matrix:
-    rest = mesh.rest_positions
+    """The sum over mollified edge-edge pairs of the difference in the module docstring."""
     n = x.size
-    rows, cols, vals = [], [], []
-    kappa_b = barrier.barrier
-    dhat2 = barrier.dhat**2
-    for c, ids, xr, xp, eps, s in _mollified_pairs(collisions, mesh, rest, x):
-        d = c.compute_distance(xp)
-        w = c.weight
-        f = w * stiffness * kappa_b(d, dhat2)
-        gf = w * stiffness * kappa_b.first_derivative(d, dhat2) * c.compute_distance_gradient(xp)
-        gs = ipctk.edge_edge_cross_squarednorm_gradient(*xp.reshape(4, 3))
-        geps = ipctk.edge_edge_mollifier_threshold_gradient(*xr.reshape(4, 3))
-        m2 = ipctk.edge_edge_mollifier_hessian(s, eps)
-        dm1 = ipctk.edge_edge_mollifier_gradient_derivative_wrt_eps_x(s, eps)
-        gxm = c.mollifier_gradient_wrt_x(xr, xp)
-        delta = f * (m2 * np.outer(gs, gs) + dm1 * (np.outer(gs, geps) - np.outer(geps, gs)))
-        delta += np.outer(gf, gxm) - np.outer(gxm, gf)
-        dofs = (ids[:, None] * 3 + np.arange(3)).ravel()
-        rows.append(np.repeat(dofs, 12))
-        cols.append(np.tile(dofs, 12))
-        vals.append(delta.ravel())
-    if not rows:
+    pairs = _mollified_pairs(collisions, mesh, mesh.rest_positions, x)
+    if not len(pairs):
         return sp.csc_matrix((n, n))
-    return sp.csc_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
-    )
+    ee = collisions.ee_collisions
+    dtype = np.array([int(ee[k].dtype) for k in pairs.index], dtype=np.int64)
+    if collisions.use_area_weighting:  # normal_collisions_builder.cpp: 1/4 of both edge areas
+        w = 0.25 * np.asarray(mesh.edge_areas()).ravel()[pairs.edge_ids].sum(axis=1)
+    else:
+        w = np.ones(len(pairs))
+    xp, xr, eps, s = pairs.positions, pairs.rest, pairs.eps, pairs.s
+    d, grad_d = _edge_edge_distance(xp, dtype)
+    b, db = _barrier(barrier.barrier, d, barrier.dhat**2)
+    f = w * stiffness * b
+    gf = (w * stiffness * db)[:, None] * grad_d.reshape(-1, 12)
+    # cross squared norm s = |u x v|^2 (u = ea1 - ea0, v = eb1 - eb0) and its gradient
+    u, v = xp[:, 1] - xp[:, 0], xp[:, 3] - xp[:, 2]
+    nrm = np.cross(u, v)
+    su, sv = 2.0 * np.cross(v, nrm), 2.0 * np.cross(nrm, u)
+    gs = np.stack([-su, su, -sv, sv], axis=1).reshape(-1, 12)
+    # threshold eps = 1e-3 |ra|^2 |rb|^2 at rest and its gradient
+    ra, rb = xr[:, 0] - xr[:, 1], xr[:, 2] - xr[:, 3]
+    ga = 2.0 * _EPS_SCALE * _dot(rb, rb)[:, None] * ra
+    gb = 2.0 * _EPS_SCALE * _dot(ra, ra)[:, None] * rb
+    geps = np.stack([ga, -ga, gb, -gb], axis=1).reshape(-1, 12)
+    # mollifier derivatives (edge_edge_mollifier.cpp), s < eps for every pair here
+    m2 = -2.0 / (eps * eps)
+    dm1 = 2.0 * (-eps + 2.0 * s) / (eps * eps * eps)
+    dm_eps = 2.0 * s * (-eps + s) / (eps * eps * eps)
+    gxm = dm_eps[:, None] * geps
+
+    def outer(a: np.ndarray, c: np.ndarray) -> np.ndarray:
+        return np.einsum("ki,kj->kij", a, c)
+
+    delta = (f * m2)[:, None, None] * outer(gs, gs)
+    delta += (f * dm1)[:, None, None] * (outer(gs, geps) - outer(geps, gs))
+    delta += outer(gf, gxm) - outer(gxm, gf)
+    dofs = (pairs.vertex_ids[:, :, None] * 3 + np.arange(3)).reshape(-1, 12)
+    rows = np.repeat(dofs, 12, axis=1).ravel()
+    cols = np.tile(dofs, (1, 12)).ravel()
+    return sp.csc_matrix((delta.ravel(), (rows, cols)), shape=(n, n))
 
 
 def barrier_shape_derivative(

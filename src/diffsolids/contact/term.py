@@ -55,6 +55,7 @@ from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from diffsolids.contact.friction_shape import friction_weight_adjoint
 from diffsolids.contact.obstacle import Obstacle
 from diffsolids.contact.reach import reach_blocks
 from diffsolids.contact.shape import barrier_shape_derivative
@@ -1049,6 +1050,15 @@ class ContactTerm(NumericTerm):
             )
         )
 
+    def _lagged_jacobian(self, ev: _Evaluation) -> sp.csc_matrix:
+        """dF/dU^{i-1} at ev (kept with ev: the history and shape kernels both need it)."""
+        J = ev.extras.get("friction_lagged_jacobian")
+        if J is None:
+            wrt = ipctk.FrictionPotential.DiffWRT.LAGGED_DISPLACEMENTS
+            J = self._friction_jacobian(ev, ev.extras["friction"], wrt)
+            ev.extras["friction_lagged_jacobian"] = J
+        return J
+
     @_timed_kernel("adjoint_history")
     def adjoint_history(self, u, lam) -> dict[int, np.ndarray]:
         """(d g / d u^{i-j})^T lam for j = 1..m_i (owned entries of local V arrays).
@@ -1066,7 +1076,7 @@ class ContactTerm(NumericTerm):
         DW = ipctk.FrictionPotential.DiffWRT
         # g_f = -F(X, U^{i-1}, v):  dg/dU^{i-j} = -dF/dv alpha_j / (beta dt)  (- dF/dU_lag, j = 1)
         Jv = self._friction_jacobian(ev, T, DW.VELOCITIES)
-        Jl = self._friction_jacobian(ev, T, DW.LAGGED_DISPLACEMENTS)
+        Jl = self._lagged_jacobian(ev)
         tv = -(Jv.T @ lam_c) / beta_dt
         out = {}
         for j, a in enumerate(alpha, start=1):
@@ -1107,28 +1117,27 @@ class ContactTerm(NumericTerm):
         dF/dX = dF/dU^{i-1} + sum_c (F_c / w_c) grad w_c^T (area weights w_c; the force of
         collision c is proportional to w_c). ipctk's REST_POSITIONS Jacobian adds these outer
         products to one growing sparse matrix, a cost quadratic in the number of collisions
-        (1 s per step for 2k collisions); applied to lam they are scalars times weight gradients.
+        (1 s per step for 2k collisions); applied to lam they are scalars times weight
+        gradients, batched over all collisions by
+        :func:`~diffsolids.contact.friction_shape.friction_weight_adjoint`.
         """
-        T = self._tangential_collisions(self._mu_table(self._mu), shape_derivatives=True)
-        Jl = self._friction_jacobian(ev, T, ipctk.FrictionPotential.DiffWRT.LAGGED_DISPLACEMENTS)
-        out = Jl.T @ lam_c
+        out = self._lagged_jacobian(ev).T @ lam_c
         if not self.area_weighting:
             return out
-        mesh, d = self.surface.mesh, self.dim
-        E, F = mesh.edges, mesh.faces
-        X = self.surface.rest_positions
-        U = self._step["lagged"]
-        V = self._velocity(ev.U)
-        lam = lam_c.reshape(-1, d)
-        potential, barrier = self.friction_potential, self.barrier
-        for group in (T.vv_collisions, T.ev_collisions, T.ee_collisions, T.fv_collisions):
-            for c in group:
-                ids = np.asarray(c.vertex_ids(E, F))
-                ids = ids[ids >= 0]
-                force = potential.force(c, X[ids].ravel(), U[ids].ravel(), V[ids].ravel(), barrier)
-                dw = c.weight_gradient
-                out[dw.indices] += (force @ lam[ids].ravel() / c.weight) * dw.data
-        return out
+        T = self._tangential_collisions(self._mu_table(self._mu), shape_derivatives=True)
+        x = self.surface.rest_positions + self._step["lagged"]
+        return out + friction_weight_adjoint(
+            T,
+            self.surface.mesh,
+            x,
+            self._velocity(ev.U),
+            lam_c,
+            self.barrier,
+            self.stiffness,
+            self.eps_v,
+            self._mu_table(self._mu),
+            self.surface.body_index,
+        )
 
     def adjoint_parameter(self, name: str, u, lam) -> np.ndarray:
         """Lam . dG_i/d(friction coefficient of each pair of :attr:`friction_pairs`)."""

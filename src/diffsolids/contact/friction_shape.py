@@ -1,0 +1,211 @@
+"""Area-weight part of the friction force's rest-position Jacobian, batched over collisions.
+
+The lagged friction force of collision c (ipctk ``TangentialPotential::force``) is
+
+    F_c = -w_c N_c mu_c f1(|tau_c|)/|tau_c| Gamma_c^T P_c tau_c,    tau_c = P_c^T Gamma_c v,
+
+with area weight w_c, normal force magnitude N_c = -kappa b'(d_c^2, dhat^2) 2 d_c at the lagged
+positions x^{i-1}, tangent basis P_c, relative-velocity Jacobian Gamma_c (closest point beta_c)
+and the smoothed friction f1(y)/y (paper sec. 8.2). With area weighting F_c is proportional to
+w_c, so d F / d X = d F / d U^{i-1} + sum_c (F_c / w_c) grad w_c^T and its transpose applied to
+lam has the weight part
+
+    sum_c s_c grad w_c,   s_c = F_c . lam / w_c
+                              = -N_c mu_c f1(|tau_c|)/|tau_c| tau_c . (P_c^T Gamma_c lam).
+
+ipctk's REST_POSITIONS Jacobian adds these outer products to one growing sparse matrix (a cost
+quadratic in the number of collisions). Here the vertex ids and weight gradients are read once
+per collision and s_c is computed for all collisions at once, with ipctk's formulas for the
+distances, closest points, tangent bases and relative velocities of each collision type
+(``distance/``, ``tangent/closest_point.cpp``, ``tangent/tangent_basis.cpp``,
+``tangent/relative_velocity.cpp``), then scattered with one ``np.add.at``.
+"""
+
+import contextlib
+
+import ipctk
+import numpy as np
+import scipy.sparse
+
+from diffsolids.contact.shape import _barrier
+
+__all__ = ["friction_weight_adjoint"]
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.einsum("...i,...i->...", a, b)
+
+
+def _unit(a: np.ndarray) -> np.ndarray:
+    return a / np.linalg.norm(a, axis=-1, keepdims=True)
+
+
+@contextlib.contextmanager
+def _sparse_as_arrays():
+    """Let pybind11 return Eigen sparse vectors as (data, indices, indptr) arrays.
+
+    pybind11 casts an Eigen sparse matrix by calling ``scipy.sparse.csc_matrix((data, indices,
+    indptr), shape)``; scipy's checks cost ~30 us per call, most of the cost of reading one
+    weight gradient per collision. Inside this block the call returns the arrays themselves.
+    """
+    original = scipy.sparse.csc_matrix
+    scipy.sparse.csc_matrix = lambda arrays, shape=None: arrays
+    try:
+        yield
+    finally:
+        scipy.sparse.csc_matrix = original
+
+
+def _sparse_parts(g) -> tuple[np.ndarray, np.ndarray]:
+    if isinstance(g, tuple):
+        return np.asarray(g[1]), np.asarray(g[0])
+    g = scipy.sparse.csc_matrix(g)
+    return g.indices, g.data
+
+
+def _gather(T: ipctk.TangentialCollisions, mesh: ipctk.CollisionMesh):
+    """Vertex ids (-1 padded to 4), collision type and weight gradients of every collision."""
+    E, F = np.asarray(mesh.edges), np.asarray(mesh.faces)
+    vv, ev, ee, fv = T.vv_collisions, T.ev_collisions, T.ee_collisions, T.fv_collisions
+    parts = []
+    if vv:
+        a = np.array([(c.vertex0_id, c.vertex1_id) for c in vv], dtype=np.int64)
+        parts.append(np.column_stack([a, np.full((len(a), 2), -1)]))
+    if ev:
+        a = np.array([(c.vertex_id, c.edge_id) for c in ev], dtype=np.int64)
+        parts.append(np.column_stack([a[:, 0], E[a[:, 1]], np.full(len(a), -1)]))
+    if ee:
+        a = np.array([(c.edge0_id, c.edge1_id) for c in ee], dtype=np.int64)
+        parts.append(E[a].reshape(-1, 4))
+    if fv:
+        a = np.array([(c.vertex_id, c.face_id) for c in fv], dtype=np.int64)
+        parts.append(np.column_stack([a[:, 0], F[a[:, 1]]]))
+    ids = np.concatenate(parts) if parts else np.zeros((0, 4), dtype=np.int64)
+    kind = np.repeat(np.arange(4), [len(vv), len(ev), len(ee), len(fv)])
+    with _sparse_as_arrays():
+        grads = [c.weight_gradient for group in (vv, ev, ee, fv) for c in group]
+    parts = [_sparse_parts(g) for g in grads]
+    return ids.astype(np.int64), kind, parts
+
+
+def _point_point(x: np.ndarray):
+    """d^2, beta-weights of Gamma and the tangent basis of vertex-vertex pairs (2D and 3D)."""
+    p0, p1 = x[:, 0], x[:, 1]
+    r = p1 - p0
+    gamma = np.tile([1.0, -1.0, 0.0, 0.0], (len(x), 1))
+    if x.shape[2] == 2:
+        t = _unit(r)
+        return _dot(r, r), gamma, np.stack([-t[:, 1], t[:, 0]], axis=1)[:, :, None]
+    cx = np.cross(np.array([1.0, 0.0, 0.0]), r)
+    cy = np.cross(np.array([0.0, 1.0, 0.0]), r)
+    c = np.where((_dot(cx, cx) > _dot(cy, cy))[:, None], cx, cy)
+    basis = np.stack([_unit(c), _unit(np.cross(r, c))], axis=2)
+    return _dot(r, r), gamma, basis
+
+
+def _point_edge(x: np.ndarray):
+    p, e0, e1 = x[:, 0], x[:, 1], x[:, 2]
+    e = e1 - e0
+    ee = _dot(e, e)
+    alpha = _dot(p - e0, e) / ee
+    gamma = np.column_stack([np.ones(len(x)), alpha - 1.0, -alpha, np.zeros(len(x))])
+    if x.shape[2] == 2:
+        num = e[:, 1] * p[:, 0] - e[:, 0] * p[:, 1] + e1[:, 0] * e0[:, 1] - e1[:, 1] * e0[:, 0]
+        return num * num / ee, gamma, _unit(e)[:, :, None]
+    c = np.cross(e0 - p, e1 - p)
+    basis = np.stack([_unit(e), _unit(np.cross(e, p - e0))], axis=2)
+    return _dot(c, c) / ee, gamma, basis
+
+
+def _edge_edge(x: np.ndarray):
+    ea0, ea1, eb0, eb1 = x[:, 0], x[:, 1], x[:, 2], x[:, 3]
+    ea, eb, w = ea1 - ea0, eb1 - eb0, ea0 - eb0
+    a00, a01, a11 = _dot(ea, ea), -_dot(eb, ea), _dot(eb, eb)
+    r0, r1 = -_dot(w, ea), _dot(w, eb)
+    det = a00 * a11 - a01 * a01
+    ba, bb = (a11 * r0 - a01 * r1) / det, (a00 * r1 - a01 * r0) / det
+    gamma = np.column_stack([1.0 - ba, ba, bb - 1.0, -bb])
+    n = np.cross(ea, eb)
+    line = _dot(eb0 - ea0, n)
+    basis = np.stack([_unit(ea), _unit(np.cross(n, ea))], axis=2)
+    return line * line / _dot(n, n), gamma, basis
+
+
+def _face_vertex(x: np.ndarray):
+    p, t0, t1, t2 = x[:, 0], x[:, 1], x[:, 2], x[:, 3]
+    e0, e1, q = t1 - t0, t2 - t0, p - t0
+    a00, a01, a11 = _dot(e0, e0), _dot(e0, e1), _dot(e1, e1)
+    r0, r1 = _dot(e0, q), _dot(e1, q)
+    det = a00 * a11 - a01 * a01
+    b0, b1 = (a11 * r0 - a01 * r1) / det, (a00 * r1 - a01 * r0) / det
+    gamma = np.column_stack([np.ones(len(x)), b0 + b1 - 1.0, -b0, -b1])
+    n = np.cross(e0, e1)
+    plane = _dot(q, n)
+    basis = np.stack([_unit(e0), _unit(np.cross(n, e0))], axis=2)
+    return plane * plane / _dot(n, n), gamma, basis
+
+
+_KINDS = (_point_point, _point_edge, _edge_edge, _face_vertex)
+_NUM_VERTICES = (2, 3, 4, 4)
+
+
+def friction_weight_adjoint(
+    T: ipctk.TangentialCollisions,
+    mesh: ipctk.CollisionMesh,
+    lagged_positions: np.ndarray,
+    velocities: np.ndarray,
+    lam: np.ndarray,
+    barrier: ipctk.BarrierPotential,
+    stiffness: float,
+    eps_v: float,
+    mu_table: np.ndarray,
+    body_index: np.ndarray,
+) -> np.ndarray:
+    """sum_c (F_c . lam / w_c) grad_X w_c over the collisions of ``T`` (module docstring).
+
+    Args:
+        T: Tangential collisions built at ``lagged_positions`` with shape derivatives.
+        mesh: The collision mesh.
+        lagged_positions: (num_vertices, dim) positions x^{i-1} of the lagged build.
+        velocities: (num_vertices, dim) velocities v.
+        lam: (num_vertices * dim,) adjoint vector.
+        barrier: The barrier potential of the build (ClampedLogBarrier, dmin = 0).
+        stiffness: Its stiffness kappa.
+        eps_v: Friction smoothing velocity.
+        mu_table: (num_bodies, num_bodies) friction coefficient of each pair of bodies (the
+            blend of the build; static and kinetic equal).
+        body_index: Body index of each collision vertex.
+
+    Returns:
+        (num_vertices * dim,) the weight part of (dF/dX)^T lam.
+    """
+    dim = lagged_positions.shape[1]
+    out = np.zeros(lagged_positions.size)
+    if len(T) == 0:
+        return out
+    ids, kind, grads = _gather(T, mesh)
+    lam = lam.reshape(-1, dim)
+    s = np.zeros(len(ids))
+    for k, (geometry, nv) in enumerate(zip(_KINDS, _NUM_VERTICES, strict=True)):
+        sel = np.flatnonzero(kind == k)
+        if not len(sel):
+            continue
+        vid = ids[sel, :nv]
+        d2, gamma, basis = geometry(lagged_positions[vid])
+        gamma = gamma[:, :nv]
+        rel_v = np.einsum("kj,kjd->kd", gamma, velocities[vid])
+        rel_l = np.einsum("kj,kjd->kd", gamma, lam[vid])
+        tau = np.einsum("kdt,kd->kt", basis, rel_v)
+        q = np.einsum("kdt,kd->kt", basis, rel_l)
+        _, db = _barrier(barrier.barrier, d2, barrier.dhat**2)
+        normal = -stiffness * db * 2.0 * np.sqrt(d2)
+        y = np.linalg.norm(tau, axis=1)
+        f1_over_y = np.where(y >= eps_v, 1.0 / np.maximum(y, eps_v), (2.0 - y / eps_v) / eps_v)
+        mu = mu_table[body_index[vid[:, 0]], body_index[vid[:, -1]]]
+        s[sel] = -normal * mu * f1_over_y * _dot(tau, q)
+    if grads:
+        index = np.concatenate([g[0] for g in grads])
+        data = np.concatenate([g[1] for g in grads])
+        counts = np.array([len(g[0]) for g in grads])
+        np.add.at(out, index, np.repeat(s, counts) * data)
+    return out

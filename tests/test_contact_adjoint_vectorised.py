@@ -1,0 +1,156 @@
+"""The batched contact adjoint kernels equal the per-collision loops they replaced (1e-12).
+
+References kept here (test-only): the per-collision loops of ``contact/shape.py``
+(``_ee_correction`` over mollified edge-edge pairs, ipctk's per-pair mollifier helpers) and of
+``ContactTerm._friction_rest_adjoint`` (ipctk's per-collision friction force times the weight
+gradient), as they were before the vectorisation. The scenes of test_contact_kernels: 2D and
+3D, friction 0.4 on the sliding (eps_v 0.5) and the smoothed (eps_v 100) branch, mollified
+edge-edge pairs in 3D. The finite-difference checks of the kernels stay in
+test_contact_kernels and test_gradients_contact.
+"""
+
+import ipctk
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from mpi4py import MPI
+from test_contact_kernels import _Checker, _scene
+
+import diffsolids.contact.shape as contact_shape
+from diffsolids.contact import ContactTerm
+from diffsolids.contact.friction_shape import _gather
+
+TOL = 1e-12
+
+
+# -- references: the loops as they were ------------------------------------------------------
+def _reference_mollified_pairs(collisions, mesh, rest: np.ndarray, x: np.ndarray):
+    E, F = mesh.edges, mesh.faces
+    for c in collisions.ee_collisions:
+        ids = np.asarray(c.vertex_ids(E, F))
+        xr = rest[ids].ravel()
+        xp = x[ids].ravel()
+        eps = c.mollifier_threshold(xr)
+        s = ipctk.edge_edge_cross_squarednorm(*xp.reshape(4, 3))
+        if s < eps:
+            yield c, ids, xr, xp, eps, s
+
+
+def _reference_ee_correction(collisions, mesh, x: np.ndarray, barrier, stiffness: float):
+    rest = mesh.rest_positions
+    n = x.size
+    rows, cols, vals = [], [], []
+    kappa_b = barrier.barrier
+    dhat2 = barrier.dhat**2
+    for c, ids, xr, xp, eps, s in _reference_mollified_pairs(collisions, mesh, rest, x):
+        d = c.compute_distance(xp)
+        w = c.weight
+        f = w * stiffness * kappa_b(d, dhat2)
+        gf = w * stiffness * kappa_b.first_derivative(d, dhat2) * c.compute_distance_gradient(xp)
+        gs = ipctk.edge_edge_cross_squarednorm_gradient(*xp.reshape(4, 3))
+        geps = ipctk.edge_edge_mollifier_threshold_gradient(*xr.reshape(4, 3))
+        m2 = ipctk.edge_edge_mollifier_hessian(s, eps)
+        dm1 = ipctk.edge_edge_mollifier_gradient_derivative_wrt_eps_x(s, eps)
+        gxm = c.mollifier_gradient_wrt_x(xr, xp)
+        delta = f * (m2 * np.outer(gs, gs) + dm1 * (np.outer(gs, geps) - np.outer(geps, gs)))
+        delta += np.outer(gf, gxm) - np.outer(gxm, gf)
+        dofs = (ids[:, None] * 3 + np.arange(3)).ravel()
+        rows.append(np.repeat(dofs, 12))
+        cols.append(np.tile(dofs, 12))
+        vals.append(delta.ravel())
+    if not rows:
+        return sp.csc_matrix((n, n))
+    return sp.csc_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
+    )
+
+
+def _reference_friction_rest_adjoint(self: ContactTerm, ev, lam_c: np.ndarray) -> np.ndarray:
+    T = self._tangential_collisions(self._mu_table(self._mu), shape_derivatives=True)
+    Jl = self._friction_jacobian(ev, T, ipctk.FrictionPotential.DiffWRT.LAGGED_DISPLACEMENTS)
+    out = Jl.T @ lam_c
+    if not self.area_weighting:
+        return out
+    mesh, d = self.surface.mesh, self.dim
+    E, F = mesh.edges, mesh.faces
+    X = self.surface.rest_positions
+    U = self._step["lagged"]
+    V = self._velocity(ev.U)
+    lam = lam_c.reshape(-1, d)
+    potential, barrier = self.friction_potential, self.barrier
+    for group in (T.vv_collisions, T.ev_collisions, T.ee_collisions, T.fv_collisions):
+        for c in group:
+            ids = np.asarray(c.vertex_ids(E, F))
+            ids = ids[ids >= 0]
+            force = potential.force(c, X[ids].ravel(), U[ids].ravel(), V[ids].ravel(), barrier)
+            dw = c.weight_gradient
+            out[dw.indices] += (force @ lam[ids].ravel() / c.weight) * dw.data
+    return out
+
+
+def _rel(a: np.ndarray, b: np.ndarray) -> float:
+    scale = np.abs(b).max()
+    assert scale > 0
+    return float(np.abs(a - b).max() / scale)
+
+
+CASES = [(2, 1, 1, 100.0), (2, 2, 2, 100.0), (3, 1, 2, 100.0), (3, 1, 1, 0.5), (3, 2, 1, 0.5)]
+
+
+@pytest.mark.parametrize(("dim", "degree", "order", "eps_v"), CASES)
+def test_vectorised_contact_adjoint_equals_the_loops(dim, degree, order, eps_v, monkeypatch):
+    model, contact, _, u, _ = _scene(dim, degree, order, eps_v, comm=MPI.COMM_SELF)
+    lam = _Checker(model, contact, u).random()
+    ev = contact._evaluate(u)
+    lam_c = contact._lambda(lam)
+    T = contact._tangential_collisions(contact._mu_table(contact._mu), shape_derivatives=True)
+    assert len(T) > 0
+    ids, kind, _ = _gather(T, contact.surface.mesh)
+    E, F = contact.surface.mesh.edges, contact.surface.mesh.faces
+    groups = (T.vv_collisions, T.ev_collisions, T.ee_collisions, T.fv_collisions)
+    loop_ids = [np.asarray(c.vertex_ids(E, F)) for g in groups for c in g]
+    assert np.array_equal(ids, np.array(loop_ids))
+    assert len(np.unique(kind)) >= 2  # more than one collision type in play
+
+    # the friction force's rest-position adjoint, and its area-weight part on its own
+    vectorised = contact._friction_rest_adjoint(ev, lam_c)
+    reference = _reference_friction_rest_adjoint(contact, ev, lam_c)
+    assert _rel(vectorised, reference) <= TOL
+    lagged = contact._lagged_jacobian(ev).T @ lam_c
+    assert _rel(vectorised - lagged, reference - lagged) <= TOL
+
+    # the mollifier correction, pair by pair (3D), and the whole shape adjoint
+    C = contact._build(ev.x, shape_derivatives=True)
+    x = np.asfortranarray(ev.x)
+    mesh = contact.surface.mesh
+    if dim == 3:
+        mollified = contact_shape._mollified_pairs(C, mesh, mesh.rest_positions, ev.x)
+        loop = list(_reference_mollified_pairs(C, mesh, mesh.rest_positions, ev.x))
+        assert len(mollified) == len(loop) > 0
+        args = (C, mesh, x, contact.barrier, contact.stiffness)
+        A = contact_shape._ee_correction(*args)
+        B = _reference_ee_correction(*args)
+        assert abs(A - B).max() <= TOL * abs(B).max()
+    gX = contact.adjoint_shape(u, lam)
+    monkeypatch.setattr(contact_shape, "_ee_correction", _reference_ee_correction)
+    monkeypatch.setattr(ContactTerm, "_friction_rest_adjoint", _reference_friction_rest_adjoint)
+    assert _rel(gX, contact.adjoint_shape(u, lam)) <= TOL
+
+
+def test_edge_edge_distance_types_and_barrier():
+    """Each ipctk edge-edge distance type and the barrier, batched, against ipctk per pair."""
+    rng = np.random.default_rng(2)
+    x = rng.standard_normal((40, 4, 3))
+    for t in range(9):
+        dtype = np.full(len(x), t)
+        d, grad = contact_shape._edge_edge_distance(x, dtype)
+        kind = ipctk.EdgeEdgeDistanceType(t)
+        ref_d = [ipctk.edge_edge_distance(*p, kind) for p in x]
+        ref_g = [ipctk.edge_edge_distance_gradient(*p, kind) for p in x]
+        assert _rel(d, np.array(ref_d)) <= TOL
+        assert _rel(grad.reshape(-1, 12), np.array(ref_g)) <= TOL
+    barrier = ipctk.ClampedLogBarrier()
+    s = np.linspace(1e-6, 2.0, 57)
+    b, db = contact_shape._barrier(barrier, s, 1.0)
+    assert _rel(b, np.array([barrier(v, 1.0) for v in s])) <= TOL
+    assert _rel(db, np.array([barrier.first_derivative(v, 1.0) for v in s])) <= TOL
