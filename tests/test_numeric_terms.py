@@ -9,53 +9,19 @@ central differences along random directions and along the gradient.
 import numpy as np
 import pytest
 import ufl
-from dolfinx import fem
+from demo_modules import load_docs_example
 from gradient_scenes import NEWTON, SCENES, build_model
 from mpi4py import MPI
-from petsc4py import PETSc
 
 import diffsolids as ds
 from diffsolids.controls import InitialCondition, ParameterControl
 from diffsolids.model import NumericTerm
 from diffsolids.objectives import Integral, final_value, time_integral
-from diffsolids.parallel import collective_comm
 from diffsolids.reduced_functional import ReducedFunctional
 from diffsolids.verification import finite_difference_check, taylor_test
 
-
-class GroundSpring(NumericTerm):
-    """k/2 |u|^2 summed over the owned dofs: every node tied to its rest position."""
-
-    name = "ground spring"
-    has_hessian_action = True
-
-    def __init__(self, model: ds.Model, k: float):
-        self.k = k
-        self.comm = model.domain.comm
-        imap = model.V.dofmap.index_map
-        self.owned = imap.size_local * model.V.dofmap.index_map_bs
-        self.start = imap.local_range[0] * model.V.dofmap.index_map_bs
-
-    def _owned(self, u) -> np.ndarray:
-        return (u.x.array if isinstance(u, fem.Function) else np.asarray(u))[: self.owned]
-
-    def energy(self, u) -> float:
-        local = 0.5 * self.k * float(self._owned(u) @ self._owned(u))
-        return collective_comm(self.comm).allreduce(local, op=MPI.SUM)
-
-    def add_residual(self, u, b: PETSc.Vec) -> None:
-        b.array_w[: self.owned] += self.k * self._owned(u)
-
-    def add_jacobian(self, u, A: PETSc.Mat, bc_dofs: np.ndarray, project: bool = False) -> None:
-        free = np.setdiff1d(np.arange(self.owned), bc_dofs)
-        rows = (self.start + free).astype(PETSc.IntType)
-        A.assemblyBegin(PETSc.Mat.AssemblyType.FLUSH)  # DOLFINx inserted the Dirichlet diagonal
-        A.assemblyEnd(PETSc.Mat.AssemblyType.FLUSH)
-        for r in rows:
-            A.setValue(r, r, self.k, addv=PETSc.InsertMode.ADD_VALUES)
-
-    def add_hessian_action(self, u, direction: np.ndarray, y: PETSc.Vec) -> None:
-        y.array_w[: self.owned] += self.k * np.asarray(direction)[: self.owned]
+# the how-to's numeric term (docs/examples/howto_extend.py), checked here in depth
+GroundSpring = load_docs_example("howto_extend").GroundSpring
 
 
 def _spring_simulation(comm, k: float = 2.0e3) -> tuple[ds.Simulation, GroundSpring]:

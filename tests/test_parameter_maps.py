@@ -3,11 +3,13 @@
 Each built-in map is checked entry by entry against central differences and its inverse; the
 controls taking ``map=`` are checked end to end (adjoint gradient vs central differences along a
 random direction per block and along the gradient, Taylor rate 2), in a static and a BDF2 run.
-A map written here, outside the package, proves that a new parametrisation is one class.
+The how-to's map (docs/examples/howto_extend.py), outside the package, proves that a new
+parametrisation is one class.
 """
 
 import numpy as np
 import pytest
+from demo_modules import load_docs_example
 from gradient_scenes import CONTROLS, Case, check_case, scene_model
 
 from diffsolids.controls import (
@@ -17,32 +19,12 @@ from diffsolids.controls import (
     Identity,
     Log,
     ParameterControl,
-    ParameterMap,
     Power,
     Simp,
 )
 
-
-class Sigmoid(ParameterMap):
-    """p = low + (high - low) / (1 + exp(-q)): a bounded value from an unbounded parameter."""
-
-    name = "sigmoid"
-
-    def __init__(self, low: float, high: float):
-        self.low, self.high = low, high
-
-    def forward(self, q):
-        return self.low + (self.high - self.low) / (1.0 + np.exp(-np.asarray(q)))
-
-    def derivative(self, q):
-        s = 1.0 / (1.0 + np.exp(-np.asarray(q)))
-        return (self.high - self.low) * s * (1.0 - s)
-
-    def inverse(self, p):
-        t = (np.asarray(p) - self.low) / (self.high - self.low)
-        if np.any(t <= 0) or np.any(t >= 1):
-            raise ControlError("sigmoid map: values outside (low, high)")
-        return np.log(t / (1.0 - t))
+# the how-to's map (docs/examples/howto_extend.py), checked here in depth
+Sigmoid = load_docs_example("howto_extend").Sigmoid
 
 
 MAPS = {
