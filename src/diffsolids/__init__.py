@@ -63,12 +63,13 @@ from diffsolids.objectives import (
 )
 from diffsolids.optimize import LBFGSOptions, minimize
 from diffsolids.reduced_functional import ReducedFunctional
-from diffsolids.simulation import Simulation, Trajectory
+from diffsolids.simulation import CanonicalValues, Simulation, Trajectory
 from diffsolids.solvers import NewtonSolver, SolverOptions
 from diffsolids.verification import check_reproducible, finite_difference_check, taylor_test
 
 __all__ = [
     "BDF",
+    "CanonicalValues",
     "Checkpointing",
     "ContactTerm",
     "ConvergenceError",
