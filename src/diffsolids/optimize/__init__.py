@@ -23,7 +23,15 @@ from diffsolids.optimize.mesh_motion import (
     RieszMap,
     ShapeInnerProduct,
 )
-from diffsolids.optimize.monitor import IterationRecord, OptimizationOutput, plot_history
+from diffsolids.optimize.monitor import (
+    IterationLog,
+    IterationRecord,
+    OptimizationOutput,
+    control_summary,
+    plot_history,
+    plot_log,
+    read_log,
+)
 from diffsolids.optimize.observers import InvariantMonitor, TrajectoryKeeper
 from diffsolids.optimize.optimizer import LBFGS, OptimizationResult, minimize
 from diffsolids.optimize.options import LBFGSOptions, OptimizationError, OptimizationWarning
@@ -34,6 +42,7 @@ __all__ = [
     "BoundaryIntersection",
     "Checkpoint",
     "InvariantMonitor",
+    "IterationLog",
     "IterationRecord",
     "LBFGSMemory",
     "LBFGSOptions",
@@ -49,11 +58,14 @@ __all__ = [
     "StateChecks",
     "TrajectoryKeeper",
     "check_trajectories",
+    "control_summary",
     "inverted_rest_cells",
     "load_domain",
     "min_volume_ratio",
     "minimize",
     "plot_history",
+    "plot_log",
+    "read_log",
     "remesh_domain",
     "save_domain",
 ]
