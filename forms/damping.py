@@ -8,16 +8,19 @@ u^i whose gradient is the force with Piola stress F (2 psi Edot + phi tr(Edot) I
 
 import ufl
 from diffsolids.forms.kinematics import deformation_gradient, green_strain
+from ufl.core.expr import Expr
 
 __all__ = ["damping_potential", "green_strain_rate"]
 
 
-def green_strain_rate(u, u_prev, dt):
+def green_strain_rate(u: Expr, u_prev: Expr, dt: Expr | float) -> Expr:
     """Edot = (E(F(u)) - E(F(u_prev))) / dt."""
     return (green_strain(deformation_gradient(u)) - green_strain(deformation_gradient(u_prev))) / dt
 
 
-def damping_potential(u, u_prev, dt, psi, phi):
+def damping_potential(
+    u: Expr, u_prev: Expr, dt: Expr | float, psi: Expr | float, phi: Expr | float
+) -> Expr:
     """Incremental damping potential dt * (psi Edot:Edot + phi/2 tr(Edot)^2)."""
     Edot = green_strain_rate(u, u_prev, dt)
     return dt * (psi * ufl.inner(Edot, Edot) + 0.5 * phi * ufl.tr(Edot) ** 2)

@@ -7,10 +7,11 @@ u_tilde = -sum_j alpha_j u^{i-j} - beta dt sum_j alpha_j v^{i-j}; its potential 
 """
 
 import ufl
+from ufl.core.expr import Expr
 
 __all__ = ["inertia_energy"]
 
 
-def inertia_energy(u, u_tilde, density, beta_dt):
+def inertia_energy(u: Expr, u_tilde: Expr, density: Expr | float, beta_dt: Expr | float) -> Expr:
     """Rho / (2 (beta dt)^2) |u - u_tilde|^2."""
     return 0.5 * density / beta_dt**2 * ufl.dot(u - u_tilde, u - u_tilde)

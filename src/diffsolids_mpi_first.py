@@ -15,9 +15,12 @@ costs nothing until one of those packages is imported.
 
 import importlib
 import importlib.abc
+import importlib.machinery
 import importlib.util
 import sys
 import sysconfig
+import types
+from collections.abc import Sequence
 from pathlib import Path
 
 __all__ = ["PTH_NAME", "MPIFirstFinder", "install_finder", "install_pth"]
@@ -32,7 +35,12 @@ PTH_NAME = "diffsolids-mpi-first.pth"
 class MPIFirstFinder(importlib.abc.MetaPathFinder):
     """Imports ``dolfinx_solver`` before the first MPI-linked package, then steps aside."""
 
-    def find_spec(self, fullname, path=None, target=None):  # noqa: D102
+    def find_spec(  # noqa: D102
+        self,
+        fullname: str,
+        path: Sequence[str] | None = None,
+        target: types.ModuleType | None = None,
+    ) -> importlib.machinery.ModuleSpec | None:
         if fullname.partition(".")[0] in MPI_LINKED:
             sys.meta_path[:] = [f for f in sys.meta_path if not isinstance(f, MPIFirstFinder)]
             if "dolfinx_solver" not in sys.modules and importlib.util.find_spec("dolfinx_solver"):

@@ -1,5 +1,9 @@
 """Exception hierarchy: every failure we detect raises one of these with a message that names it."""
 
+from collections.abc import Sequence
+
+import numpy as np
+
 __all__ = [
     "ConvergenceError",
     "DiffsolidsError",
@@ -39,7 +43,7 @@ class InvertedElementError(MeshError):
         cells: Local indices of the offending cells.
     """
 
-    def __init__(self, message: str, cells=()):
+    def __init__(self, message: str, cells: np.ndarray | Sequence[int] = ()) -> None:
         super().__init__(message)
         self.cells = cells
 
@@ -69,9 +73,9 @@ class NewtonConvergenceError(ConvergenceError):
         iterations: int,
         residual: float,
         tolerance: float,
-        reason,
+        reason: int | str,
         details: str = "",
-    ):
+    ) -> None:
         self.step, self.iterations, self.residual, self.reason = step, iterations, residual, reason
         self.details = details
         super().__init__(

@@ -7,20 +7,38 @@ readable report (``print(result)``).
 import contextlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
+import numpy.typing as npt
 
 if TYPE_CHECKING:
     from diffsolids.reduced_functional import ReducedFunctional
 
 __all__ = [
+    "DifferentiableFunctional",
     "FiniteDifferenceResult",
     "TaylorResult",
     "check_reproducible",
     "finite_difference_check",
     "taylor_test",
 ]
+
+
+class DifferentiableFunctional(Protocol):
+    """What the checks need of a functional: ``J(q)`` and ``gradient(q)``.
+
+    A :class:`~diffsolids.reduced_functional.ReducedFunctional` is one; so is any object with
+    these two methods (an analytic test function, a wrapped or penalised functional).
+    """
+
+    def __call__(self, q: np.ndarray) -> float:
+        """The value J(q)."""
+        ...
+
+    def gradient(self, q: np.ndarray) -> np.ndarray:
+        """The gradient dJ/dq at q."""
+        ...
 
 
 @dataclass
@@ -63,7 +81,7 @@ class TaylorResult:
 
 
 @contextlib.contextmanager
-def _parameters_restored(rf: "ReducedFunctional", q: np.ndarray) -> Iterator[None]:
+def _parameters_restored(rf: DifferentiableFunctional, q: np.ndarray) -> Iterator[None]:
     """Put a ReducedFunctional's controls back at q after the perturbed evaluations."""
     from diffsolids.reduced_functional import ReducedFunctional
 
@@ -75,12 +93,17 @@ def _parameters_restored(rf: "ReducedFunctional", q: np.ndarray) -> Iterator[Non
 
 
 def taylor_test(
-    rf: "ReducedFunctional", q, dq, h0: float | None = None, num: int = 4, factor: float = 0.5
+    rf: DifferentiableFunctional,
+    q: npt.ArrayLike,
+    dq: npt.ArrayLike,
+    h0: float | None = None,
+    num: int = 4,
+    factor: float = 0.5,
 ) -> TaylorResult:
     """Taylor remainder test of a ReducedFunctional (or any object with __call__ and gradient).
 
     Args:
-        rf: Callable J(q) with ``gradient(q)``.
+        rf: Callable J(q) with ``gradient(q)`` (a :class:`DifferentiableFunctional`).
         q: Expansion point.
         dq: Direction.
         h0: Largest step (default 1e-2 * (1 + |q|) / |dq|).
@@ -95,7 +118,14 @@ def taylor_test(
         return _taylor(rf, q, dq, h0, num, factor)
 
 
-def _taylor(rf: "ReducedFunctional", q, dq, h0, num, factor) -> TaylorResult:
+def _taylor(
+    rf: DifferentiableFunctional,
+    q: np.ndarray,
+    dq: np.ndarray,
+    h0: float | None,
+    num: int,
+    factor: float,
+) -> TaylorResult:
     J0 = rf(q)
     g = rf.gradient(q)
     dJ = float(g @ dq)
@@ -158,12 +188,16 @@ class FiniteDifferenceResult:
 
 
 def finite_difference_check(
-    rf: "ReducedFunctional", q, dq, steps=None, gradient=None
+    rf: DifferentiableFunctional,
+    q: npt.ArrayLike,
+    dq: npt.ArrayLike,
+    steps: npt.ArrayLike | None = None,
+    gradient: np.ndarray | None = None,
 ) -> FiniteDifferenceResult:
     """Compare dJ.dq from the adjoint with central differences over a sweep of steps.
 
     Args:
-        rf: Callable J(q) with ``gradient(q)``.
+        rf: Callable J(q) with ``gradient(q)`` (a :class:`DifferentiableFunctional`).
         q: Point.
         dq: Direction.
         steps: Step sizes (default: 1e-2 .. 1e-7 relative to (1 + |q|) / |dq|).
@@ -177,7 +211,13 @@ def finite_difference_check(
         return _central_differences(rf, q, dq, steps, gradient)
 
 
-def _central_differences(rf: "ReducedFunctional", q, dq, steps, gradient) -> FiniteDifferenceResult:
+def _central_differences(
+    rf: DifferentiableFunctional,
+    q: np.ndarray,
+    dq: np.ndarray,
+    steps: npt.ArrayLike | None,
+    gradient: np.ndarray | None,
+) -> FiniteDifferenceResult:
     g = rf.gradient(q) if gradient is None else gradient
     dJ = float(g @ dq)
     if steps is None:
@@ -191,7 +231,7 @@ def _central_differences(rf: "ReducedFunctional", q, dq, steps, gradient) -> Fin
     return FiniteDifferenceResult(dJ, steps, fds, errors)
 
 
-def check_reproducible(rf: "ReducedFunctional", q) -> float:
+def check_reproducible(rf: "ReducedFunctional", q: npt.ArrayLike) -> float:
     """Run the forward problem twice at q and require bit-identical J.
 
     Returns:

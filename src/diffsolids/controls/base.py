@@ -5,6 +5,7 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.errors import DiffsolidsError
@@ -102,7 +103,7 @@ def _check_disjoint(controls: Sequence[Control]) -> None:
 class ControlSet:
     """Several controls concatenated into one flat parameter vector."""
 
-    def __init__(self, controls: Sequence[Control], simulation: "Simulation"):
+    def __init__(self, controls: Sequence[Control], simulation: "Simulation") -> None:
         if isinstance(controls, Control):
             controls = [controls]
         if not controls:
@@ -122,7 +123,7 @@ class ControlSet:
         """Current concatenated parameters."""
         return np.concatenate([c.value() for c in self.controls])
 
-    def split(self, q) -> list[np.ndarray]:
+    def split(self, q: npt.ArrayLike) -> list[np.ndarray]:
         """Blocks of q per control (validates the length and finiteness)."""
         q = np.asarray(q, dtype=float)
         if q.ndim != 1 or q.size != self.size:
@@ -135,7 +136,7 @@ class ControlSet:
             raise ControlError("parameter vector has non-finite entries")
         return [q[a:b] for a, b in zip(self.offsets[:-1], self.offsets[1:], strict=True)]
 
-    def assign(self, q) -> None:
+    def assign(self, q: npt.ArrayLike) -> None:
         """Apply the concatenated parameters."""
         for c, block in zip(self.controls, self.split(q), strict=True):
             c.assign(block)

@@ -1,5 +1,6 @@
 """Control of contact parameters: friction coefficients per pair of bodies."""
 
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, override
 
 import numpy as np
@@ -9,6 +10,7 @@ from diffsolids.controls.base import Control, ControlError
 from diffsolids.controls.maps import Identity, ParameterMap, as_map
 
 if TYPE_CHECKING:
+    from diffsolids.contact.term import ContactTerm
     from diffsolids.simulation import Simulation
 
 __all__ = ["FrictionControl"]
@@ -28,7 +30,11 @@ class FrictionControl(Control):
     """
 
     def __init__(
-        self, contact, pairs=None, log: bool = False, map: ParameterMap | None = None
+        self,
+        contact: "ContactTerm",
+        pairs: Sequence[tuple[int | str, int | str]] | None = None,
+        log: bool = False,
+        map: ParameterMap | None = None,
     ) -> None:
         self.contact = contact
         self.map = as_map(map, log)

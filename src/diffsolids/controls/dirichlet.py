@@ -10,6 +10,7 @@ from diffsolids.controls.base import Control, ControlError
 from diffsolids.parallel import collective_comm
 
 if TYPE_CHECKING:
+    from diffsolids.model.boundary_conditions import RealisedDirichlet
     from diffsolids.simulation import Simulation
 
 __all__ = ["DirichletControl"]
@@ -24,7 +25,9 @@ class DirichletControl(Control):
         per_step: One value per step 1..N (else one value for all steps).
     """
 
-    def __init__(self, simulation: "Simulation", condition, per_step: bool = False):
+    def __init__(
+        self, simulation: "Simulation", condition: "RealisedDirichlet", per_step: bool = False
+    ) -> None:
         if condition not in simulation.model.dirichlet:
             raise ControlError("the Dirichlet condition does not belong to the simulation's model")
         self.sim, self.condition, self.per_step = simulation, condition, per_step
@@ -58,11 +61,11 @@ class DirichletControl(Control):
         return self.q.copy()
 
     @override
-    def assign(self, q) -> None:
+    def assign(self, q: np.ndarray) -> None:
         q = np.asarray(q, dtype=float).reshape(self.steps, self.ncomp)
         dim, comps, dt = self.condition.dim, self.condition.components, self.sim.integrator.dt
 
-        def value(t):
+        def value(t: float) -> np.ndarray:
             k = min(max(round(t / dt), 1), self.steps) - 1 if self.per_step else 0
             out = np.zeros(dim)
             out[comps] = q[k]

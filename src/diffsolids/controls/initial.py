@@ -26,7 +26,7 @@ class InitialCondition(Control):
         which: "displacement" or "velocity".
     """
 
-    def __init__(self, simulation: "Simulation", which: str = "velocity"):
+    def __init__(self, simulation: "Simulation", which: str = "velocity") -> None:
         if which not in ("displacement", "velocity"):
             raise ControlError("InitialCondition controls 'displacement' or 'velocity'")
         if which == "velocity" and not simulation.integrator.dynamic:
@@ -58,7 +58,7 @@ class InitialCondition(Control):
         return self.layout.gather(self._array())
 
     @override
-    def assign(self, q) -> None:
+    def assign(self, q: np.ndarray) -> None:
         self.layout.scatter(q, self._f)
         self._array()[:] = self._f.x.array
 
@@ -90,7 +90,7 @@ class RigidVelocity(Control):
     velocity.
     """
 
-    def __init__(self, simulation: "Simulation", body, angular: bool = True):
+    def __init__(self, simulation: "Simulation", body: int | str, angular: bool = True) -> None:
         if not simulation.integrator.dynamic:
             raise ControlError("a rigid initial-velocity control needs a dynamic simulation")
         self.sim = simulation
@@ -134,7 +134,7 @@ class RigidVelocity(Control):
     def value(self) -> np.ndarray:
         return self.q.copy()
 
-    def _velocity(self, q) -> np.ndarray:
+    def _velocity(self, q: np.ndarray) -> np.ndarray:
         v = np.tile(q[: self.dim], (len(self.nodes), 1))
         if self.angular:
             w = q[self.dim :]
@@ -145,7 +145,7 @@ class RigidVelocity(Control):
         return v
 
     @override
-    def assign(self, q) -> None:
+    def assign(self, q: np.ndarray) -> None:
         q = np.asarray(q, dtype=float)
         v0 = self.sim.v0.reshape(-1, self.dim)
         v0[self.nodes] = self._velocity(q)

@@ -52,13 +52,13 @@ class Identity(ParameterMap):
 
     name = "identity"
 
-    def forward(self, q):  # noqa: D102
+    def forward(self, q: np.ndarray) -> np.ndarray:  # noqa: D102
         return np.asarray(q, dtype=float).copy()
 
-    def derivative(self, q):  # noqa: D102
+    def derivative(self, q: np.ndarray) -> np.ndarray:  # noqa: D102
         return np.ones_like(np.asarray(q, dtype=float))
 
-    def inverse(self, p):  # noqa: D102
+    def inverse(self, p: np.ndarray) -> np.ndarray:  # noqa: D102
         return np.asarray(p, dtype=float).copy()
 
 
@@ -67,13 +67,13 @@ class Log(ParameterMap):
 
     name = "log"
 
-    def forward(self, q):  # noqa: D102
+    def forward(self, q: np.ndarray) -> np.ndarray:  # noqa: D102
         return np.exp(np.asarray(q, dtype=float))
 
-    def derivative(self, q):  # noqa: D102
+    def derivative(self, q: np.ndarray) -> np.ndarray:  # noqa: D102
         return np.exp(np.asarray(q, dtype=float))
 
-    def inverse(self, p):  # noqa: D102
+    def inverse(self, p: np.ndarray) -> np.ndarray:  # noqa: D102
         p = np.asarray(p, dtype=float)
         if np.any(p <= 0):
             raise ControlError(f"log parametrisation needs positive values (smallest {p.min()})")
@@ -83,45 +83,45 @@ class Log(ParameterMap):
 class Affine(ParameterMap):
     """p = scale * q + shift (scale != 0): nondimensional parameters of order one."""
 
-    def __init__(self, scale: float = 1.0, shift: float = 0.0):
+    def __init__(self, scale: float = 1.0, shift: float = 0.0) -> None:
         if scale == 0 or not np.isfinite(scale) or not np.isfinite(shift):
             raise ControlError(f"affine map needs a finite nonzero scale (got {scale}, {shift})")
         self.scale, self.shift = float(scale), float(shift)
         self.name = f"affine({self.scale:g}, {self.shift:g})"
 
-    def forward(self, q):  # noqa: D102
+    def forward(self, q: np.ndarray) -> np.ndarray:  # noqa: D102
         return self.scale * np.asarray(q, dtype=float) + self.shift
 
-    def derivative(self, q):  # noqa: D102
+    def derivative(self, q: np.ndarray) -> np.ndarray:  # noqa: D102
         return np.full_like(np.asarray(q, dtype=float), self.scale)
 
-    def inverse(self, p):  # noqa: D102
+    def inverse(self, p: np.ndarray) -> np.ndarray:  # noqa: D102
         return (np.asarray(p, dtype=float) - self.shift) / self.scale
 
 
 class Power(ParameterMap):
     """p = q**k for q >= 0 (k > 0)."""
 
-    def __init__(self, exponent: float):
+    def __init__(self, exponent: float) -> None:
         if not exponent > 0:
             raise ControlError(f"power map needs a positive exponent, got {exponent}")
         self.exponent = float(exponent)
         self.name = f"power({self.exponent:g})"
 
-    def forward(self, q):  # noqa: D102
+    def forward(self, q: np.ndarray) -> np.ndarray:  # noqa: D102
         return np.asarray(q, dtype=float) ** self.exponent
 
-    def derivative(self, q):  # noqa: D102
+    def derivative(self, q: np.ndarray) -> np.ndarray:  # noqa: D102
         q = np.asarray(q, dtype=float)
         return self.exponent * q ** (self.exponent - 1.0)
 
-    def inverse(self, p):  # noqa: D102
+    def inverse(self, p: np.ndarray) -> np.ndarray:  # noqa: D102
         p = np.asarray(p, dtype=float)
         if np.any(p < 0):
             raise ControlError(f"power map needs nonnegative values (smallest {p.min()})")
         return p ** (1.0 / self.exponent)
 
-    def bounds(self):  # noqa: D102
+    def bounds(self) -> tuple[float, float]:  # noqa: D102
         return 0.0, np.inf
 
 
@@ -134,20 +134,20 @@ class Simp(ParameterMap):
         exponent: Penalisation k (3 is the usual choice).
     """
 
-    def __init__(self, low: float, high: float, exponent: float = 3.0):
+    def __init__(self, low: float, high: float, exponent: float = 3.0) -> None:
         if not (np.isfinite(low) and np.isfinite(high) and high > low):
             raise ControlError(f"SIMP map needs low < high, got low={low}, high={high}")
         self.low, self.high = float(low), float(high)
         self._power = Power(exponent)
         self.name = f"simp({self.low:g}, {self.high:g}, {exponent:g})"
 
-    def forward(self, q):  # noqa: D102
+    def forward(self, q: np.ndarray) -> np.ndarray:  # noqa: D102
         return self.low + (self.high - self.low) * self._power.forward(q)
 
-    def derivative(self, q):  # noqa: D102
+    def derivative(self, q: np.ndarray) -> np.ndarray:  # noqa: D102
         return (self.high - self.low) * self._power.derivative(q)
 
-    def inverse(self, p):  # noqa: D102
+    def inverse(self, p: np.ndarray) -> np.ndarray:  # noqa: D102
         p = np.asarray(p, dtype=float)
         if np.any(p < self.low) or np.any(p > self.high):
             raise ControlError(
@@ -156,41 +156,41 @@ class Simp(ParameterMap):
             )
         return self._power.inverse((p - self.low) / (self.high - self.low))
 
-    def bounds(self):  # noqa: D102
+    def bounds(self) -> tuple[float, float]:  # noqa: D102
         return 0.0, 1.0
 
 
 class Compose(ParameterMap):
     """p = maps[-1](...maps[0](q)): the first map acts on q."""
 
-    def __init__(self, *maps: ParameterMap):
+    def __init__(self, *maps: ParameterMap) -> None:
         if not maps or not all(isinstance(m, ParameterMap) for m in maps):
             raise ControlError("Compose takes one or more ParameterMap objects")
         self.maps = maps
         self.name = " -> ".join(m.name for m in maps)
 
-    def _stages(self, q) -> list[np.ndarray]:
+    def _stages(self, q: np.ndarray) -> list[np.ndarray]:
         stages = [np.asarray(q, dtype=float)]
         for m in self.maps:
             stages.append(m.forward(stages[-1]))
         return stages
 
-    def forward(self, q):  # noqa: D102
+    def forward(self, q: np.ndarray) -> np.ndarray:  # noqa: D102
         return self._stages(q)[-1]
 
-    def derivative(self, q):  # noqa: D102
+    def derivative(self, q: np.ndarray) -> np.ndarray:  # noqa: D102
         stages = self._stages(q)
         out = np.ones_like(stages[0])
         for m, x in zip(self.maps, stages[:-1], strict=True):
             out = out * m.derivative(x)
         return out
 
-    def inverse(self, p):  # noqa: D102
+    def inverse(self, p: np.ndarray) -> np.ndarray:  # noqa: D102
         for m in reversed(self.maps):
             p = m.inverse(p)
         return p
 
-    def bounds(self):  # noqa: D102
+    def bounds(self) -> tuple[float, float]:  # noqa: D102
         return self.maps[0].bounds()
 
 

@@ -22,7 +22,7 @@ class CanonicalLayout:
             block follow (a vector of length ``num_nodes * bs``).
     """
 
-    def __init__(self, V: fem.FunctionSpace):
+    def __init__(self, V: fem.FunctionSpace) -> None:
         self.V = V
         mesh = V.mesh
         self.comm = mesh.comm

@@ -1,8 +1,10 @@
 """Controls of model coefficients: material fields, density, damping, load vectors."""
 
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, override
 
 import numpy as np
+import numpy.typing as npt
 from mpi4py import MPI
 
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
@@ -45,12 +47,12 @@ class ParameterControl(Control):
         model: "Model",
         name: str,
         mode: str = "field",
-        bodies=None,
+        bodies: Sequence[int | str] | None = None,
         log: bool = False,
-        lower=-np.inf,
-        upper=np.inf,
+        lower: npt.ArrayLike = -np.inf,
+        upper: npt.ArrayLike = np.inf,
         map: ParameterMap | None = None,
-    ):
+    ) -> None:
         if name not in model.coefficients:
             raise ControlError(
                 f"the model has no coefficient {name!r}; it has {sorted(model.coefficients)}"
@@ -177,7 +179,7 @@ class ParameterControl(Control):
         return self.value()
 
     @override
-    def bounds(self):
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         low, high = self.map.bounds()
         return (
             np.maximum(np.broadcast_to(self._lower, self.size).astype(float), low),

@@ -4,6 +4,7 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, override
 
 import numpy as np
+import numpy.typing as npt
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from mpi4py import MPI
@@ -11,7 +12,7 @@ from mpi4py import MPI
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.controls.base import Control, ControlError
 from diffsolids.errors import InvertedElementError
-from diffsolids.mesh import inverted_cells
+from diffsolids.mesh import Domain, inverted_cells
 from diffsolids.parallel import collective_comm
 
 if TYPE_CHECKING:
@@ -21,7 +22,7 @@ if TYPE_CHECKING:
 __all__ = ["ShapeControl", "boundary_vertices"]
 
 
-def boundary_vertices(domain, exclude_facets: Sequence[int | str] = ()) -> np.ndarray:
+def boundary_vertices(domain: Domain, exclude_facets: Sequence[int | str] = ()) -> np.ndarray:
     """Canonical (input) indices of boundary vertices, excluding vertices of tagged facets."""
     import dolfinx.mesh
 
@@ -56,10 +57,10 @@ class ShapeControl(Control):
     def __init__(
         self,
         model: "Model",
-        vertices: str | np.ndarray | Callable = "all",
+        vertices: str | npt.ArrayLike | Callable[[np.ndarray], np.ndarray] = "all",
         exclude_facets: Sequence[int | str] = (),
-        linear_map=None,
-    ):
+        linear_map: npt.ArrayLike | sp.spmatrix | sp.sparray | spla.LinearOperator | None = None,
+    ) -> None:
         self.model = model
         domain = model.domain
         mesh = domain.mesh
@@ -92,7 +93,12 @@ class ShapeControl(Control):
         self._s_to_node[S.dofmap.list.ravel()] = mesh.geometry.dofmaps[0].ravel()
         self._s_owned = S.dofmap.index_map.size_local
 
-    def _select(self, domain, vertices, exclude) -> np.ndarray:
+    def _select(
+        self,
+        domain: Domain,
+        vertices: str | npt.ArrayLike | Callable[[np.ndarray], np.ndarray],
+        exclude: Sequence[int | str],
+    ) -> np.ndarray:
         if isinstance(vertices, str):
             if vertices == "all":
                 return np.arange(self.num_vertices)

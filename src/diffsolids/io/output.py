@@ -4,8 +4,10 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import dolfinx.mesh
 import numpy as np
 from dolfinx import fem, io
+from mpi4py import MPI
 
 from diffsolids import forms
 from diffsolids.errors import ParameterError
@@ -23,7 +25,7 @@ __all__ = ["TrajectoryWriter", "von_mises_field", "write_trajectory"]
 class _VonMises:
     """Cellwise (DG0) von Mises stress of the current displacement."""
 
-    def __init__(self, model: "Model", u: fem.Function):
+    def __init__(self, model: "Model", u: fem.Function) -> None:
         mesh = model.domain.mesh
         self.field = fem.Function(fem.functionspace(mesh, ("DG", 0)), name="von_mises")
         midpoint = mesh.basix_cell()
@@ -96,7 +98,7 @@ class TrajectoryWriter:
 
     def __init__(
         self, model: "Model", path: str | os.PathLike, extra: list[fem.Function] | None = None
-    ):
+    ) -> None:
         self.path = Path(path)
         if self.path.suffix not in (".bp", ".xdmf"):
             raise ParameterError(f"output path {path} must end in .bp (VTX) or .xdmf (XDMF)")
@@ -123,7 +125,7 @@ class TrajectoryWriter:
         else:
             self._open_xdmf(mesh)
 
-    def _open_vtx(self, comm) -> None:
+    def _open_vtx(self, comm: MPI.Comm) -> None:
         lagrange = _element_key(self.u)[0]
         groups: dict[tuple, list[fem.Function]] = {
             _element_key(self.u): [self.u, self.v],
@@ -148,7 +150,7 @@ class TrajectoryWriter:
             self._vtx.append(io.VTXWriter(comm, path, functions))
             self.files.append(path)
 
-    def _open_xdmf(self, mesh) -> None:
+    def _open_xdmf(self, mesh: dolfinx.mesh.Mesh) -> None:
         self._vtx = []
         self._xdmf = io.XDMFFile(mesh.comm, self.path, "w")
         self.files += [self.path, self.path.with_suffix(".h5")]
@@ -194,7 +196,7 @@ class TrajectoryWriter:
     def __enter__(self) -> "TrajectoryWriter":
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import basix.ufl
 import dolfinx
 import numpy as np
+import numpy.typing as npt
 import ufl
 from dolfinx.io.utils import distribute_entity_data
 from mpi4py import MPI
@@ -100,7 +101,14 @@ def create_domain(
     return domain_from_arrays(arrays, comm)
 
 
-def _checked_arrays(points, cells, cell_tags, facets, facet_tags, names) -> MeshArrays:
+def _checked_arrays(
+    points: npt.ArrayLike,
+    cells: npt.ArrayLike,
+    cell_tags: npt.ArrayLike | None,
+    facets: npt.ArrayLike | None,
+    facet_tags: npt.ArrayLike | None,
+    names: Mapping[str, int] | None,
+) -> MeshArrays:
     points = np.asarray(points, dtype=float)
     cells = np.asarray(cells, dtype=np.int64)
     if points.ndim != 2 or points.shape[1] not in (2, 3):

@@ -1,10 +1,11 @@
 """The `Domain`: a DOLFINx mesh with its body and boundary tags."""
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import dolfinx
 import numpy as np
+import numpy.typing as npt
 from mpi4py import MPI
 
 from diffsolids.errors import TagError
@@ -29,7 +30,7 @@ class Domain:
     facet_tags: dolfinx.mesh.MeshTags
     names: dict[str, int] = field(default_factory=dict)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         tdim = self.mesh.topology.dim
         self.mesh.topology.create_connectivity(tdim - 1, tdim)
         self.mesh.topology.create_connectivity(tdim, tdim - 1)
@@ -142,7 +143,9 @@ def tag_facets(
     return dolfinx.mesh.meshtags(mesh, fdim, facets, values)
 
 
-def _tag_cells(mesh, bodies) -> dolfinx.mesh.MeshTags | None:
+def _tag_cells(
+    mesh: dolfinx.mesh.Mesh, bodies: Mapping[int, Callable[[np.ndarray], np.ndarray]] | None
+) -> dolfinx.mesh.MeshTags | None:
     if not bodies:
         return None
     tdim = mesh.topology.dim
@@ -157,10 +160,10 @@ def _tag_cells(mesh, bodies) -> dolfinx.mesh.MeshTags | None:
 
 def create_rectangle(
     comm: MPI.Comm,
-    corners,
-    n,
-    facets: Mapping[int, Callable] | None = None,
-    bodies: Mapping[int, Callable] | None = None,
+    corners: npt.ArrayLike,
+    n: Sequence[int],
+    facets: Mapping[int, Callable[[np.ndarray], np.ndarray]] | None = None,
+    bodies: Mapping[int, Callable[[np.ndarray], np.ndarray]] | None = None,
     names: Mapping[str, int] | None = None,
     diagonal: str = "right",
 ) -> Domain:
@@ -187,10 +190,10 @@ def create_rectangle(
 
 def create_box(
     comm: MPI.Comm,
-    corners,
-    n,
-    facets: Mapping[int, Callable] | None = None,
-    bodies: Mapping[int, Callable] | None = None,
+    corners: npt.ArrayLike,
+    n: Sequence[int],
+    facets: Mapping[int, Callable[[np.ndarray], np.ndarray]] | None = None,
+    bodies: Mapping[int, Callable[[np.ndarray], np.ndarray]] | None = None,
     names: Mapping[str, int] | None = None,
 ) -> Domain:
     """A tetrahedral box; arguments as in :func:`create_rectangle`."""
@@ -203,7 +206,12 @@ def create_box(
     return _wrap(mesh, facets, bodies, names)
 
 
-def _wrap(mesh, facets, bodies, names) -> Domain:
+def _wrap(
+    mesh: dolfinx.mesh.Mesh,
+    facets: Mapping[int, Callable[[np.ndarray], np.ndarray]] | None,
+    bodies: Mapping[int, Callable[[np.ndarray], np.ndarray]] | None,
+    names: Mapping[str, int] | None,
+) -> Domain:
     tdim = mesh.topology.dim
     mesh.topology.create_connectivity(tdim - 1, tdim)
     facet_tags = tag_facets(mesh, facets) if facets else None

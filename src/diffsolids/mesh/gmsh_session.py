@@ -1,11 +1,13 @@
 """One way into the gmsh API: an empty model with default options, reset again on exit."""
 
+import types
 from collections.abc import Iterator
 from contextlib import contextmanager
 
 __all__ = ["gmsh_session"]
 
 
+# Iterator[types.ModuleType]; the docs resolve no ``types`` names (docs/conf.py nitpick list)
 @contextmanager
 def gmsh_session() -> Iterator:
     """Yield the ``gmsh`` module with no model, default options and a silent terminal.
@@ -29,7 +31,7 @@ def gmsh_session() -> Iterator:
             gmsh.finalize()
 
 
-def _reset(gmsh) -> None:
+def _reset(gmsh: types.ModuleType) -> None:
     gmsh.option.setNumber("General.Terminal", 0)
     gmsh.clear()
     gmsh.parser.clear()

@@ -93,7 +93,7 @@ def inverted_cells(
     return np.flatnonzero(vol <= 0.0)
 
 
-def _raise_if_any(mesh, cells: np.ndarray, what: str) -> None:
+def _raise_if_any(mesh: dolfinx.mesh.Mesh, cells: np.ndarray, what: str) -> None:
     total = collective_comm(mesh.comm).allreduce(cells.size, op=MPI.SUM)
     if total:
         shown = collective_comm(mesh.comm).allgather(cells[:10].tolist())

@@ -1,7 +1,8 @@
 """Meshes from gmsh ``.geo`` sources (meshed at run time), ``.msh`` files and meshio formats."""
 
 import os
-from collections.abc import Mapping, Sequence
+import types
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -16,12 +17,15 @@ from diffsolids.mesh.gmsh_session import gmsh_session
 from diffsolids.parallel import collective_comm
 
 if TYPE_CHECKING:
-    from diffsolids.model import Model
+    import gmsh
+    import meshio
 
 __all__ = ["from_geo", "from_gmsh_model", "read_mesh", "transform_domain"]
 
 
-def from_gmsh_model(model: "Model", comm: MPI.Comm, dim: int, rank: int = 0) -> Domain:
+def from_gmsh_model(
+    model: "type[gmsh.model] | None", comm: MPI.Comm, dim: int, rank: int = 0
+) -> Domain:
     """Convert the current gmsh model (on ``rank``) to a Domain with physical-group tags."""
     data = dolfinx.io.gmsh.model_to_mesh(model, comm, rank, gdim=dim)
     names = {}
@@ -54,13 +58,13 @@ def from_geo(
     if order != 1:
         raise MeshError("only affine (order 1) geometry is supported")
 
-    def mesh_geo(gmsh) -> int:
+    def mesh_geo(gmsh: types.ModuleType) -> int:
         return _mesh_geo(gmsh, path, dim, mesh_size, numbers)
 
     return _on_root(comm, mesh_geo)
 
 
-def _on_root(comm: MPI.Comm, build) -> Domain:
+def _on_root(comm: MPI.Comm, build: Callable[[types.ModuleType], int]) -> Domain:
     """Run ``build(gmsh)`` (returns the dimension) in a gmsh session on rank 0; distribute.
 
     A failure on rank 0 is raised on every rank (the others would wait in the broadcast).
@@ -80,7 +84,13 @@ def _on_root(comm: MPI.Comm, build) -> Domain:
         return from_gmsh_model(gmsh.model, comm, gdim)
 
 
-def _mesh_geo(gmsh, path, dim, mesh_size, numbers) -> int:
+def _mesh_geo(
+    gmsh: types.ModuleType,
+    path: Path,
+    dim: int | None,
+    mesh_size: float | None,
+    numbers: Mapping[str, float] | None,
+) -> int:
     for name, value in (numbers or {}).items():
         gmsh.parser.setNumber(name, [float(value)])
     # gmsh.open would clear the parser variables just set; merge keeps them (DefineConstant then
@@ -139,7 +149,7 @@ def read_mesh(
         domain = from_geo(path, comm, dim)
     elif path.suffix == ".msh" and _on_rank0(comm, lambda: _has_physical_groups(path, dim)):
 
-        def open_msh(gmsh) -> int:
+        def open_msh(gmsh: types.ModuleType) -> int:
             gmsh.open(str(path))
             return dim or gmsh.model.getDimension()
 
@@ -150,7 +160,7 @@ def read_mesh(
     return domain
 
 
-def _on_rank0(comm: MPI.Comm, task, share: bool = True):
+def _on_rank0[T](comm: MPI.Comm, task: Callable[[], T], share: bool = True) -> T | None:
     """``task()`` on rank 0; its MeshError on every rank, its result on every rank if shared."""
     value, problem = None, None
     if comm.rank == 0:
@@ -201,7 +211,7 @@ def transform_domain(
     x[:, :d] = (x[:, :d] * s) @ R.T + t
 
 
-def _rotation_matrix(d: int, rotation) -> np.ndarray:
+def _rotation_matrix(d: int, rotation: float | Sequence[float] | None) -> np.ndarray:
     if rotation is None:
         return np.eye(d)
     angles = np.radians(np.atleast_1d(np.asarray(rotation, dtype=float)))
@@ -223,7 +233,7 @@ def _rotation_matrix(d: int, rotation) -> np.ndarray:
 _KINDS = {"line": 1, "triangle": 2, "tetra": 3}
 
 
-def _read_meshio(src: Path):
+def _read_meshio(src: Path) -> "meshio.Mesh":
     import meshio
 
     try:

@@ -5,6 +5,7 @@ from collections.abc import Callable, Mapping, Sequence
 import basix.ufl
 import dolfinx
 import numpy as np
+import numpy.typing as npt
 import ufl
 from mpi4py import MPI
 
@@ -15,7 +16,7 @@ from diffsolids.mesh.gmsh_session import gmsh_session
 __all__ = ["combine_meshes", "simplex_ball", "simplex_box"]
 
 
-def simplex_box(corners, n) -> dolfinx.mesh.Mesh:
+def simplex_box(corners: npt.ArrayLike, n: Sequence[int]) -> dolfinx.mesh.Mesh:
     """A serial (COMM_SELF) triangulated rectangle or tetrahedral box, for :func:`combine_meshes`.
 
     Args:
@@ -37,7 +38,7 @@ def combine_meshes(
     meshes: Sequence[dolfinx.mesh.Mesh | Domain],
     bodies: Sequence[int] | None = None,
     names: Mapping[str, int] | None = None,
-    facets: Mapping[int, Callable] | None = None,
+    facets: Mapping[int, Callable[[np.ndarray], np.ndarray]] | None = None,
 ) -> Domain:
     """One Domain whose bodies are the given meshes (vertices are not merged).
 
@@ -98,7 +99,7 @@ def combine_meshes(
     return Domain.from_mesh(mesh, cell_tags, facet_tags, names)
 
 
-def simplex_ball(center, radius: float, size: float) -> dolfinx.mesh.Mesh:
+def simplex_ball(center: Sequence[float], radius: float, size: float) -> dolfinx.mesh.Mesh:
     """A serial disk (2D) or ball (3D) meshed by gmsh, for :func:`combine_meshes`.
 
     Args:

@@ -34,7 +34,9 @@ class Selection:
         raise NotImplementedError
 
 
-def _relative(value, bbox, relative: bool) -> np.ndarray:
+def _relative(
+    value: float | Sequence[float], bbox: tuple[np.ndarray, np.ndarray], relative: bool
+) -> np.ndarray:
     value = np.asarray(value, dtype=float)
     return bbox[0] + (bbox[1] - bbox[0]) * value if relative else value
 
@@ -47,7 +49,9 @@ class BoxSelection(Selection):
     hi: Sequence[float]
     relative: bool = False
 
-    def inside(self, points, bbox):  # noqa: D102
+    def inside(  # noqa: D102
+        self, points: np.ndarray, bbox: tuple[np.ndarray, np.ndarray]
+    ) -> np.ndarray:
         lo, hi = _relative(self.lo, bbox, self.relative), _relative(self.hi, bbox, self.relative)
         return np.all((points >= lo) & (points <= hi), axis=1)
 
@@ -71,7 +75,9 @@ class AxisPlaneSelection(Selection):
             raise ParameterError(f"axis {self.axis} must be +-1, +-2 or +-3")
         return int(self.axis)
 
-    def inside(self, points, bbox):  # noqa: D102
+    def inside(  # noqa: D102
+        self, points: np.ndarray, bbox: tuple[np.ndarray, np.ndarray]
+    ) -> np.ndarray:
         axis = self._signed_axis()
         k = abs(axis) - 1
         if k >= points.shape[1]:
@@ -90,7 +96,9 @@ class PlaneSelection(Selection):
     point: Sequence[float]
     relative: bool = False
 
-    def inside(self, points, bbox):  # noqa: D102
+    def inside(  # noqa: D102
+        self, points: np.ndarray, bbox: tuple[np.ndarray, np.ndarray]
+    ) -> np.ndarray:
         n = np.asarray(self.normal, dtype=float)
         return (points - _relative(self.point, bbox, self.relative)) @ (n / np.linalg.norm(n)) >= 0
 
@@ -103,7 +111,9 @@ class SphereSelection(Selection):
     radius: float
     relative: bool = False
 
-    def inside(self, points, bbox):  # noqa: D102
+    def inside(  # noqa: D102
+        self, points: np.ndarray, bbox: tuple[np.ndarray, np.ndarray]
+    ) -> np.ndarray:
         c = _relative(self.center, bbox, self.relative)
         r = self.radius * (np.linalg.norm(bbox[1] - bbox[0]) if self.relative else 1.0)
         return np.sum((points - c) ** 2, axis=1) <= r**2

@@ -1,10 +1,14 @@
 """Box constraints of the parameters: checks, projection, active set and step limits."""
 
 from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from diffsolids.optimize.options import OptimizationError
+
+if TYPE_CHECKING:
+    from diffsolids.controls import ControlSet
 
 __all__ = [
     "active_set",
@@ -16,7 +20,7 @@ __all__ = [
 ]
 
 
-def _blocks(controls) -> list[tuple[str, slice]]:
+def _blocks(controls: "ControlSet") -> list[tuple[str, slice]]:
     offsets = controls.offsets
     return [
         (c.name, slice(int(a), int(b)))
@@ -24,14 +28,16 @@ def _blocks(controls) -> list[tuple[str, slice]]:
     ]
 
 
-def _where(controls, index: int) -> str:
+def _where(controls: "ControlSet", index: int) -> str:
     for name, sl in _blocks(controls):
         if sl.start <= index < sl.stop:
             return f"{name}[{index - sl.start}]"
     return f"q[{index}]"
 
 
-def check_bounds(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, controls) -> None:
+def check_bounds(
+    q: np.ndarray, lower: np.ndarray, upper: np.ndarray, controls: "ControlSet"
+) -> None:
     """Raise OptimizationError if the bounds are malformed or exclude ``q``.
 
     Args:
@@ -68,17 +74,22 @@ def project(q: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
     return np.clip(q, lower, upper)
 
 
-def projected_gradient(q, g, lower, upper) -> np.ndarray:
+def projected_gradient(
+    q: np.ndarray, g: np.ndarray, lower: np.ndarray, upper: np.ndarray
+) -> np.ndarray:
     """``P(q - g) - q``: zero exactly at a first-order (KKT) point of the box problem."""
     return project(q - g, lower, upper) - q
 
 
-def active_set(q, g, lower, upper) -> np.ndarray:
+def active_set(q: np.ndarray, g: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
     """Variables at a bound whose gradient pushes them outwards (they stay fixed)."""
     return ((q <= lower) & (g > 0)) | ((q >= upper) & (g < 0))
 
 
-def block_limits(max_change, controls) -> list[tuple[slice, float]]:
+def block_limits(
+    max_change: float | Sequence[float | None] | Mapping[str | int, float | None] | None,
+    controls: "ControlSet",
+) -> list[tuple[slice, float]]:
     """Per-control-block limits of the max-norm of a step.
 
     Args:

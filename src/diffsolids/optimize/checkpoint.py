@@ -57,7 +57,7 @@ class Checkpoint:
 
     STATE = "state.npz"
 
-    def __init__(self, directory: str | os.PathLike, comm: MPI.Comm):
+    def __init__(self, directory: str | os.PathLike, comm: MPI.Comm) -> None:
         self.directory = Path(directory)
         self.comm = comm
         if comm.rank == 0:

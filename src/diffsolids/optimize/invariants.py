@@ -32,7 +32,7 @@ from diffsolids.parallel import collective_comm
 
 if TYPE_CHECKING:
     from diffsolids.model import Model
-    from diffsolids.simulation import Simulation
+    from diffsolids.simulation import Simulation, Trajectory
 
 __all__ = [
     "BoundaryIntersection",
@@ -62,7 +62,9 @@ class StateChecks:
 
 
 def check_trajectories(
-    simulation: "Simulation", trajectories: Iterable, contact=None
+    simulation: "Simulation",
+    trajectories: Iterable["Trajectory"],
+    contact: ContactTerm | None = None,
 ) -> StateChecks:
     """Check every state of the trajectories for inverted elements and intersections.
 
@@ -136,7 +138,7 @@ class BoundaryIntersection:
             are seen).
     """
 
-    def __init__(self, model: "Model"):
+    def __init__(self, model: "Model") -> None:
         self.model = model
         self.surface = CollisionSurface(model.domain, model.V)
         # kinematic obstacles are seen through their contact terms' own check

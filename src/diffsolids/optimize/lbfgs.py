@@ -28,7 +28,7 @@ class LBFGSMemory:
         size: int,
         inner_product: Callable[[np.ndarray], np.ndarray] | None = None,
         curvature_tol: float = 1e-10,
-    ):
+    ) -> None:
         self.size = size
         self.inner_product = inner_product
         self.curvature_tol = curvature_tol

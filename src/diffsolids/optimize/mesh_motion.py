@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, override
 
 import dolfinx.fem.petsc
 import numpy as np
+import numpy.typing as npt
 import scipy.sparse.linalg as spla
 import ufl
 from dolfinx import fem
@@ -85,12 +86,12 @@ class MeshMotion(spla.LinearOperator):
     def __init__(
         self,
         domain: Domain,
-        vertices: str | np.ndarray | Callable = "boundary",
+        vertices: str | npt.ArrayLike | Callable[[np.ndarray], np.ndarray] = "boundary",
         exclude_facets: Sequence[int | str] = (),
         extension: str = "elasticity",
         stiffening: float = 1.0,
         poisson_ratio: float = 0.3,
-    ):
+    ) -> None:
         if extension not in _EXTENSIONS:
             raise ControlError(f"unknown mesh extension {extension!r}; choose from {_EXTENSIONS}")
         if not -1.0 < poisson_ratio < 0.5:
@@ -145,7 +146,11 @@ class MeshMotion(spla.LinearOperator):
         )
 
     # -- construction helpers ------------------------------------------------------------------
-    def _design_vertices(self, vertices, exclude) -> np.ndarray:
+    def _design_vertices(
+        self,
+        vertices: str | npt.ArrayLike | Callable[[np.ndarray], np.ndarray],
+        exclude: Sequence[int | str],
+    ) -> np.ndarray:
         mesh = self.domain.mesh
         if isinstance(vertices, str):
             if vertices != "boundary":
@@ -175,7 +180,7 @@ class MeshMotion(spla.LinearOperator):
         weight.x.array[Q.dofmap.list[:, 0]] = (mean / vol) ** float(chi)
         return weight
 
-    def _stiffness(self, W, weight, mass: float = 0.0) -> ufl.Form:
+    def _stiffness(self, W: fem.FunctionSpace, weight: fem.Function, mass: float = 0.0) -> ufl.Form:
         u, v = ufl.TrialFunction(W), ufl.TestFunction(W)
         if self.extension == "harmonic":
             a = weight * ufl.inner(ufl.grad(u), ufl.grad(v)) * ufl.dx
@@ -260,7 +265,9 @@ class RieszMap:
         scale: Factor multiplying A^{-1}.
     """
 
-    def __init__(self, motion: MeshMotion, mass_weight: float | None = None, scale: float = 1.0):
+    def __init__(
+        self, motion: MeshMotion, mass_weight: float | None = None, scale: float = 1.0
+    ) -> None:
         self.motion = motion
         domain = motion.domain
         geometry = domain.mesh.geometry.x
@@ -329,12 +336,12 @@ class MeshMotionControl(ShapeControl):
     def __init__(
         self,
         model: "Model",
-        vertices: str | np.ndarray | Callable = "boundary",
+        vertices: str | npt.ArrayLike | Callable[[np.ndarray], np.ndarray] = "boundary",
         exclude_facets: Sequence[int | str] = (),
         extension: str = "elasticity",
         stiffening: float = 1.0,
         poisson_ratio: float = 0.3,
-    ):
+    ) -> None:
         self.motion = MeshMotion(
             model.domain, vertices, exclude_facets, extension, stiffening, poisson_ratio
         )
@@ -368,7 +375,7 @@ class ShapeInnerProduct:
         mass_weight: float | None = None,
         scale: float = 1.0,
         other_scale: float = 1.0,
-    ):
+    ) -> None:
         self.options = {"mass_weight": mass_weight, "scale": scale, "other_scale": other_scale}
         controls = rf.controls
         self.offsets = controls.offsets

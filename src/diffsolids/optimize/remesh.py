@@ -24,6 +24,7 @@ import json
 import logging
 import os
 import time
+import types
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -31,6 +32,7 @@ from typing import TYPE_CHECKING
 
 import dolfinx
 import numpy as np
+import numpy.typing as npt
 import scipy.sparse as sp
 from mpi4py import MPI
 
@@ -63,7 +65,9 @@ _GMSH_CELL = {2: 2, 3: 4}  # gmsh element types: 3-node triangle, 4-node tetrahe
 
 
 # -- canonical mesh arrays -------------------------------------------------------------------
-def _gather_rows(comm: MPI.Comm, keys: np.ndarray, rows: np.ndarray, root: int = 0):
+def _gather_rows(
+    comm: MPI.Comm, keys: np.ndarray, rows: np.ndarray, root: int = 0
+) -> np.ndarray | None:
     """Rows from all ranks on ``root``, ordered by their (global) keys."""
     keys = collective_comm(comm).gather(keys, root=root)
     rows = collective_comm(comm).gather(rows, root=root)
@@ -141,7 +145,7 @@ def save_domain(
     domain.comm.barrier()
 
 
-def load_domain(path: str | os.PathLike, comm: MPI.Comm = MPI.COMM_WORLD):
+def load_domain(path: str | os.PathLike, comm: MPI.Comm = MPI.COMM_WORLD) -> tuple[Domain, dict]:
     """Read a Domain written by :func:`save_domain` (collective).
 
     Returns:
@@ -185,7 +189,7 @@ def _simplex_facets(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return np.concatenate(faces), np.concatenate(owner), np.concatenate(opposite)
 
 
-def _region_boundaries(arrays: MeshArrays):
+def _region_boundaries(arrays: MeshArrays) -> dict[int, np.ndarray]:
     """Per body: its boundary facets oriented outwards (exterior boundary and interfaces)."""
     pts, cells = arrays.points, arrays.cells
     out = {}
@@ -283,7 +287,9 @@ def _components(points: np.ndarray, boundaries: list[np.ndarray]) -> list[list[i
     return list(groups.values())
 
 
-def _boundary_pieces(points: np.ndarray, boundaries: dict[int, np.ndarray]):
+def _boundary_pieces(
+    points: np.ndarray, boundaries: dict[int, np.ndarray]
+) -> tuple[list[np.ndarray], list[tuple[int, list[list[int]]]]]:
     """Boundary pieces (one gmsh entity each) and, per body, its components as piece lists.
 
     2D: every closed boundary loop of a body is a piece (interfaces appear in both bodies'
@@ -369,7 +375,9 @@ def _snapped(points: np.ndarray) -> np.ndarray:
     return np.round(points / quantum) * quantum
 
 
-def _add_boundary_entities(gmsh, pts: np.ndarray, boundaries) -> list[tuple[int, int]]:
+def _add_boundary_entities(
+    gmsh: types.ModuleType, pts: np.ndarray, boundaries: dict[int, np.ndarray]
+) -> list[tuple[int, int]]:
     """Add each body's kept boundary as discrete gmsh entities; return (entity, body) pairs."""
     dim = pts.shape[1]
     xyz = np.zeros((len(pts), 3))
@@ -488,7 +496,12 @@ def _rows_in(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.isin(inverse[len(b) :], inverse[: len(b)])
 
 
-def _check_boundary_kept(old: MeshArrays, boundaries, new: MeshArrays, old_to_new) -> None:
+def _check_boundary_kept(
+    old: MeshArrays,
+    boundaries: dict[int, np.ndarray],
+    new: MeshArrays,
+    old_to_new: np.ndarray,
+) -> None:
     """The new mesh's body boundaries are exactly the old ones, at the same positions."""
     old_faces = np.sort(old_to_new[np.concatenate(list(boundaries.values()))], axis=1)
     new_faces = np.sort(np.concatenate(list(_region_boundaries(new).values())), axis=1)
@@ -547,7 +560,9 @@ class RemeshRecord:
     seconds: float
 
 
-def _shape_controls(rf: "ReducedFunctional", q) -> list[tuple[ShapeControl, np.ndarray]]:
+def _shape_controls(
+    rf: "ReducedFunctional", q: np.ndarray
+) -> list[tuple[ShapeControl, np.ndarray]]:
     blocks = rf.controls.split(q)
     return [
         (c, b)
@@ -586,13 +601,13 @@ class Remesher:
 
     def __init__(
         self,
-        build: Callable[[Domain], object],
+        build: Callable[[Domain], "ReducedFunctional"],
         threshold: float = 1e-3,
         mesh_size: float | None = None,
         transfer_fields: Sequence[str] = (),
         max_remeshes: int | None = None,
         gmsh_options: Mapping[str, float] | None = None,
-    ):
+    ) -> None:
         if not callable(build):
             raise TypeError("Remesher needs a factory build(domain) -> ReducedFunctional")
         if not threshold < 1.0:
@@ -612,7 +627,7 @@ class Remesher:
         """Number of remeshes so far (including those before a restored checkpoint)."""
         return self._restored + len(self.history)
 
-    def rest_coordinates(self, rf: "ReducedFunctional", q) -> np.ndarray:
+    def rest_coordinates(self, rf: "ReducedFunctional", q: npt.ArrayLike) -> np.ndarray:
         """Local vertex coordinates of the rest shape at q (collective)."""
         mesh = rf.model.domain.mesh
         x = mesh.geometry.x.copy()
@@ -621,18 +636,20 @@ class Remesher:
             x[:, : control.dim] = control.X0 + d
         return x
 
-    def quality(self, rf: "ReducedFunctional", q) -> float:
+    def quality(self, rf: "ReducedFunctional", q: npt.ArrayLike) -> float:
         """Minimum scaled Jacobian of the rest mesh at q (collective)."""
         mesh = rf.model.domain.mesh
         return min_scaled_jacobian(mesh, rf.model.reference_signs, self.rest_coordinates(rf, q))
 
-    def needs_remesh(self, rf: "ReducedFunctional", q) -> bool:
+    def needs_remesh(self, rf: "ReducedFunctional", q: npt.ArrayLike) -> bool:
         """True when the rest mesh at q is below the quality threshold (collective)."""
         if self.max_remeshes is not None and self.count >= self.max_remeshes:
             return False
         return self.quality(rf, q) < self._trigger
 
-    def remesh(self, rf: "ReducedFunctional", q):
+    def remesh(
+        self, rf: "ReducedFunctional", q: npt.ArrayLike
+    ) -> tuple["ReducedFunctional", np.ndarray]:
         """Remesh the rest shape at q and rebuild the problem on it (collective).
 
         Returns:
@@ -673,7 +690,9 @@ class Remesher:
             )
         return new_rf, new_q
 
-    def _transfer(self, rf: "ReducedFunctional", q, new_rf) -> np.ndarray:
+    def _transfer(
+        self, rf: "ReducedFunctional", q: npt.ArrayLike, new_rf: "ReducedFunctional"
+    ) -> np.ndarray:
         old, new = rf.controls.controls, new_rf.controls.controls
         if [type(c) for c in old] != [type(c) for c in new]:
             raise MeshError(
@@ -706,7 +725,9 @@ class Remesher:
         path = Path(directory) / self.CHECKPOINT_FILE
         save_domain(rf.model.domain, path, x, remeshes=self.count, trigger=self._trigger)
 
-    def load_checkpoint(self, directory: str | os.PathLike, rf: "ReducedFunctional"):
+    def load_checkpoint(
+        self, directory: str | os.PathLike, rf: "ReducedFunctional"
+    ) -> "ReducedFunctional":
         """Read the mesh written by :meth:`save_checkpoint` and rebuild the problem on it.
 
         Args:
