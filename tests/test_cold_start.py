@@ -101,7 +101,12 @@ def test_compiler_errors_name_the_command_and_do_not_block_a_retry(tmp_path):
         jit.build_form(form, options, lazy=False)
 
 
-def test_background_builds_can_be_switched_off(tmp_path, monkeypatch):
-    monkeypatch.setenv("DIFFSOLIDS_JIT_BACKGROUND", "0")
-    built = jit.build_form(_residual(), _options(tmp_path))
-    assert type(built) is fem.Form
+@pytest.mark.parametrize(("name", "value"), [("DIFFSOLIDS_JIT_BACKGROUND", "0"), ("CC", "gcc")])
+def test_background_builds_off_by_switch_or_compiler_environment(
+    tmp_path, monkeypatch, name, value
+):
+    assert type(jit.build_form(_residual(), _options(tmp_path / "on"))) is jit.LazyForm
+    monkeypatch.setenv(name, value)
+    assert not jit.background_enabled()
+    built = jit.build_form(_residual(), _options(tmp_path / "off"))
+    assert type(built) is fem.Form  # DOLFINx's own build (it applies CC, CFLAGS, ...)

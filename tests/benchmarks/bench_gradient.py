@@ -97,6 +97,7 @@ from diffsolids.objectives import (  # noqa: E402
     time_integral,
 )
 from diffsolids.reduced_functional import ReducedFunctional  # noqa: E402
+from diffsolids.solvers import jit  # noqa: E402
 from diffsolids.verification import finite_difference_check  # noqa: E402
 
 COMM = MPI.COMM_WORLD
@@ -366,6 +367,7 @@ def main() -> dict:
         "setup": {k: round(v, 2) for k, v in setup.items()},
         "first_gradient": first,
         "cold_cache_cost": cold,
+        "jit": {"background": jit.background_enabled(), **jit.compile_stats()},
     }
     return summary
 

@@ -1,7 +1,7 @@
 """Kernel compilation with the C compiler in the background: what a cold cache costs.
 
 DOLFINx compiles a form in three stages, one after the other: UFL and FFCx generate C (Python),
-setuptools sets up a build (Python, about 0.2-0.4 s a form) and runs the C compiler twice
+setuptools sets up a build (Python, about 0.2 s a form) and runs the C compiler twice
 (compile, link) while Python waits. A model's Newton forms, its objective and the adjoint's
 partial derivatives are a few dozen forms, so a first gradient on an empty cache waits for all
 of them in a row.
@@ -14,9 +14,13 @@ first use, waiting then for its compiler. The module has the name, flags and cac
 gives it, so DOLFINx's own ``fem.form`` finds it in the cache (and this module finds DOLFINx's).
 
 Compiler flags are :func:`~diffsolids.solvers.forms.compile_args` for every kernel, however big:
-measured on the damped 3D Neo-Hookean step (the adjoint's shape partial, 293 kB of C, is the
-largest), ``-O1`` saves 0.5 s of its 2.0 s compile and makes it 1.7x slower to assemble, ``-O0``
-saves 1.7 s and makes it 3.6x slower; a gradient assembles it once per time step.
+lower optimisation for the big kernels saves little compile time and costs assembly time. On the
+damped 3D Neo-Hookean step the largest kernel, the adjoint's shape partial (293 kB of C for P1),
+compiles in 2.0 s at ``-O2``; ``-O1`` saves 0.5 s and assembles 1.7x slower, ``-O0`` saves 1.7 s
+and assembles 3.6x slower (a gradient assembles it once per time step). For P2 the largest
+kernels (318 and 216 kB) compile in 2.4 and 1.5 s at ``-O2`` (without ``-march=native``);
+``-O1`` saves 0.8 and 0.4 s, ``-O0`` assembles them 2.5x and 5x slower. Generating their C
+takes longer than compiling it.
 
 Under MPI rank 0 builds (in the foreground) and the other ranks then load the module, as in
 DOLFINx. ``DIFFSOLIDS_JIT_BACKGROUND=0`` switches the background builds off (every form through
@@ -59,9 +63,20 @@ _STATS = {"kernels_built": 0, "codegen_seconds": 0.0, "compiler_seconds": 0.0}
 _BUILDS: dict[Path, Future] = {}
 
 
+# compiler settings from the environment that setuptools applies and this module does not
+_SETUPTOOLS_ENV = ("CC", "CFLAGS", "CPPFLAGS", "LDFLAGS", "LDSHARED")
+
+
 def background_enabled() -> bool:
-    """Whether :func:`build_form` compiles in the background (see the module docstring)."""
+    """Whether :func:`build_form` compiles in the background (see the module docstring).
+
+    Not when ``DIFFSOLIDS_JIT_BACKGROUND=0``, on Windows, without a compiler in ``sysconfig``,
+    or when the environment sets the compiler or its flags (``CC``, ``CFLAGS``, ``CPPFLAGS``,
+    ``LDFLAGS``, ``LDSHARED``: DOLFINx's own build, through setuptools, then applies them).
+    """
     if os.environ.get("DIFFSOLIDS_JIT_BACKGROUND", "1") == "0":
+        return False
+    if any(name in os.environ for name in _SETUPTOOLS_ENV):
         return False
     return not sys.platform.startswith("win32") and bool(sysconfig.get_config_var("LDSHARED"))
 
@@ -251,6 +266,9 @@ def build_form(form: ufl.Form, jit_options: dict, lazy: bool = True) -> fem.Form
     """
     if not background_enabled() or not isinstance(form, ufl.Form) or form.empty():
         return fem.form(form, jit_options=jit_options)
+    p_jit = dolfinx_jit.get_options(jit_options)
+    if p_jit.get("cffi_debug") or p_jit.get("cffi_libraries") or p_jit.get("cffi_verbose"):
+        return fem.form(form, jit_options=jit_options)  # options only DOLFINx's build applies
     comm = form.ufl_domain().ufl_cargo().comm
     if comm.size == 1:
         build = _start(form, jit_options)
