@@ -180,7 +180,9 @@ class MeshMotion(spla.LinearOperator):
         weight.x.array[Q.dofmap.list[:, 0]] = (mean / vol) ** float(chi)
         return weight
 
-    def _stiffness(self, W: fem.FunctionSpace, weight: fem.Function, mass: float = 0.0) -> ufl.Form:
+    def _stiffness(
+        self, W: fem.FunctionSpace, weight: fem.Function | fem.Constant, mass: float = 0.0
+    ) -> ufl.Form:
         u, v = ufl.TrialFunction(W), ufl.TestFunction(W)
         if self.extension == "harmonic":
             a = weight * ufl.inner(ufl.grad(u), ufl.grad(v)) * ufl.dx

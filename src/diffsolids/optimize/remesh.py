@@ -289,7 +289,7 @@ def _components(points: np.ndarray, boundaries: list[np.ndarray]) -> list[list[i
 
 def _boundary_pieces(
     points: np.ndarray, boundaries: dict[int, np.ndarray]
-) -> tuple[list[np.ndarray], list[tuple[int, list[list[int]]]]]:
+) -> tuple[list[np.ndarray], list[tuple[int, list[list[list[int]]]]]]:
     """Boundary pieces (one gmsh entity each) and, per body, its components as piece lists.
 
     2D: every closed boundary loop of a body is a piece (interfaces appear in both bodies'
@@ -297,11 +297,12 @@ def _boundary_pieces(
     interface is one surface shared by the volumes on both sides (the 3D mesher needs that).
 
     Returns:
-        (pieces, bodies): element arrays (2D: vertex loops; 3D: triangles) and a list of
-        (body, [[piece indices of the outer shell], [of a hole], ...]) per component.
+        (pieces, bodies): element arrays (2D: vertex loops; 3D: triangles) and, per body,
+        (body, components), each component a list of shells: [[piece indices of the outer
+        shell], [of a hole], ...].
     """
     pieces: list[np.ndarray] = []
-    bodies: list[tuple[int, list[list[int]]]] = []
+    bodies: list[tuple[int, list[list[list[int]]]]] = []
     if points.shape[1] == 2:
         for body, faces in boundaries.items():
             loops = _loops(faces)
