@@ -40,11 +40,9 @@ intermediate solves (as ``Simulation._dirichlet_continuation`` does for Dirichle
 """
 
 import contextlib
-import functools
 import itertools
 import logging
 import os
-import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -55,12 +53,25 @@ from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from diffsolids.contact.friction_shape import friction_weight_adjoint
+from diffsolids.contact.checks import body_label, close_pairs, intersecting_pairs, pair_label
+from diffsolids.contact.diagnostics import body_forces, failure_report
+from diffsolids.contact.friction_adjoint import (
+    friction_coefficient_adjoint,
+    friction_weight_adjoint,
+)
+from diffsolids.contact.friction_table import body_pairs, checked_coefficients, coefficients_of
 from diffsolids.contact.obstacle import Obstacle
 from diffsolids.contact.reach import reach_blocks
 from diffsolids.contact.shape import barrier_shape_derivative
+from diffsolids.contact.step_bound import (  # noqa: F401  (test_soft_barrier imports them here)
+    _CCD_REACH,
+    _GAP_FLOOR_ULPS,
+    StepBound,
+    _edge_vertex_bounds,
+)
 from diffsolids.contact.stiffness import suggest_barrier_stiffness
 from diffsolids.contact.surface import CollisionSurface, _contains, block_pattern
+from diffsolids.contact.timing import timed, timed_kernel, timing_summary
 from diffsolids.errors import IntersectionError, ParameterError
 from diffsolids.model.numeric import NumericTerm
 from diffsolids.parallel import collective_comm
@@ -70,34 +81,10 @@ __all__ = ["ContactRecord", "ContactTerm"]
 
 logger = logging.getLogger("diffsolids")
 
-# the CCD checks the step extended by this factor, so that a free full step reports > 1
-_CCD_REACH = 2.0
-# 2D: vertex-edge pairs whose gap d is below sqrt(_DRIFT_ULPS |motion| ulp) or _NEAR_RATIO
-# |motion| (AdditiveCCD would take ~|motion| / d steps, whose round-off adds up to the gap), or
-# below the gap floor over (1 - conservative rescaling), get the exact bound of
-# _edge_vertex_bounds instead of ipctk's narrow phase; no pair may come closer than
-# _GAP_FLOOR_ULPS ulps of its coordinates
-_DRIFT_ULPS = 1e3
-_NEAR_RATIO = 1e-6
-_GAP_FLOOR_ULPS = 1e2
 # the matrix pattern of a step covers the pairs within this many dhat at u^{i-1} (plus motion)
 _PATTERN_REACH = 2.0
 # ... when no vertex moves farther than this times the step's estimate (ContactTerm._step_motion)
 _MOTION_FACTOR = 1.0
-
-
-def _timed_kernel(name: str):
-    """Record the wall and CPU time of a method under ``name`` in ``self.timings``."""
-
-    def decorate(method):
-        @functools.wraps(method)
-        def timed(self, *args, **kwargs):
-            with self._timed(name):
-                return method(self, *args, **kwargs)
-
-        return timed
-
-    return decorate
 
 
 @dataclass
@@ -224,23 +211,20 @@ class ContactTerm(NumericTerm):
         self.friction_potential = ipctk.FrictionPotential(self.eps_v)
         self.broad_phase = ipctk.LBVH()
         if narrow_phase == "additive":
-            self.ccd = ipctk.AdditiveCCD()
+            ccd = ipctk.AdditiveCCD()
         elif narrow_phase == "tight_inclusion":
-            self.ccd = ipctk.TightInclusionCCD(1e-6, 1000)
+            ccd = ipctk.TightInclusionCCD(1e-6, 1000)
         else:
             raise ParameterError(
                 f"narrow_phase {narrow_phase!r}: expected 'additive' or 'tight_inclusion'"
             )
-        ids = self.body_ids
-        self.friction_pairs: list[tuple[int, int]] = [
-            (a, b) for k, a in enumerate(ids) for b in ids[k:]
-        ]
-        self._pair_index = np.zeros((len(ids), len(ids)), dtype=np.int64)
-        for p, (a, b) in enumerate(self.friction_pairs):
-            ia, ib = ids.index(a), ids.index(b)
-            self._pair_index[ia, ib] = self._pair_index[ib, ia] = p
+        self.step_bound = StepBound(self.surface, ccd, self.broad_phase, self.dhat, self.comm)
+        self.friction_pairs: list[tuple[int, int]]
+        self.friction_pairs, self._pair_index = body_pairs(self.body_ids)
         self._mu = np.zeros(len(self.friction_pairs))
-        self._set_friction(friction)
+        self.friction_coefficients = coefficients_of(
+            friction, len(self.friction_pairs), self.pair_index
+        )
         self.records: list[ContactRecord] = []
         # forward steps whose obstacle move was made with the body's initial guess
         self.moved_with_guess: list[int] = []
@@ -255,6 +239,11 @@ class ContactTerm(NumericTerm):
         self._segment = None
         self._tangential = None
         self._pattern_memo = None
+
+    @property
+    def ccd(self) -> ipctk.NarrowPhaseCCD:
+        """The narrow-phase CCD of the collision-free step bound."""
+        return self.step_bound.ccd
 
     # -- parameters ---------------------------------------------------------------------------
     def _check_obstacles(self, obstacles) -> tuple[Obstacle, ...]:
@@ -279,16 +268,6 @@ class ContactTerm(NumericTerm):
             return int(body)
         return self.model.domain.body_id(body)
 
-    def _set_friction(self, friction) -> None:
-        if isinstance(friction, Mapping):
-            mu = np.zeros(len(self.friction_pairs))
-            for (a, b), value in friction.items():
-                ia, ib = self._body_id(a), self._body_id(b)
-                mu[self.pair_index(ia, ib)] = value
-            self.friction_coefficients = mu
-        else:
-            self.friction_coefficients = np.full(len(self.friction_pairs), float(friction))
-
     def pair_index(self, body_a: int | str, body_b: int | str) -> int:
         """Index of the pair of bodies in :attr:`friction_pairs`."""
         ids = self.body_ids
@@ -303,13 +282,7 @@ class ContactTerm(NumericTerm):
 
     @friction_coefficients.setter
     def friction_coefficients(self, values) -> None:
-        mu = np.asarray(values, dtype=float).reshape(-1)
-        if mu.shape != (len(self.friction_pairs),):
-            raise ParameterError(
-                f"{len(mu)} friction coefficients given for {len(self.friction_pairs)} pairs"
-            )
-        if not np.all(np.isfinite(mu)) or np.any(mu < 0):
-            raise ParameterError(f"friction coefficients {mu} must be finite and >= 0")
+        mu = checked_coefficients(values, len(self.friction_pairs))
         if not np.array_equal(mu, self._mu):
             self._mu = mu
             self._tangential = None  # rebuilt lazily for the current step
@@ -564,23 +537,12 @@ class ContactTerm(NumericTerm):
         return U / self._step["beta_dt"] + self._step["v_offset"]
 
     # -- evaluation cache --------------------------------------------------------------------
-    @contextlib.contextmanager
-    def _timed(self, name: str):
-        t0, c0 = time.perf_counter(), time.process_time()
-        try:
-            yield
-        finally:
-            entry = self.timings.setdefault(name, [0.0, 0, 0.0])
-            entry[0] += time.perf_counter() - t0
-            entry[1] += 1
-            entry[2] += time.process_time() - c0
+    def _timed(self, name: str) -> contextlib.AbstractContextManager:
+        return timed(self.timings, name)
 
     def timing_summary(self) -> dict[str, dict[str, float]]:
         """Wall seconds, calls, mean wall ms and process CPU seconds per contact operation."""
-        return {
-            k: {"seconds": t, "calls": n, "mean_ms": 1e3 * t / max(n, 1), "cpu_seconds": c}
-            for k, (t, n, c) in self.timings.items()
-        }
+        return timing_summary(self.timings)
 
     def _evaluate(self, u) -> _Evaluation:
         values = u.x.array if isinstance(u, fem.Function) else u
@@ -829,109 +791,21 @@ class ContactTerm(NumericTerm):
         self, U0: np.ndarray, x0: np.ndarray, x1: np.ndarray, with_candidates: bool = False
     ):
         """Collision-free fraction of the straight path x0 -> x1 (the same on all ranks)."""
-        self._floor_held = None
-        candidates = ipctk.Candidates()
-        candidates.build(self.surface.mesh, x0, x1, self.dhat, self.broad_phase)
-        near, far = np.inf, candidates
-        if self.dim == 2 and not len(candidates.vv_candidates):
-            near, far = self._near_pairs_2d(candidates, U0, x0, x1)
-        toi = far.compute_collision_free_stepsize(self.surface.mesh, x0, x1, 0.0, self.ccd)
-        toi = collective_comm(self.comm).allreduce(min(float(toi), near), op=MPI.MIN)
-        return (toi, candidates) if with_candidates else toi
 
-    def _near_pairs_2d(
-        self, candidates: ipctk.Candidates, U0: np.ndarray, x0: np.ndarray, x1: np.ndarray
-    ) -> tuple[float, ipctk.Candidates]:
-        """The collision-free fraction of x0 -> x1 for the near pairs, and the other candidates.
-
-        A vertex resting a tiny gap d above an edge while it slides along it (soft barriers:
-        ~1e-11 m apart, sliding ~1e-2 m per step) is beyond ipctk's narrow phases. AdditiveCCD
-        advances by ~0.9 d / |motion| per iteration: at its 1e7-iteration cap (~1 s) it returns
-        the fraction reached, orders of magnitude below the time of impact, and the Newton solve
-        stalls with every step cut to it; before the cap the round-off of its ~|motion| / d
-        position updates can exceed the gap, and it reports no impact where there is one
-        (measured: 7e-12 m above an edge, sliding 4e-6 m, crossing at 0.49 of the step: no
-        impact). Tight Inclusion refines its interval just as slowly. Such pairs (see
-        ``_DRIFT_ULPS``, ``_NEAR_RATIO``) get the exact bound of :func:`_edge_vertex_bounds`
-        instead: in 2D a vertex meets an edge only on the edge's line. The others keep ipctk's
-        narrow phase (without near pairs, exactly as before). No near pair gets closer than
-        ``_GAP_FLOOR_ULPS`` ulps of its coordinates, where round-off would decide which side of
-        an edge a vertex is on.
-        """
-        eta = 1.0 - float(self.ccd.conservative_rescaling)
-        # no pair is near if the closest pair at x0 is farther than a near pair can be (the
-        # collision set at x0 is usually cached): skips the per-candidate work in most queries
-        eps = np.finfo(float).eps
-        motion = 4.0 * float(np.linalg.norm(x1 - x0, axis=1).max())
-        coord = max(float(np.abs(x0).max()), float(np.abs(x1).max()))
-        reach = max(
-            np.sqrt(_DRIFT_ULPS * eps * coord * motion),
-            _NEAR_RATIO * motion,
-            _GAP_FLOOR_ULPS * eps * coord / eta,
-        )
-        if reach < self.dhat:
-            mesh, ev = self.surface.mesh, self._eval
+        def cached() -> ipctk.NormalCollisions | None:
+            ev = self._eval
             if ev is not None and ev.token == self._token and np.array_equal(ev.U, U0):
-                C = ev.collisions
-            else:
-                C = ipctk.NormalCollisions()
-                C.build(candidates, mesh, x0, self.dhat, 0.0)
-            if not len(C) or np.sqrt(C.compute_minimum_distance(mesh, x0)) > reach:
-                return np.inf, candidates
-        ev = candidates.ev_candidates
-        if not len(ev):
-            return np.inf, candidates
-        pairs = np.array([(c.edge_id, c.vertex_id) for c in ev], dtype=np.int64)
-        bound, near, floored, floor = _edge_vertex_bounds(
-            x0, x1, self.surface.mesh.edges, pairs, eta
-        )
-        if not near.any():
-            return np.inf, candidates
-        held = floored & (bound < 1.0)
-        if held.any():  # for failure_report: the floor, not the barrier, holds pairs
-            self._floor_held = float(floor[held].min())
-        far = ipctk.Candidates()
-        far.ev_candidates = [ev[int(k)] for k in np.flatnonzero(~near)]
-        return float(bound[near].min()), far
+                return ev.collisions
+            return None
+
+        return self.step_bound.fraction(x0, x1, cached, with_candidates)
 
     # -- configuration checks ----------------------------------------------------------------
     def _body_label(self, body: int) -> str:
-        if body in self.surface.obstacle_ids:
-            return self.obstacles[self.surface.obstacle_ids.index(body)].label
-        names = [k for k, v in self.model.domain.names.items() if v == body]
-        return f"body {body}" + (f" ({names[0]!r})" if names else "")
+        return body_label(self.surface, self.obstacles, self.model.domain.names, body)
 
     def _pair_label(self, a: int, b: int) -> str:
-        if a == b:
-            return f"{self._body_label(a)} with itself"
-        return f"{self._body_label(a)} and {self._body_label(b)}"
-
-    def _pair_meshes(self, x: np.ndarray):
-        """Per pair of bodies: (a, b, sub collision mesh, its positions)."""
-        surf = self.surface
-        prims = surf.edges if self.dim == 2 else surf.faces
-        static = surf.static if surf.static is not None else np.zeros(surf.num_vertices, bool)
-        for a, b in self.friction_pairs:
-            sel = np.isin(surf.primitive_body, (a, b))
-            verts = np.unique(prims[sel])
-            local = np.searchsorted(verts, prims[sel]).astype(np.int32)
-            if self.dim == 2:
-                sub = ipctk.CollisionMesh(np.asfortranarray(surf.rest_positions[verts]), local)
-            else:
-                sub = ipctk.CollisionMesh(
-                    np.asfortranarray(surf.rest_positions[verts]),
-                    np.asfortranarray(_edges_of(local)),
-                    np.asfortranarray(local),
-                )
-            ids = np.arange(len(verts), dtype=np.int32)
-            ids[static[verts]] = -1
-            filt = ipctk.make_vertex_patches_filter(ids)
-            if a != b:
-                filt = filt & ipctk.make_vertex_patches_filter(
-                    (surf.body[verts] == a).astype(np.int32)
-                )
-            sub.can_collide = filt
-            yield a, b, sub, np.asfortranarray(x[verts])
+        return pair_label(self._body_label, a, b)
 
     def check_configuration(self, U: np.ndarray, step: int = 0) -> float:
         """Refuse intersecting or touching configurations; returns the minimum distance.
@@ -955,8 +829,7 @@ class ContactTerm(NumericTerm):
         if ipctk.has_intersections(mesh, np.asfortranarray(x), self.broad_phase):
             pairs = [
                 self._pair_label(a, b)
-                for a, b, sub, xs in self._pair_meshes(x)
-                if ipctk.has_intersections(sub, xs, ipctk.LBVH())
+                for a, b in intersecting_pairs(self.surface, self.friction_pairs, x)
             ]
             raise IntersectionError(
                 f"the configuration at step {step} intersects: {'; '.join(pairs) or 'unknown'}"
@@ -966,14 +839,11 @@ class ContactTerm(NumericTerm):
         d2 = C.compute_minimum_distance(mesh, np.asfortranarray(x)) if len(C) else np.inf
         dist = float(np.sqrt(d2))
         if dist <= self.min_gap * self.dhat:
-            pairs = []
-            for a, b, sub, xs in self._pair_meshes(x):
-                Cs = ipctk.NormalCollisions()
-                Cs.build(sub, xs, self.dhat, 0.0, ipctk.LBVH())
-                if len(Cs) and np.sqrt(Cs.compute_minimum_distance(sub, xs)) <= self.min_gap * (
-                    self.dhat
-                ):
-                    pairs.append(self._pair_label(a, b))
+            gap = self.min_gap * self.dhat
+            pairs = [
+                self._pair_label(a, b)
+                for a, b in close_pairs(self.surface, self.friction_pairs, x, self.dhat, gap)
+            ]
             raise IntersectionError(
                 f"at step {step} {'; '.join(pairs) or 'some bodies'} are {dist:.3e} apart, closer"
                 f" than {self.min_gap:g} dhat = {self.min_gap * self.dhat:.3e}: the barrier"
@@ -1002,12 +872,7 @@ class ContactTerm(NumericTerm):
         ev = self._evaluate(traj.u[i])
         g = self._gradient(ev)
         gb = ev.extras["barrier_gradient"]
-        nb, d = len(self.body_ids), self.dim
-        normal = np.zeros((nb, d))
-        friction = np.zeros((nb, d))
-        idx = self.surface.body_index
-        np.add.at(normal, idx, -gb.reshape(-1, d))
-        np.add.at(friction, idx, -(g - gb).reshape(-1, d))
+        normal, friction = body_forces(self.surface.body_index, len(self.body_ids), g, gb)
         mesh = self.surface.mesh
         C = ev.collisions
         d2 = C.compute_minimum_distance(mesh, np.asfortranarray(ev.x)) if len(C) else np.inf
@@ -1059,7 +924,7 @@ class ContactTerm(NumericTerm):
             ev.extras["friction_lagged_jacobian"] = J
         return J
 
-    @_timed_kernel("adjoint_history")
+    @timed_kernel("adjoint_history")
     def adjoint_history(self, u, lam) -> dict[int, np.ndarray]:
         """(d g / d u^{i-j})^T lam for j = 1..m_i (owned entries of local V arrays).
 
@@ -1086,7 +951,7 @@ class ContactTerm(NumericTerm):
             out[j] = self._local(g)
         return out
 
-    @_timed_kernel("adjoint_shape")
+    @timed_kernel("adjoint_shape")
     def adjoint_shape(self, u, lam) -> np.ndarray:
         """(d g / d X)^T lam over the dofs of the P1 rest-coordinate space (owned entries).
 
@@ -1119,7 +984,7 @@ class ContactTerm(NumericTerm):
         products to one growing sparse matrix, a cost quadratic in the number of collisions
         (1 s per step for 2k collisions); applied to lam they are scalars times weight
         gradients, batched over all collisions by
-        :func:`~diffsolids.contact.friction_shape.friction_weight_adjoint`.
+        :func:`~diffsolids.contact.friction_adjoint.friction_weight_adjoint`.
         """
         out = self._lagged_jacobian(ev).T @ lam_c
         if not self.area_weighting:
@@ -1148,123 +1013,33 @@ class ContactTerm(NumericTerm):
     def failure_report(self) -> str | None:
         """The contact state at the last evaluated iterate (for NewtonConvergenceError)."""
         ev = self._eval
-        head = f"contact: kappa = {self.stiffness:.3g}, dhat = {self.dhat:.3g}"
         if ev is None or len(ev.collisions) == 0:
-            return f"{head}, no pair within dhat at the last iterate"
+            return failure_report(self.stiffness, self.dhat)
         d = float(np.sqrt(ev.collisions.compute_minimum_distance(self.surface.mesh, ev.x)))
         force = float(np.linalg.norm(self._gradient(ev).reshape(-1, self.dim), axis=1).max())
-        # kappa b(d^2, dhat^2) with b = -(s - t)^2 ln(s / t) pushes with ~2 kappa dhat^4 / d at
-        # d << dhat: a pair carrying force f settles at d ~ 2 kappa dhat^4 / f
-        gap = 2.0 * self.stiffness * self.dhat**4 / max(force, 1e-300)
-        hint = (
-            "; the barrier is too soft for this load (pairs settle far inside dhat, where the "
-            "collision check cuts every Newton step): raise kappa, e.g. to "
-            "suggest_barrier_stiffness(...)"
-            if gap < 1e-3 * self.dhat
-            else ""
-        )
-        floor = getattr(self, "_floor_held", None)
-        if floor is not None and d < 10.0 * floor:
-            hint += (
-                f"; the collision check holds pairs at ~{floor:.1e} (about {_GAP_FLOOR_ULPS:g} "
-                "ulps of the coordinates; closer, round-off decides the side of an edge): a "
-                "barrier that must come closer to carry the load cannot in double precision, so "
-                "raise kappa until 2 kappa dhat^4 / f exceeds that gap (or place the contact "
-                "nearer the origin, where coordinates have smaller ulps)"
-            )
-        return (
-            f"{head}, {len(ev.collisions)} active pairs, smallest distance {d:.3e} "
-            f"({d / self.dhat:.2e} dhat), largest contact force {force:.3e}; a pair carrying "
-            f"it settles at a distance ~2 kappa dhat^4 / f = {gap:.2e}{hint}"
+        return failure_report(
+            self.stiffness, self.dhat, len(ev.collisions), d, force, self.step_bound.floor_held
         )
 
-    @_timed_kernel("adjoint_friction")
+    @timed_kernel("adjoint_friction")
     def adjoint_friction(self, u, lam) -> np.ndarray:
         """(d g / d mu_p)^T lam for each pair p of :attr:`friction_pairs` (global, all ranks)."""
         ev = self._evaluate(u)
         lam_c = self._lambda(lam)
-        V = np.asfortranarray(self._velocity(ev.U))
-        out = np.zeros(len(self.friction_pairs))
-        for p in range(len(self.friction_pairs)):
-            unit = np.zeros(len(self.friction_pairs))
-            unit[p] = 1.0
-            T = self._tangential_collisions(self._mu_table(unit))
-            if len(T):
-                out[p] = self.friction_potential.gradient(T, self.surface.mesh, V) @ lam_c
-        return collective_comm(self.comm).bcast(out, root=0)
-
-
-def _edge_vertex_bounds(
-    x0: np.ndarray, x1: np.ndarray, edges: np.ndarray, pairs: np.ndarray, eta: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per (edge, vertex) pair in 2D: a lower bound of the fraction of x0 -> x1 it stays apart.
-
-    With p, a, b (vertex, edge ends) moving linearly in t in [0, 1], the vertex is on the
-    edge's line where N(t) = (p - a) x (b - a) = c0 + c1 t + c2 t^2 vanishes; distance d(t) to
-    the line is |N(t)| / |b - a|. Two lower bounds of the first t at which the distance falls to
-    the margin m = max(eta d0, floor) (eta d0: ipctk's own margin, AdditiveCCD and Tight
-    Inclusion keep (1 - conservative_rescaling) of the gap d0): the first root of
-    |N(t)| = m |b - a|_max + err, err bounding the round-off of N including a few ulps of every
-    coordinate, and (d0 - m) / (largest relative displacement), AdditiveCCD's first step. The
-    larger one is returned (inf: not within the step). The floor is ``_GAP_FLOOR_ULPS`` ulps
-    of the pair's largest coordinate.
-
-    Returns:
-        (bound, near, floored, floor): the bound, the pairs for which it replaces ipctk's
-        (``_DRIFT_ULPS``, ``_NEAR_RATIO``, or floored), the pairs whose margin is the floor
-        (eta d0 < floor) and the floor.
-    """
-    eps = np.finfo(float).eps
-    e, v = pairs[:, 0], pairs[:, 1]
-    a, b = edges[e, 0], edges[e, 1]
-    p0, a0, b0 = x0[v], x0[a], x0[b]
-    dp, da, db = x1[v] - p0, x1[a] - a0, x1[b] - b0
-    r0, dr, s0, ds = p0 - a0, dp - da, b0 - a0, db - da
-
-    def cross(u, w):
-        return u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0]
-
-    c0, c1, c2 = cross(r0, s0), cross(r0, ds) + cross(dr, s0), cross(dr, ds)
-    nr, ns = np.hypot(*r0.T) + np.hypot(*dr.T), np.hypot(*s0.T) + np.hypot(*ds.T)
-    ends = np.concatenate([p0, a0, b0, x1[v], x1[a], x1[b]], axis=1)
-    coord = np.abs(ends).max(axis=1)
-    err = 8.0 * eps * nr * ns + 8.0 * eps * coord * (nr + ns)
-    floor = _GAP_FLOOR_ULPS * eps * coord
-    # distance to the segment, and AdditiveCCD's displacement bound (mean motion removed)
-    ss = np.maximum(np.einsum("ij,ij->i", s0, s0), np.finfo(float).tiny)
-    alpha = np.clip(np.einsum("ij,ij->i", r0, s0) / ss, 0.0, 1.0)
-    d0 = np.hypot(*(r0 - alpha[:, None] * s0).T)
-    mean = (dp + da + db) / 3.0
-    spread = np.maximum(np.hypot(*(da - mean).T), np.hypot(*(db - mean).T))
-    reach = np.hypot(*(dp - mean).T) + spread
-    margin = np.maximum(eta * d0, floor)
-    sign = np.where(c0 < 0, -1.0, 1.0)
-    B, A = sign * c1, sign * c2  # |N(t)| = |c0| + B t + A t^2 while N keeps its sign
-    gap = np.abs(c0) - (margin * ns + err)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        # first root of gap + B t + A t^2 = 0 in (0, 1] (above the margin at t = 0)
-        disc = B * B - 4.0 * A * gap
-        root = np.sqrt(np.maximum(disc, 0.0))
-        q = -0.5 * (B + np.where(B >= 0, root, -root))
-        line = np.full(len(c0), np.inf)
-        for r in (q / A, gap / q):
-            ok = (disc >= 0) & np.isfinite(r) & (r > 0)
-            line = np.where(ok & (r < line), r, line)
-        # at or below the margin already: only separating motion (B t + A t^2 >= 0) is free
-        turn = np.where(
-            (B > 0) & (A < 0), -B / A, np.where((B < 0) | ((B == 0) & (A < 0)), 0.0, np.inf)
+        T = ev.extras["friction"]
+        if T is None:  # all mu = 0: the collisions of a unit table (every collision is kept)
+            T = self._tangential_collisions(self._mu_table(np.ones(len(self.friction_pairs))))
+        out = friction_coefficient_adjoint(
+            T,
+            self.surface.mesh,
+            self.surface.rest_positions + self._step["lagged"],
+            self._velocity(ev.U),
+            lam_c,
+            self.barrier,
+            self.stiffness,
+            self.eps_v,
+            self._pair_index,
+            len(self.friction_pairs),
+            self.surface.body_index,
         )
-        line = np.where(gap > 0, line, turn)
-        slack = np.maximum(d0 - margin - 4.0 * eps * coord, 0.0)
-        lipschitz = np.where(reach > 0, slack / reach, np.inf)
-    bound = np.maximum(line, lipschitz)
-    bound = np.where(bound > 1.0, np.inf, bound)
-    floored = eta * d0 < floor
-    drift = d0 * d0 < _DRIFT_ULPS * eps * coord * reach
-    near = drift | (d0 < _NEAR_RATIO * reach) | floored
-    return bound, near, floored, floor
-
-
-def _edges_of(faces: np.ndarray) -> np.ndarray:
-    pairs = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    return np.unique(pairs, axis=0).astype(np.int32)
+        return collective_comm(self.comm).bcast(out, root=0)

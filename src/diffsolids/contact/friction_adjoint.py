@@ -1,4 +1,4 @@
-"""Area-weight part of the friction force's rest-position Jacobian, batched over collisions.
+"""Adjoint kernels of the lagged friction, batched over collisions.
 
 The lagged friction force of collision c (ipctk ``TangentialPotential::force``) is
 
@@ -19,6 +19,11 @@ per collision and s_c is computed for all collisions at once, with ipctk's formu
 distances, closest points, tangent bases and relative velocities of each collision type
 (``distance/``, ``tangent/closest_point.cpp``, ``tangent/tangent_basis.cpp``,
 ``tangent/relative_velocity.cpp``), then scattered with one ``np.add.at``.
+
+The same per-collision terms give the friction coefficients' adjoint: with mu_s = mu_k the
+friction gradient g = -F is linear in each collision's mu_c, so lam . dg/dmu_p is the sum over
+the collisions of the pair of bodies p of w_c N_c f1(|tau_c|)/|tau_c| tau_c . (P_c^T Gamma_c lam)
+(one pass instead of one TangentialCollisions build and gradient per pair).
 """
 
 import contextlib
@@ -29,7 +34,7 @@ import scipy.sparse
 
 from diffsolids.contact.shape import _barrier
 
-__all__ = ["friction_weight_adjoint"]
+__all__ = ["friction_coefficient_adjoint", "friction_weight_adjoint"]
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -63,10 +68,21 @@ def _sparse_parts(g) -> tuple[np.ndarray, np.ndarray]:
     return g.indices, g.data
 
 
-def _gather(T: ipctk.TangentialCollisions, mesh: ipctk.CollisionMesh):
-    """Vertex ids (-1 padded to 4), collision type and weight gradients of every collision."""
+def _gather(
+    T: ipctk.TangentialCollisions,
+    mesh: ipctk.CollisionMesh,
+    weights: bool = False,
+    weight_gradients: bool = False,
+):
+    """Vertex ids (-1 padded to 4) and type of every collision; weights, weight gradients.
+
+    Returns:
+        (ids, kind, w, grads): (n, 4) ids in the order of ``vertex_ids``, (n,) type (0 vv, 1 ev,
+        2 ee, 3 fv), (n,) weights or None, [(indices, data)] per collision or None.
+    """
     E, F = np.asarray(mesh.edges), np.asarray(mesh.faces)
-    vv, ev, ee, fv = T.vv_collisions, T.ev_collisions, T.ee_collisions, T.fv_collisions
+    groups = (T.vv_collisions, T.ev_collisions, T.ee_collisions, T.fv_collisions)
+    vv, ev, ee, fv = groups
     parts = []
     if vv:
         a = np.array([(c.vertex0_id, c.vertex1_id) for c in vv], dtype=np.int64)
@@ -81,11 +97,14 @@ def _gather(T: ipctk.TangentialCollisions, mesh: ipctk.CollisionMesh):
         a = np.array([(c.vertex_id, c.face_id) for c in fv], dtype=np.int64)
         parts.append(np.column_stack([a[:, 0], F[a[:, 1]]]))
     ids = np.concatenate(parts) if parts else np.zeros((0, 4), dtype=np.int64)
-    kind = np.repeat(np.arange(4), [len(vv), len(ev), len(ee), len(fv)])
-    with _sparse_as_arrays():
-        grads = [c.weight_gradient for group in (vv, ev, ee, fv) for c in group]
-    parts = [_sparse_parts(g) for g in grads]
-    return ids.astype(np.int64), kind, parts
+    kind = np.repeat(np.arange(4), [len(g) for g in groups])
+    w = np.array([c.weight for g in groups for c in g], dtype=float) if weights else None
+    grads = None
+    if weight_gradients:
+        with _sparse_as_arrays():
+            raw = [c.weight_gradient for g in groups for c in g]
+        grads = [_sparse_parts(g) for g in raw]
+    return ids.astype(np.int64), kind, w, grads
 
 
 def _point_point(x: np.ndarray):
@@ -149,6 +168,45 @@ _KINDS = (_point_point, _point_edge, _edge_edge, _face_vertex)
 _NUM_VERTICES = (2, 3, 4, 4)
 
 
+def _collision_terms(
+    ids: np.ndarray,
+    kind: np.ndarray,
+    lagged_positions: np.ndarray,
+    velocities: np.ndarray,
+    lam: np.ndarray,
+    barrier: ipctk.BarrierPotential,
+    stiffness: float,
+    eps_v: float,
+) -> np.ndarray:
+    """Per collision N_c f1(|tau_c|)/|tau_c| tau_c . (P_c^T Gamma_c lam) (module docstring)."""
+    dim = lagged_positions.shape[1]
+    lam = lam.reshape(-1, dim)
+    out = np.zeros(len(ids))
+    for k, (geometry, nv) in enumerate(zip(_KINDS, _NUM_VERTICES, strict=True)):
+        sel = np.flatnonzero(kind == k)
+        if not len(sel):
+            continue
+        vid = ids[sel, :nv]
+        d2, gamma, basis = geometry(lagged_positions[vid])
+        gamma = gamma[:, :nv]
+        rel_v = np.einsum("kj,kjd->kd", gamma, velocities[vid])
+        rel_l = np.einsum("kj,kjd->kd", gamma, lam[vid])
+        tau = np.einsum("kdt,kd->kt", basis, rel_v)
+        q = np.einsum("kdt,kd->kt", basis, rel_l)
+        _, db = _barrier(barrier.barrier, d2, barrier.dhat**2)
+        normal = -stiffness * db * 2.0 * np.sqrt(d2)  # barrier_force_magnitude.cpp, dmin = 0
+        y = np.linalg.norm(tau, axis=1)
+        f1_over_y = np.where(y >= eps_v, 1.0 / np.maximum(y, eps_v), (2.0 - y / eps_v) / eps_v)
+        out[sel] = normal * f1_over_y * _dot(tau, q)
+    return out
+
+
+def _sides(ids: np.ndarray, body_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Body index of the two sides of each collision (first and last vertex)."""
+    last = np.where(ids[:, 3] >= 0, ids[:, 3], np.where(ids[:, 2] >= 0, ids[:, 2], ids[:, 1]))
+    return body_index[ids[:, 0]], body_index[last]
+
+
 def friction_weight_adjoint(
     T: ipctk.TangentialCollisions,
     mesh: ipctk.CollisionMesh,
@@ -169,7 +227,7 @@ def friction_weight_adjoint(
         lagged_positions: (num_vertices, dim) positions x^{i-1} of the lagged build.
         velocities: (num_vertices, dim) velocities v.
         lam: (num_vertices * dim,) adjoint vector.
-        barrier: The barrier potential of the build (ClampedLogBarrier, dmin = 0).
+        barrier: The barrier potential of the build (dmin = 0).
         stiffness: Its stiffness kappa.
         eps_v: Friction smoothing velocity.
         mu_table: (num_bodies, num_bodies) friction coefficient of each pair of bodies (the
@@ -179,33 +237,56 @@ def friction_weight_adjoint(
     Returns:
         (num_vertices * dim,) the weight part of (dF/dX)^T lam.
     """
-    dim = lagged_positions.shape[1]
     out = np.zeros(lagged_positions.size)
     if len(T) == 0:
         return out
-    ids, kind, grads = _gather(T, mesh)
-    lam = lam.reshape(-1, dim)
-    s = np.zeros(len(ids))
-    for k, (geometry, nv) in enumerate(zip(_KINDS, _NUM_VERTICES, strict=True)):
-        sel = np.flatnonzero(kind == k)
-        if not len(sel):
-            continue
-        vid = ids[sel, :nv]
-        d2, gamma, basis = geometry(lagged_positions[vid])
-        gamma = gamma[:, :nv]
-        rel_v = np.einsum("kj,kjd->kd", gamma, velocities[vid])
-        rel_l = np.einsum("kj,kjd->kd", gamma, lam[vid])
-        tau = np.einsum("kdt,kd->kt", basis, rel_v)
-        q = np.einsum("kdt,kd->kt", basis, rel_l)
-        _, db = _barrier(barrier.barrier, d2, barrier.dhat**2)
-        normal = -stiffness * db * 2.0 * np.sqrt(d2)
-        y = np.linalg.norm(tau, axis=1)
-        f1_over_y = np.where(y >= eps_v, 1.0 / np.maximum(y, eps_v), (2.0 - y / eps_v) / eps_v)
-        mu = mu_table[body_index[vid[:, 0]], body_index[vid[:, -1]]]
-        s[sel] = -normal * mu * f1_over_y * _dot(tau, q)
-    if grads:
-        index = np.concatenate([g[0] for g in grads])
-        data = np.concatenate([g[1] for g in grads])
-        counts = np.array([len(g[0]) for g in grads])
-        np.add.at(out, index, np.repeat(s, counts) * data)
+    ids, kind, _, grads = _gather(T, mesh, weight_gradients=True)
+    terms = _collision_terms(
+        ids, kind, lagged_positions, velocities, lam, barrier, stiffness, eps_v
+    )
+    a, b = _sides(ids, body_index)
+    s = -mu_table[a, b] * terms
+    index = np.concatenate([g[0] for g in grads])
+    data = np.concatenate([g[1] for g in grads])
+    counts = np.array([len(g[0]) for g in grads])
+    np.add.at(out, index, np.repeat(s, counts) * data)
     return out
+
+
+def friction_coefficient_adjoint(
+    T: ipctk.TangentialCollisions,
+    mesh: ipctk.CollisionMesh,
+    lagged_positions: np.ndarray,
+    velocities: np.ndarray,
+    lam: np.ndarray,
+    barrier: ipctk.BarrierPotential,
+    stiffness: float,
+    eps_v: float,
+    pair_index: np.ndarray,
+    num_pairs: int,
+    body_index: np.ndarray,
+) -> np.ndarray:
+    """The products lam . d(friction gradient)/d mu_p, one per pair of bodies p.
+
+    Args:
+        T: Tangential collisions built at ``lagged_positions`` (any coefficients: every
+            collision is kept, mu = 0 included).
+        mesh: The collision mesh.
+        lagged_positions: (num_vertices, dim) positions x^{i-1} of the lagged build.
+        velocities: (num_vertices, dim) velocities v.
+        lam: (num_vertices * dim,) adjoint vector.
+        barrier: The barrier potential of the build (dmin = 0).
+        stiffness: Its stiffness kappa.
+        eps_v: Friction smoothing velocity.
+        pair_index: (num_bodies, num_bodies) index of each pair of bodies.
+        num_pairs: Number of pairs.
+        body_index: Body index of each collision vertex.
+    """
+    if len(T) == 0:
+        return np.zeros(num_pairs)
+    ids, kind, w, _ = _gather(T, mesh, weights=True)
+    terms = _collision_terms(
+        ids, kind, lagged_positions, velocities, lam, barrier, stiffness, eps_v
+    )
+    a, b = _sides(ids, body_index)
+    return np.bincount(pair_index[a, b], weights=w * terms, minlength=num_pairs)
