@@ -65,7 +65,12 @@ from diffsolids.optimize import LBFGSOptions, minimize
 from diffsolids.reduced_functional import ReducedFunctional
 from diffsolids.simulation import CanonicalValues, Simulation, Trajectory
 from diffsolids.solvers import NewtonSolver, SolverOptions
-from diffsolids.verification import check_reproducible, finite_difference_check, taylor_test
+from diffsolids.verification import (
+    DifferentiableFunctional,
+    check_reproducible,
+    finite_difference_check,
+    taylor_test,
+)
 
 __all__ = [
     "BDF",
@@ -73,6 +78,7 @@ __all__ = [
     "Checkpointing",
     "ContactTerm",
     "ConvergenceError",
+    "DifferentiableFunctional",
     "DiffsolidsError",
     "DirichletCondition",
     "DirichletControl",
