@@ -62,7 +62,7 @@ autosummary_ignore_module_all = False
 nitpicky = True
 nitpick_ignore_regex = [
     ("py:.*", r"(numpy|np|dolfinx|petsc4py|PETSc|ufl|mpi4py|MPI|scipy|basix|ipctk)(\..*)?"),
-    ("py:.*", r"(collections\.abc|typing|os|pathlib|abc|contextlib)\..*"),
+    ("py:.*", r"(collections\.abc|typing|types|os|pathlib|abc|contextlib)\..*"),
 ]
 
 # The modules whose ``__all__`` the reference documents, with the title of their page.

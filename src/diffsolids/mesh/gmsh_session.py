@@ -7,9 +7,8 @@ from contextlib import contextmanager
 __all__ = ["gmsh_session"]
 
 
-# Iterator[types.ModuleType]; the docs resolve no ``types`` names (docs/conf.py nitpick list)
 @contextmanager
-def gmsh_session() -> Iterator:
+def gmsh_session() -> Iterator[types.ModuleType]:
     """Yield the ``gmsh`` module with no model, default options and a silent terminal.
 
     gmsh keeps its options in process-wide state that survives ``gmsh.clear()``: an option set
