@@ -73,3 +73,32 @@ def test_bad_tolerances_raise(kwargs):
 def test_no_tolerance_at_all_raises():
     with pytest.raises(ValueError, match="rtol and atol are both 0"):
         ds.SolverOptions(rtol=0.0, atol=0.0)
+
+
+def test_failed_projected_phase_is_retried_with_the_exact_hessian():
+    """A step whose projected Newton phase fails is solved again with the exact Hessian.
+
+    The box-on-slab contact scene (tests/test_friction_smoothness.py) takes 19 and 31 Newton
+    iterations in steps 1 and 3 with projected steps only (exact_hessian_below=0) and at most
+    17 with the exact Hessian from the start: with a limit of 18 those steps fail their first
+    attempt and converge on the retry from the same initial guess.
+    """
+    from test_friction_smoothness import box_on_slab
+
+    limit = 18
+    _, sim, _ = box_on_slab(ds.SolverOptions(exact_hessian_below=0.0, max_iterations=limit))
+    traj = sim.run()
+    solver = sim.solver
+    its = [r.iterations for r in traj.records]
+    assert solver.retried_steps >= 1, its
+    assert max(its) > limit  # iterations of both attempts are counted (no error raised)
+
+    # exact Hessian from the start: nothing to retry
+    _, sim, _ = box_on_slab(ds.SolverOptions(exact_hessian_below=np.inf, max_iterations=limit))
+    sim.run()
+    assert sim.solver.retried_steps == 0
+
+    # and a limit that the exact Hessian cannot meet either fails, naming both attempts
+    _, sim, _ = box_on_slab(ds.SolverOptions(exact_hessian_below=0.0, max_iterations=8))
+    with pytest.raises(ds.errors.NewtonConvergenceError, match="and so did the step again"):
+        sim.run()

@@ -5,6 +5,7 @@ the step (no inverted element; the contact term adds its collision-free bound to
 and a residual tolerance scaled by a characteristic force of the simulation.
 """
 
+import logging
 from dataclasses import dataclass, field
 from numbers import Real
 
@@ -23,6 +24,8 @@ from diffsolids.solvers.factor_store import FactorStore
 from diffsolids.solvers.forms import compile_form
 from diffsolids.solvers.inversion import InversionGuard
 from diffsolids.solvers.sparsity import GrowingPattern
+
+logger = logging.getLogger("diffsolids")
 
 __all__ = ["INITIAL_GUESSES", "NewtonResult", "NewtonSolver", "SolverOptions"]
 
@@ -75,11 +78,14 @@ class SolverOptions:
             of the parameters (2.3e-3 above the minimum the neighbouring parameters reach in
             the box-on-slab scene of tests/test_friction_smoothness.py), so J jumps and finite
             differences do not verify gradients. Projected steps descend into a minimum, as in
-            IPC and PolyFEM.
-            ``inf`` (default): the exact Hessian from the start; ``0``: always projected. Not
-            yet the default: on the Fig. 21 bunny (suggested kappa, mu = 0.501) 1e-3 fails at
-            step 7 with 48 of 50 Newton steps cut by a step bound, and ``0`` at step 4
-            (linear convergence), where ``inf`` converges all 7 steps in 161 iterations.
+            IPC and PolyFEM. In the exact phase an iteration whose line search cuts the exact
+            Newton step below half (its quadratic model does not hold) is followed by one
+            projected step, then exact again. A step whose solve fails this way (e.g. the
+            projected phase crawls, every step cut by the collision bound) is solved again
+            from its initial guess with the exact Hessian from the start (as with ``inf``);
+            its iterations count both attempts.
+            ``inf`` (default): the exact Hessian from the start; ``0``: always projected (with
+            the same retry).
         initial_guess: Where a dynamic step's Newton iteration starts (read by the Simulation;
             the step's Dirichlet values are applied to it, and a guess that inverts elements
             or collides falls back to ``"previous"``). One of ``INITIAL_GUESSES``:
@@ -176,6 +182,9 @@ class NewtonSolver:
         self.step_bounds.extend(self.numeric_terms)
         self.patterns = GrowingPattern(self)
         self.projected_steps = 0
+        self.retried_steps = 0  # steps solved again with the exact Hessian from the start
+        self._exact_from_start = False
+        self._first_attempt = 0
         self._restarted_after = 0
         self.reference_force = 0.0
         self._energy_cache: tuple[PETSc.Vec, float] | None = None
@@ -272,8 +281,10 @@ class NewtonSolver:
         if self.quadratic and self._jacobian_key == self._current_key():
             return  # the Hessian of a quadratic potential does not change: keep the factors
         self._assign(x)
-        o = self.options
-        if self._projectable() and not self._fnorm <= o.exact_hessian_below * self._f_char:
+        below = np.inf if self._exact_from_start else self.options.exact_hessian_below
+        project = self._project_next or not self._fnorm <= below * self._f_char
+        self._project_next = False
+        if self._projectable() and project:
             self.assemble_projected_jacobian(A)
             self._exact_factors = False
             self.projected_steps += 1
@@ -369,6 +380,8 @@ class NewtonSolver:
             self._last_cut = scale
         else:
             self._cut_streak = 0
+        self._planned_step = y.norm()  # the line search takes a fraction of it
+        self._direction_exact = self._exact_factors
         self._drop_line_search()
         self._line_search = {"f0": None, "x0": x.copy(), "F0": F.copy()}
 
@@ -436,8 +449,15 @@ class NewtonSolver:
 
     def _converged(self, snes, it, norms):
         fnorm = norms[2]
-        if it == 0 and self._restarted_after == 0:
+        if it == 0 and self._restarted_after == 0 and not self._exact_from_start:
             self._f_char = max(self.reference_force, fnorm)
+        if it > 0 and self._direction_exact and self._hybrid():
+            # The exact-Hessian phase (below exact_hessian_below): a line search that had to
+            # cut the exact Newton step below half means its quadratic model does not hold
+            # (indefinite Hessian); the next step is a projected one, then exact again.
+            taken = norms[1] / self._planned_step if self._planned_step > 0 else 1.0
+            self._project_next = taken < 0.5
+        self._direction_exact = False
         it += self._restarted_after
         self._fnorm = fnorm
         R = PETSc.SNES.ConvergedReason
@@ -452,6 +472,10 @@ class NewtonSolver:
             self._restart = True
             return R.DIVERGED_JACOBIAN_DOMAIN
         return R.ITERATING
+
+    def _hybrid(self) -> bool:
+        """Projected steps above ``exact_hessian_below * f_char``, exact below (first attempt)."""
+        return bool(np.isfinite(self.options.exact_hessian_below)) and not self._exact_from_start
 
     def _tolerance(self) -> float:
         """The residual norm below which the step is converged: max(atol, rtol * f_char)."""
@@ -471,6 +495,12 @@ class NewtonSolver:
                 f"{self.bounded_steps} of {iterations} Newton steps were cut by a step bound "
                 f"(collision-free or inversion-free fraction; the last one to "
                 f"{self._last_cut:.2e} of the Newton step{marched})"
+            )
+        if self._exact_from_start:
+            lines.append(
+                f"projected Newton steps above {self.options.exact_hessian_below:g} f_char "
+                f"failed after {self._first_attempt} iterations, and so did the step again "
+                "with the exact contact Hessian from the start"
             )
         lines += [r for r in (t.failure_report() for t in self.numeric_terms) if r]
         lines.append(self._what_to_try(iterations))
@@ -606,6 +636,39 @@ class NewtonSolver:
         self.reference_force = self.residual_norm()
         return self.reference_force
 
+    def _attempt(self) -> tuple[int, int, bool]:
+        """One SNES solve from ``x`` (restarted when the matrix pattern grows).
+
+        Returns:
+            (iterations, SNES converged reason, converged)
+        """
+        self._drop_line_search()
+        self._roundoff_converged = False
+        self._exact_factors = True
+        self._project_next = False
+        self._direction_exact = False
+        self._planned_step = 0.0
+        self._cut_streak = 0
+        self._assign(self.x)
+        self._restarted_after = 0
+        self._restart = False
+        if self.patterns.active:
+            self._use_matrix(self.patterns.ensure(self.A))
+        self.snes.solve(None, self.x)
+        while self._restart:
+            self._restart = False
+            self._restarted_after += self.snes.getIterationNumber()
+            self._assign(self.x)
+            self._use_matrix(self.patterns.ensure(self.A))
+            self.snes.solve(None, self.x)
+        reason = self.snes.getConvergedReason()
+        its = self._restarted_after + self.snes.getIterationNumber()
+        self._assign(self.x)
+        # Success means the residual test passed, or the Newton increment reached round-off;
+        # whatever else PETSc may report (e.g. a user snes_stol) is not convergence.
+        converged = self._roundoff_converged or (reason > 0 and self._fnorm <= self._tolerance())
+        return its, reason, converged
+
     def solve(self, step: int) -> NewtonResult:
         """Minimise from the current ``u`` (which must satisfy the Dirichlet conditions).
 
@@ -631,24 +694,31 @@ class NewtonSolver:
         )
         self.u.x.scatter_forward()
         self.x.array_w[:] = self.u.x.petsc_vec.array_r
-        self._restarted_after = 0
-        self._restart = False
-        if self.patterns.active:
-            self._use_matrix(self.patterns.ensure(self.A))
-        self.snes.solve(None, self.x)
-        while self._restart:
-            self._restart = False
-            self._restarted_after += self.snes.getIterationNumber()
-            self._assign(self.x)
-            self._use_matrix(self.patterns.ensure(self.A))
-            self.snes.solve(None, self.x)
-        reason = self.snes.getConvergedReason()
-        its = self._restarted_after + self.snes.getIterationNumber()
-        self._assign(self.x)
+        self._exact_from_start = False
+        self._first_attempt = 0
+        x0 = self.x.copy()
+        try:
+            its, reason, converged = self._attempt()
+            if not converged and self._hybrid() and self._projectable():
+                # The projected phase crawled (or the exact one failed): the step again from
+                # its initial guess with the exact Hessian from the first iteration (projected
+                # only where its step is not a descent direction, as exact_hessian_below=inf).
+                first = self._first_attempt = its
+                logger.info(
+                    "step %d: Newton with projected steps above %g f_char failed after %d "
+                    "iterations; again with the exact contact Hessian from the start",
+                    step,
+                    self.options.exact_hessian_below,
+                    first,
+                )
+                self._exact_from_start = True
+                x0.copy(self.x)
+                self.retried_steps += 1
+                its, reason, converged = self._attempt()
+                its += first
+        finally:
+            x0.destroy()
         tolerance = self._tolerance()
-        # Success means the residual test passed, or the Newton increment reached round-off;
-        # whatever else PETSc may report (e.g. a user snes_stol) is not convergence.
-        converged = self._roundoff_converged or (reason > 0 and self._fnorm <= tolerance)
         keep = converged and its > 0 and self._exact_factors and not self.quadratic
         if keep and self.factor_store is not None:  # the adjoint needs the exact Jacobian's
             self.factor_store.keep(step, self.snes)
