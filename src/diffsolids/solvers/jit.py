@@ -269,7 +269,10 @@ def build_form(form: ufl.Form, jit_options: dict, lazy: bool = True) -> fem.Form
     p_jit = dolfinx_jit.get_options(jit_options)
     if p_jit.get("cffi_debug") or p_jit.get("cffi_libraries") or p_jit.get("cffi_verbose"):
         return fem.form(form, jit_options=jit_options)  # options only DOLFINx's build applies
-    comm = form.ufl_domain().ufl_cargo().comm
+    domains = list(form.subdomain_data())  # the integration domain, as fem.form finds it
+    if len(domains) != 1 or domains[0].ufl_cargo() is None:
+        return fem.form(form, jit_options=jit_options)
+    comm = domains[0].ufl_cargo().comm
     if comm.size == 1:
         build = _start(form, jit_options)
         if lazy:
