@@ -88,20 +88,6 @@ def _reference_friction_rest_adjoint(self: ContactTerm, ev, lam_c: np.ndarray) -
     return out
 
 
-def _reference_adjoint_friction(self: ContactTerm, u, lam) -> np.ndarray:
-    ev = self._evaluate(u)
-    lam_c = self._lambda(lam)
-    V = np.asfortranarray(self._velocity(ev.U))
-    out = np.zeros(len(self.friction_pairs))
-    for p in range(len(self.friction_pairs)):
-        unit = np.zeros(len(self.friction_pairs))
-        unit[p] = 1.0
-        T = self._tangential_collisions(self._mu_table(unit))
-        if len(T):
-            out[p] = self.friction_potential.gradient(T, self.surface.mesh, V) @ lam_c
-    return out
-
-
 def _rel(a: np.ndarray, b: np.ndarray) -> float:
     scale = np.abs(b).max()
     assert scale > 0
@@ -119,7 +105,7 @@ def test_vectorised_contact_adjoint_equals_the_loops(dim, degree, order, eps_v, 
     lam_c = contact._lambda(lam)
     T = contact._tangential_collisions(contact._mu_table(contact._mu), shape_derivatives=True)
     assert len(T) > 0
-    ids, kind, _, _ = _gather(T, contact.surface.mesh)
+    ids, kind, _ = _gather(T, contact.surface.mesh)
     E, F = contact.surface.mesh.edges, contact.surface.mesh.faces
     groups = (T.vv_collisions, T.ev_collisions, T.ee_collisions, T.fv_collisions)
     loop_ids = [np.asarray(c.vertex_ids(E, F)) for g in groups for c in g]
@@ -133,14 +119,6 @@ def test_vectorised_contact_adjoint_equals_the_loops(dim, degree, order, eps_v, 
     lagged = contact._lagged_jacobian(ev).T @ lam_c
     assert _rel(vectorised - lagged, reference - lagged) <= TOL
 
-    # the friction coefficients (per pair of bodies; at mu = 0 too)
-    gmu = contact.adjoint_friction(u, lam)
-    assert _rel(gmu, _reference_adjoint_friction(contact, u, lam)) <= TOL
-    mu0 = contact.friction_coefficients
-    contact.friction_coefficients = np.zeros_like(mu0)
-    assert _rel(contact.adjoint_friction(u, lam), gmu) <= TOL  # linear in mu
-    contact.friction_coefficients = mu0
-
     # the mollifier correction, pair by pair (3D), and the whole shape adjoint
     C = contact._build(ev.x, shape_derivatives=True)
     x = np.asfortranarray(ev.x)
@@ -153,8 +131,14 @@ def test_vectorised_contact_adjoint_equals_the_loops(dim, degree, order, eps_v, 
         A = contact_shape._ee_correction(*args)
         B = _reference_ee_correction(*args)
         assert abs(A - B).max() <= TOL * abs(B).max()
+        product = contact_shape._ee_correction_adjoint(*args, lam_c)
+        assert _rel(product, B.T @ lam_c) <= TOL
     gX = contact.adjoint_shape(u, lam)
-    monkeypatch.setattr(contact_shape, "_ee_correction", _reference_ee_correction)
+    monkeypatch.setattr(
+        contact_shape,
+        "_ee_correction_adjoint",
+        lambda C, mesh, x, b, k, lam: _reference_ee_correction(C, mesh, x, b, k).T @ lam,
+    )
     monkeypatch.setattr(ContactTerm, "_friction_rest_adjoint", _reference_friction_rest_adjoint)
     assert _rel(gX, contact.adjoint_shape(u, lam)) <= TOL
 

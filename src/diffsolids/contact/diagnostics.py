@@ -1,10 +1,12 @@
-"""Diagnostics of the contact term: forces per body and the report of a failed Newton solve."""
+"""Diagnostics of the contact term: forces per body, failure reports and their hints."""
 
 import numpy as np
 
 from diffsolids.contact.step_bound import _GAP_FLOOR_ULPS
+from diffsolids.contact.surface import CollisionSurface
+from diffsolids.errors import IntersectionError
 
-__all__ = ["body_forces", "failure_report"]
+__all__ = ["body_forces", "failure_report", "obstacle_move_error"]
 
 
 def body_forces(
@@ -70,4 +72,40 @@ def failure_report(
         f"{head}, {num_pairs} active pairs, smallest distance {d:.3e} "
         f"({d / dhat:.2e} dhat), largest contact force {force:.3e}; a pair carrying "
         f"it settles at a distance ~2 kappa dhat^4 / f = {gap:.2e}{hint}"
+    )
+
+
+def obstacle_move_error(
+    surface: CollisionSurface, i: int, move: np.ndarray, dynamic: bool
+) -> IntersectionError:
+    """The error of an obstacle move that is not admissible in step ``i`` (names the obstacles).
+
+    Args:
+        surface: The collision surface.
+        i: The step.
+        move: (num_vertices, dim) the obstacles' move O^i - O^{i-1} (zero body rows).
+        dynamic: Whether the step is dynamic (static load steps get a hint of their own).
+    """
+    surf = surface
+    names = []
+    for o, a, b in zip(
+        surf.obstacles, surf.obstacle_offsets[:-1], surf.obstacle_offsets[1:], strict=True
+    ):
+        d = float(np.linalg.norm(move[a:b], axis=1).max(initial=0.0))
+        if d > 0:
+            names.append(f"{o.label} (moves {d:.3e})")
+    return IntersectionError(
+        f"step {i}: {', '.join(names)} moves into the bodies faster than they can follow: "
+        "the move from t_{i-1} to t_i is not collision-free with the bodies held at "
+        "u^{i-1}, nor together with the body's initial guess (obstacles move before the "
+        "Newton solve of a step, which then keeps them at t_i); use a smaller time step "
+        "(an obstacle pressing a body may move at most about the contact gap per step "
+        "unless the body already moves with it) or a slower motion"
+        + (
+            ""
+            if dynamic
+            else "; load steps have no velocity for the guess to move with, so an "
+            "obstacle cannot push a body quasi-statically: drive a clamped volume by "
+            "Dirichlet values instead (reached by continuation)"
+        )
     )

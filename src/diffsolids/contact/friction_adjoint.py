@@ -1,4 +1,4 @@
-"""Adjoint kernels of the lagged friction, batched over collisions.
+"""Area-weight part of the friction force's rest-position Jacobian, batched over collisions.
 
 The lagged friction force of collision c (ipctk ``TangentialPotential::force``) is
 
@@ -19,11 +19,6 @@ per collision and s_c is computed for all collisions at once, with ipctk's formu
 distances, closest points, tangent bases and relative velocities of each collision type
 (``distance/``, ``tangent/closest_point.cpp``, ``tangent/tangent_basis.cpp``,
 ``tangent/relative_velocity.cpp``), then scattered with one ``np.add.at``.
-
-The same per-collision terms give the friction coefficients' adjoint: with mu_s = mu_k the
-friction gradient g = -F is linear in each collision's mu_c, so lam . dg/dmu_p is the sum over
-the collisions of the pair of bodies p of w_c N_c f1(|tau_c|)/|tau_c| tau_c . (P_c^T Gamma_c lam)
-(one pass instead of one TangentialCollisions build and gradient per pair).
 """
 
 import contextlib
@@ -34,7 +29,7 @@ import scipy.sparse
 
 from diffsolids.contact.shape import _barrier
 
-__all__ = ["friction_coefficient_adjoint", "friction_weight_adjoint"]
+__all__ = ["friction_weight_adjoint"]
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -71,14 +66,13 @@ def _sparse_parts(g) -> tuple[np.ndarray, np.ndarray]:
 def _gather(
     T: ipctk.TangentialCollisions,
     mesh: ipctk.CollisionMesh,
-    weights: bool = False,
     weight_gradients: bool = False,
 ):
-    """Vertex ids (-1 padded to 4) and type of every collision; weights, weight gradients.
+    """Vertex ids (-1 padded to 4) and type of every collision, and their weight gradients.
 
     Returns:
-        (ids, kind, w, grads): (n, 4) ids in the order of ``vertex_ids``, (n,) type (0 vv, 1 ev,
-        2 ee, 3 fv), (n,) weights or None, [(indices, data)] per collision or None.
+        (ids, kind, grads): (n, 4) ids in the order of ``vertex_ids``, (n,) type (0 vv, 1 ev,
+        2 ee, 3 fv), [(indices, data)] per collision or None.
     """
     E, F = np.asarray(mesh.edges), np.asarray(mesh.faces)
     groups = (T.vv_collisions, T.ev_collisions, T.ee_collisions, T.fv_collisions)
@@ -98,13 +92,12 @@ def _gather(
         parts.append(np.column_stack([a[:, 0], F[a[:, 1]]]))
     ids = np.concatenate(parts) if parts else np.zeros((0, 4), dtype=np.int64)
     kind = np.repeat(np.arange(4), [len(g) for g in groups])
-    w = np.array([c.weight for g in groups for c in g], dtype=float) if weights else None
     grads = None
     if weight_gradients:
         with _sparse_as_arrays():
             raw = [c.weight_gradient for g in groups for c in g]
         grads = [_sparse_parts(g) for g in raw]
-    return ids.astype(np.int64), kind, w, grads
+    return ids.astype(np.int64), kind, grads
 
 
 def _point_point(x: np.ndarray):
@@ -240,7 +233,7 @@ def friction_weight_adjoint(
     out = np.zeros(lagged_positions.size)
     if len(T) == 0:
         return out
-    ids, kind, _, grads = _gather(T, mesh, weight_gradients=True)
+    ids, kind, grads = _gather(T, mesh, weight_gradients=True)
     terms = _collision_terms(
         ids, kind, lagged_positions, velocities, lam, barrier, stiffness, eps_v
     )
@@ -251,42 +244,3 @@ def friction_weight_adjoint(
     counts = np.array([len(g[0]) for g in grads])
     np.add.at(out, index, np.repeat(s, counts) * data)
     return out
-
-
-def friction_coefficient_adjoint(
-    T: ipctk.TangentialCollisions,
-    mesh: ipctk.CollisionMesh,
-    lagged_positions: np.ndarray,
-    velocities: np.ndarray,
-    lam: np.ndarray,
-    barrier: ipctk.BarrierPotential,
-    stiffness: float,
-    eps_v: float,
-    pair_index: np.ndarray,
-    num_pairs: int,
-    body_index: np.ndarray,
-) -> np.ndarray:
-    """The products lam . d(friction gradient)/d mu_p, one per pair of bodies p.
-
-    Args:
-        T: Tangential collisions built at ``lagged_positions`` (any coefficients: every
-            collision is kept, mu = 0 included).
-        mesh: The collision mesh.
-        lagged_positions: (num_vertices, dim) positions x^{i-1} of the lagged build.
-        velocities: (num_vertices, dim) velocities v.
-        lam: (num_vertices * dim,) adjoint vector.
-        barrier: The barrier potential of the build (dmin = 0).
-        stiffness: Its stiffness kappa.
-        eps_v: Friction smoothing velocity.
-        pair_index: (num_bodies, num_bodies) index of each pair of bodies.
-        num_pairs: Number of pairs.
-        body_index: Body index of each collision vertex.
-    """
-    if len(T) == 0:
-        return np.zeros(num_pairs)
-    ids, kind, w, _ = _gather(T, mesh, weights=True)
-    terms = _collision_terms(
-        ids, kind, lagged_positions, velocities, lam, barrier, stiffness, eps_v
-    )
-    a, b = _sides(ids, body_index)
-    return np.bincount(pair_index[a, b], weights=w * terms, minlength=num_pairs)

@@ -5,8 +5,9 @@ vertex and a face, or two edges; 2D: a vertex and an edge). The Newton matrix of
 the stencils of every pair that can come within dhat during the step. :func:`reach_blocks`
 finds the pairs of primitives whose boxes, each inflated by a margin plus the distance its own
 vertices can travel in the step, overlap at the start of the step, and returns the vertex blocks
-of their stencils. The cost follows the number of such pairs, not the size of the primitives: a
-coarse obstacle face (metres long) couples only to the vertices that are near it.
+of their stencils (how far a step may move each vertex: :func:`step_motion`). The cost follows
+the number of such pairs, not the size of the primitives: a coarse obstacle face (metres long)
+couples only to the vertices that are near it.
 
 Pairs of one body are closed by its deformation (and rotation), not by its translation: they are
 inflated by how far each vertex can move relative to its body, and left out when they are
@@ -18,14 +19,16 @@ powers of two of their largest half-extent) and queries one KD-tree of box centr
 class, so that a few large boxes do not widen the search radius of all the small ones.
 """
 
+import itertools
 from collections.abc import Mapping
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from diffsolids.contact.surface import CollisionSurface
 from diffsolids.solvers.sparsity import sorted_unique
 
-__all__ = ["box_overlaps", "reach_blocks"]
+__all__ = ["box_overlaps", "reach_blocks", "step_motion"]
 
 
 def _size_classes(half: np.ndarray) -> list[tuple[np.ndarray, float]]:
@@ -267,3 +270,43 @@ def _neighbours(p: _Primitives, q: _Primitives, a: np.ndarray, b: np.ndarray) ->
     lo_a, hi_a = (c[a] for c in p.rest)
     lo_b, hi_b = (c[b] for c in q.rest)
     return np.all((lo_a <= hi_b) & (lo_b <= hi_a), axis=1)
+
+
+def step_motion(
+    surface: CollisionSurface, num_bodies: int, i: int, traj, dt: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """How far each collision vertex may move in step ``i`` (collective).
+
+    The last step's displacement p = dt v^{i-1} plus its change c = dt (v^{i-1} - v^{i-2})
+    (from displacements when the trajectory holds no velocities): |p| + |c| is what the
+    vertex travels if its acceleration stays as large, in any direction.
+
+    Args:
+        surface: The collision surface.
+        num_bodies: Number of bodies (``surface.body_index`` ranges over them).
+        i: The step.
+        traj: The trajectory (states u^0..u^{i-1}, velocities if any).
+        dt: Time step of step ``i``.
+
+    Returns:
+        (motion, deformation): per vertex, |p| + |c|, and the same for p and c relative to
+        a translation of the vertex's body (the middle of the body's range of each).
+    """
+    surf = surface
+    if len(traj.v) >= i:  # velocities are displacements per time (static steps too)
+        steps = [dt * surf.gather(traj.v[j]) for j in range(i - 1, max(i - 3, -1), -1)]
+    else:
+        states = [surf.gather(traj.u[j]) for j in range(i - 1, max(i - 4, -1), -1)]
+        steps = [a - b for a, b in itertools.pairwise(states)]
+    nv, nb = surf.num_vertices, num_bodies
+    moves = [steps[0], steps[0] - steps[1]] if len(steps) > 1 else steps
+    motion, deformation = np.zeros(nv), np.zeros(nv)
+    for d in moves:
+        lo = np.full((nb, surf.dim), np.inf)
+        hi = np.full((nb, surf.dim), -np.inf)
+        np.minimum.at(lo, surf.body_index, d)
+        np.maximum.at(hi, surf.body_index, d)
+        translation = 0.5 * (lo + hi)[surf.body_index]
+        motion += np.linalg.norm(d, axis=1)
+        deformation += np.linalg.norm(d - translation, axis=1)
+    return motion, deformation

@@ -14,7 +14,9 @@ gives
     exact:      f (m' Hs + m'' gs gs^T + dm'/deps gs geps^T) + gf gxm^T + gf gm^T + gm gf^T + m Hf.
 
 The difference (added here) is f (m'' gs gs^T + dm'/deps (gs geps^T - geps gs^T))
-+ gf gxm^T - gxm gf^T. It is evaluated for all mollified pairs at once: the edge ids and
++ gf gxm^T - gxm gf^T. The adjoint needs only its transpose applied to a vector
+(:func:`barrier_shape_adjoint`), formed pair by pair from these vectors without the 12 x 12
+blocks. It is evaluated for all mollified pairs at once: the edge ids and
 distance types of the edge-edge collisions are read once, everything else (cross norms,
 thresholds, distances of each type and their gradients, the barrier, the 12 x 12 blocks) is
 batched numpy, written with the formulas of ipctk's ``edge_edge_mollifier.cpp``,
@@ -27,7 +29,7 @@ import ipctk
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["barrier_shape_derivative"]
+__all__ = ["barrier_shape_adjoint", "barrier_shape_derivative"]
 
 # ipctk's EdgeEdgeDistanceType: point-point (EA0_EB0 .. EA1_EB1), point-line (EA_EB0 .. EA1_EB)
 # and line-line (EA_EB); (point, other point) and (point, line end, line end) vertex slots
@@ -146,20 +148,33 @@ def _barrier(kappa_b, d: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
     return tuple(np.array(v, dtype=float).reshape(len(d)) for v in zip(*values, strict=True))
 
 
-def _ee_correction(
+@dataclass
+class _Terms:
+    """Per mollified pair: its dofs and the vectors and scalars of the correction."""
+
+    dofs: np.ndarray  # (n, 12)
+    f: np.ndarray
+    gf: np.ndarray  # (n, 12)
+    gs: np.ndarray
+    geps: np.ndarray
+    gxm: np.ndarray
+    m2: np.ndarray
+    dm1: np.ndarray
+
+
+def _ee_terms(
     collisions: ipctk.NormalCollisions,
     mesh: ipctk.CollisionMesh,
     x: np.ndarray,
     barrier: ipctk.BarrierPotential,
     stiffness: float,
-) -> sp.csc_matrix:
-    """The sum over mollified edge-edge pairs of the difference in the module docstring."""
-    n = x.size
+) -> _Terms | None:
+    """The correction's ingredients for every mollified pair (None: no mollified pair)."""
     pairs = _mollified_pairs(collisions, mesh, mesh.rest_positions, x)
     if not len(pairs):
-        return sp.csc_matrix((n, n))
+        return None
     ee = collisions.ee_collisions
-    dtype = np.array([int(ee[k].dtype) for k in pairs.index], dtype=np.int64)
+    dtype = np.array([ee[k].dtype.value for k in pairs.index], dtype=np.int64)
     if collisions.use_area_weighting:  # normal_collisions_builder.cpp: 1/4 of both edge areas
         w = 0.25 * np.asarray(mesh.edge_areas()).ravel()[pairs.edge_ids].sum(axis=1)
     else:
@@ -184,17 +199,60 @@ def _ee_correction(
     dm1 = 2.0 * (-eps + 2.0 * s) / (eps * eps * eps)
     dm_eps = 2.0 * s * (-eps + s) / (eps * eps * eps)
     gxm = dm_eps[:, None] * geps
+    dofs = (pairs.vertex_ids[:, :, None] * 3 + np.arange(3)).reshape(-1, 12)
+    return _Terms(dofs, f, gf, gs, geps, gxm, m2, dm1)
+
+
+def _ee_correction(
+    collisions: ipctk.NormalCollisions,
+    mesh: ipctk.CollisionMesh,
+    x: np.ndarray,
+    barrier: ipctk.BarrierPotential,
+    stiffness: float,
+) -> sp.csc_matrix:
+    """The sum over mollified edge-edge pairs of the difference in the module docstring."""
+    n = x.size
+    t = _ee_terms(collisions, mesh, x, barrier, stiffness)
+    if t is None:
+        return sp.csc_matrix((n, n))
 
     def outer(a: np.ndarray, c: np.ndarray) -> np.ndarray:
         return np.einsum("ki,kj->kij", a, c)
 
-    delta = (f * m2)[:, None, None] * outer(gs, gs)
-    delta += (f * dm1)[:, None, None] * (outer(gs, geps) - outer(geps, gs))
-    delta += outer(gf, gxm) - outer(gxm, gf)
-    dofs = (pairs.vertex_ids[:, :, None] * 3 + np.arange(3)).reshape(-1, 12)
-    rows = np.repeat(dofs, 12, axis=1).ravel()
-    cols = np.tile(dofs, (1, 12)).ravel()
+    delta = (t.f * t.m2)[:, None, None] * outer(t.gs, t.gs)
+    delta += (t.f * t.dm1)[:, None, None] * (outer(t.gs, t.geps) - outer(t.geps, t.gs))
+    delta += outer(t.gf, t.gxm) - outer(t.gxm, t.gf)
+    rows = np.repeat(t.dofs, 12, axis=1).ravel()
+    cols = np.tile(t.dofs, (1, 12)).ravel()
     return sp.csc_matrix((delta.ravel(), (rows, cols)), shape=(n, n))
+
+
+def _ee_correction_adjoint(
+    collisions: ipctk.NormalCollisions,
+    mesh: ipctk.CollisionMesh,
+    x: np.ndarray,
+    barrier: ipctk.BarrierPotential,
+    stiffness: float,
+    lam: np.ndarray,
+) -> np.ndarray:
+    """The correction's transpose times lam, pair by pair without forming the 12 x 12 blocks.
+
+    delta^T l = f m'' gs (gs.l) + f dm'/deps (geps (gs.l) - gs (geps.l)) + gxm (gf.l)
+    - gf (gxm.l) per pair, with l the pair's entries of lam.
+    """
+    out = np.zeros(x.size)
+    t = _ee_terms(collisions, mesh, x, barrier, stiffness)
+    if t is None:
+        return out
+    lc = lam[t.dofs]
+    gs_l, geps_l = _dot(t.gs, lc), _dot(t.geps, lc)
+    gf_l, gxm_l = _dot(t.gf, lc), _dot(t.gxm, lc)
+    col = lambda a: a[:, None]  # noqa: E731
+    v = col(t.f * t.m2 * gs_l) * t.gs
+    v += col(t.f * t.dm1) * (t.geps * col(gs_l) - t.gs * col(geps_l))
+    v += t.gxm * col(gf_l) - t.gf * col(gxm_l)
+    np.add.at(out, t.dofs.ravel(), v.ravel())
+    return out
 
 
 def barrier_shape_derivative(
@@ -217,3 +275,27 @@ def barrier_shape_derivative(
     if x.shape[1] == 3 and len(collisions.ee_collisions):
         S = S + _ee_correction(collisions, mesh, x, barrier, stiffness)
     return sp.csc_matrix(S)
+
+
+def barrier_shape_adjoint(
+    collisions: ipctk.NormalCollisions,
+    mesh: ipctk.CollisionMesh,
+    x: np.ndarray,
+    barrier: ipctk.BarrierPotential,
+    stiffness: float,
+    lam: np.ndarray,
+) -> np.ndarray:
+    """S^T lam with S of :func:`barrier_shape_derivative` (the correction applied as a product).
+
+    Args:
+        collisions: Built with ``enable_shape_derivatives = True`` at positions ``x``.
+        mesh: The collision mesh (area Jacobians initialised).
+        x: (num_vertices, dim) current positions.
+        barrier: The barrier potential.
+        stiffness: Its stiffness kappa.
+        lam: (num_vertices * dim,) the vector.
+    """
+    g = sp.csc_matrix(barrier.shape_derivative(collisions, mesh, x)).T @ lam
+    if x.shape[1] == 3 and len(collisions.ee_collisions):
+        g = g + _ee_correction_adjoint(collisions, mesh, x, barrier, stiffness, lam)
+    return g

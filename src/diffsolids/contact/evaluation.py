@@ -1,0 +1,91 @@
+"""The contact potential at one surface displacement: collision set and ipctk derivatives.
+
+An :class:`Evaluation` caches, for one displacement U of the collision surface, the collision
+set at x = X + U and whatever of the potential has been asked for (value, gradient, exact or
+PSD-projected Hessian, the Newton matrix pattern). The potential of step i is
+B(x) + beta dt D(v) (see :mod:`diffsolids.contact.term`): the barrier of the collision set plus
+the lagged friction dissipation at the velocity v; its gradient w.r.t. u is grad B - F(v) and
+its Hessian Hess B + Hess_v D / (beta dt).
+"""
+
+from dataclasses import dataclass, field
+
+import ipctk
+import numpy as np
+import scipy.sparse as sp
+
+__all__ = ["Evaluation", "contact_energy", "contact_gradient", "contact_hessian"]
+
+
+@dataclass
+class Evaluation:
+    """Collision set and derivatives at one surface displacement (cached)."""
+
+    U: np.ndarray
+    x: np.ndarray
+    collisions: ipctk.NormalCollisions
+    token: int
+    energy: float | None = None
+    gradient: np.ndarray | None = None
+    hessian: sp.csc_matrix | None = None
+    projected: sp.csc_matrix | None = None
+    blocks: np.ndarray | None = None
+    extras: dict = field(default_factory=dict)
+
+
+def contact_energy(
+    barrier: ipctk.BarrierPotential,
+    friction: ipctk.FrictionPotential,
+    mesh: ipctk.CollisionMesh,
+    ev: Evaluation,
+    V: np.ndarray | None,
+    beta_dt: float,
+) -> float:
+    """B(x) + beta dt D(v) at ev (this rank's value; the friction part if ``V`` is given).
+
+    Args:
+        barrier: The barrier potential.
+        friction: The friction potential.
+        mesh: The collision mesh.
+        ev: The evaluation (its ``extras["friction"]``: the step's tangential collisions).
+        V: (num_vertices, dim) velocities, or None without friction.
+        beta_dt: beta dt of the step.
+    """
+    e = barrier(ev.collisions, mesh, np.asfortranarray(ev.x))
+    T = ev.extras["friction"]
+    if T is not None:
+        e += beta_dt * friction(T, mesh, np.asfortranarray(V))
+    return e
+
+
+def contact_gradient(
+    barrier: ipctk.BarrierPotential,
+    friction: ipctk.FrictionPotential,
+    mesh: ipctk.CollisionMesh,
+    ev: Evaluation,
+    V: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(gradient, its barrier part) of the contact potential in collision dofs at ev."""
+    gb = barrier.gradient(ev.collisions, mesh, np.asfortranarray(ev.x))
+    T = ev.extras["friction"]
+    if T is None:
+        return gb, gb
+    return gb + friction.gradient(T, mesh, np.asfortranarray(V)), gb
+
+
+def contact_hessian(
+    barrier: ipctk.BarrierPotential,
+    friction: ipctk.FrictionPotential,
+    mesh: ipctk.CollisionMesh,
+    ev: Evaluation,
+    V: np.ndarray | None,
+    beta_dt: float,
+    method: ipctk.PSDProjectionMethod,
+) -> sp.csc_matrix:
+    """Hessian of the contact potential at ev (exact for NONE, else PSD-projected per pair)."""
+    H = barrier.hessian(ev.collisions, mesh, np.asfortranarray(ev.x), method)
+    T = ev.extras["friction"]
+    if T is not None:
+        Hf = friction.hessian(T, mesh, np.asfortranarray(V), method)
+        H = H + Hf / beta_dt
+    return sp.csc_matrix(H)
