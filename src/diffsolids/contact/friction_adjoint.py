@@ -22,6 +22,7 @@ distances, closest points, tangent bases and relative velocities of each collisi
 """
 
 import contextlib
+from collections.abc import Iterator
 
 import ipctk
 import numpy as np
@@ -41,7 +42,7 @@ def _unit(a: np.ndarray) -> np.ndarray:
 
 
 @contextlib.contextmanager
-def _sparse_as_arrays():
+def _sparse_as_arrays() -> Iterator[None]:
     """Let pybind11 return Eigen sparse vectors as (data, indices, indptr) arrays.
 
     pybind11 casts an Eigen sparse matrix by calling ``scipy.sparse.csc_matrix((data, indices,
@@ -56,7 +57,7 @@ def _sparse_as_arrays():
         scipy.sparse.csc_matrix = original
 
 
-def _sparse_parts(g) -> tuple[np.ndarray, np.ndarray]:
+def _sparse_parts(g: tuple | scipy.sparse.spmatrix) -> tuple[np.ndarray, np.ndarray]:
     if isinstance(g, tuple):
         return np.asarray(g[1]), np.asarray(g[0])
     g = scipy.sparse.csc_matrix(g)
@@ -67,7 +68,7 @@ def _gather(
     T: ipctk.TangentialCollisions,
     mesh: ipctk.CollisionMesh,
     weight_gradients: bool = False,
-):
+) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, np.ndarray]] | None]:
     """Vertex ids (-1 padded to 4) and type of every collision, and their weight gradients.
 
     Returns:
@@ -100,7 +101,7 @@ def _gather(
     return ids.astype(np.int64), kind, grads
 
 
-def _point_point(x: np.ndarray):
+def _point_point(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """d^2, beta-weights of Gamma and the tangent basis of vertex-vertex pairs (2D and 3D)."""
     p0, p1 = x[:, 0], x[:, 1]
     r = p1 - p0
@@ -115,7 +116,7 @@ def _point_point(x: np.ndarray):
     return _dot(r, r), gamma, basis
 
 
-def _point_edge(x: np.ndarray):
+def _point_edge(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     p, e0, e1 = x[:, 0], x[:, 1], x[:, 2]
     e = e1 - e0
     ee = _dot(e, e)
@@ -129,7 +130,7 @@ def _point_edge(x: np.ndarray):
     return _dot(c, c) / ee, gamma, basis
 
 
-def _edge_edge(x: np.ndarray):
+def _edge_edge(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     ea0, ea1, eb0, eb1 = x[:, 0], x[:, 1], x[:, 2], x[:, 3]
     ea, eb, w = ea1 - ea0, eb1 - eb0, ea0 - eb0
     a00, a01, a11 = _dot(ea, ea), -_dot(eb, ea), _dot(eb, eb)
@@ -143,7 +144,7 @@ def _edge_edge(x: np.ndarray):
     return line * line / _dot(n, n), gamma, basis
 
 
-def _face_vertex(x: np.ndarray):
+def _face_vertex(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     p, t0, t1, t2 = x[:, 0], x[:, 1], x[:, 2], x[:, 3]
     e0, e1, q = t1 - t0, t2 - t0, p - t0
     a00, a01, a11 = _dot(e0, e0), _dot(e0, e1), _dot(e1, e1)

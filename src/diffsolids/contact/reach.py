@@ -21,12 +21,16 @@ class, so that a few large boxes do not widen the search radius of all the small
 
 import itertools
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from diffsolids.contact.surface import CollisionSurface
 from diffsolids.solvers.sparsity import sorted_unique
+
+if TYPE_CHECKING:
+    from diffsolids.simulation import Trajectory
 
 __all__ = ["box_overlaps", "reach_blocks", "step_motion"]
 
@@ -273,7 +277,7 @@ def _neighbours(p: _Primitives, q: _Primitives, a: np.ndarray, b: np.ndarray) ->
 
 
 def step_motion(
-    surface: CollisionSurface, num_bodies: int, i: int, traj, dt: float
+    surface: CollisionSurface, num_bodies: int, i: int, traj: "Trajectory", dt: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """How far each collision vertex may move in step ``i`` (collective).
 

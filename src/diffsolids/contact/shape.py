@@ -23,6 +23,7 @@ batched numpy, written with the formulas of ipctk's ``edge_edge_mollifier.cpp``,
 ``line_line.cpp``, ``point_line.cpp`` and ``barrier.cpp``.
 """
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import ipctk
@@ -56,7 +57,7 @@ class _MollifiedPairs:
     eps: np.ndarray  # mollifier threshold at rest
     s: np.ndarray  # cross squared norm at the positions
 
-    def __iter__(self):
+    def __iter__(self) -> Iterator[int]:
         return iter(self.index)
 
     def __len__(self) -> int:
@@ -87,7 +88,9 @@ def _mollified_pairs(
     return _MollifiedPairs(keep, pairs[keep], ids[keep], xr[keep], xp[keep], eps[keep], s[keep])
 
 
-def _point_line(p: np.ndarray, e0: np.ndarray, e1: np.ndarray):
+def _point_line(
+    p: np.ndarray, e0: np.ndarray, e1: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Squared distance of points to lines (3D) and its gradients w.r.t. p, e0, e1."""
     a, b, e = e0 - p, e1 - p, e1 - e0
     c = np.cross(a, b)
@@ -101,7 +104,7 @@ def _point_line(p: np.ndarray, e0: np.ndarray, e1: np.ndarray):
     return d, gp, ge0, ge1
 
 
-def _line_line(xp: np.ndarray):
+def _line_line(xp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Squared distance between the lines of (ea0, ea1) and (eb0, eb1) and its gradient."""
     u, v, w = xp[:, 1] - xp[:, 0], xp[:, 3] - xp[:, 2], xp[:, 2] - xp[:, 0]
     n = np.cross(u, v)
@@ -115,7 +118,7 @@ def _line_line(xp: np.ndarray):
     return d, np.stack([-gu - gw, gu, gw - gv, gv], axis=1)
 
 
-def _edge_edge_distance(xp: np.ndarray, dtype: np.ndarray):
+def _edge_edge_distance(xp: np.ndarray, dtype: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Squared edge-edge distance of the given ipctk distance type, and its (n, 4, 3) gradient."""
     d = np.empty(len(xp))
     grad = np.zeros_like(xp)
@@ -135,7 +138,7 @@ def _edge_edge_distance(xp: np.ndarray, dtype: np.ndarray):
     return d, grad
 
 
-def _barrier(kappa_b, d: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+def _barrier(kappa_b: ipctk.Barrier, d: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
     """b(d, t) and b'(d, t) of ipctk's barrier function at squared distances d (array)."""
     if type(kappa_b) is ipctk.ClampedLogBarrier:  # barrier.cpp, vectorised
         inside = (d > 0) & (d < t)

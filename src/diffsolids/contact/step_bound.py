@@ -52,7 +52,7 @@ class StepBound:
         broad_phase: ipctk.BroadPhase,
         dhat: float,
         comm: MPI.Comm,
-    ):
+    ) -> None:
         self.surface = surface
         self.ccd = ccd
         self.broad_phase = broad_phase
@@ -66,7 +66,7 @@ class StepBound:
         x1: np.ndarray,
         cached: Callable[[], ipctk.NormalCollisions | None] = lambda: None,
         with_candidates: bool = False,
-    ):
+    ) -> float | tuple[float, ipctk.Candidates]:
         """Collision-free fraction of x0 -> x1 (collective; the same on all ranks).
 
         Args:
@@ -174,7 +174,7 @@ def _edge_vertex_bounds(
     dp, da, db = x1[v] - p0, x1[a] - a0, x1[b] - b0
     r0, dr, s0, ds = p0 - a0, dp - da, b0 - a0, db - da
 
-    def cross(u, w):
+    def cross(u: np.ndarray, w: np.ndarray) -> np.ndarray:
         return u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0]
 
     c0, c1, c2 = cross(r0, s0), cross(r0, ds) + cross(dr, s0), cross(dr, ds)

@@ -44,6 +44,7 @@ import logging
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import ipctk
 import numpy as np
@@ -78,6 +79,10 @@ from diffsolids.errors import IntersectionError, ParameterError
 from diffsolids.model.numeric import NumericTerm
 from diffsolids.parallel import collective_comm
 from diffsolids.solvers.sparsity import sorted_unique
+
+if TYPE_CHECKING:
+    from diffsolids.integrators import TimeStep
+    from diffsolids.simulation import Trajectory
 
 __all__ = ["ContactRecord", "ContactTerm"]
 
@@ -267,7 +272,7 @@ class ContactTerm(NumericTerm):
         return self._mu.copy()
 
     @friction_coefficients.setter
-    def friction_coefficients(self, values) -> None:
+    def friction_coefficients(self, values: np.ndarray | Sequence[float]) -> None:
         mu = checked_coefficients(values, len(self.friction_pairs))
         if not np.array_equal(mu, self._mu):
             self._mu = mu
@@ -376,7 +381,9 @@ class ContactTerm(NumericTerm):
         move = step["obstacle"] - (step["lagged"] - step["start_body"])
         return obstacle_move_error(self.surface, step["index"], move, self._dynamic)
 
-    def _step_motion(self, i: int, traj, coeffs) -> tuple[np.ndarray, np.ndarray]:
+    def _step_motion(
+        self, i: int, traj: "Trajectory", coeffs: "TimeStep"
+    ) -> tuple[np.ndarray, np.ndarray]:
         """How far each collision vertex may move in step ``i`` (:func:`step_motion`)."""
         return step_motion(self.surface, len(self.body_ids), i, traj, coeffs.dt)
 
@@ -836,14 +843,19 @@ class ContactTerm(NumericTerm):
         return rec
 
     # -- adjoint kernels ---------------------------------------------------------------------
-    def _lambda(self, lam) -> np.ndarray:
+    def _lambda(self, lam: fem.Function | np.ndarray) -> np.ndarray:
         values = lam.x.array if isinstance(lam, fem.Function) else np.asarray(lam)
         return self.surface.gather(values).ravel()
 
     def _local(self, g: np.ndarray) -> np.ndarray:
         return self.surface.to_local(g, len(self.model.fields.u.x.array))
 
-    def _friction_jacobian(self, ev: Evaluation, T, wrt) -> sp.csc_matrix:
+    def _friction_jacobian(
+        self,
+        ev: Evaluation,
+        T: ipctk.TangentialCollisions,
+        wrt: ipctk.FrictionPotential.DiffWRT,
+    ) -> sp.csc_matrix:
         V = np.asfortranarray(self._velocity(ev.U))
         return sp.csc_matrix(
             self.friction_potential.force_jacobian(
@@ -867,7 +879,9 @@ class ContactTerm(NumericTerm):
         return J
 
     @timed_kernel("adjoint_history")
-    def adjoint_history(self, u, lam) -> dict[int, np.ndarray]:
+    def adjoint_history(
+        self, u: fem.Function | np.ndarray, lam: fem.Function | np.ndarray
+    ) -> dict[int, np.ndarray]:
         """(d g / d u^{i-j})^T lam for j = 1..m_i (owned entries of local V arrays).
 
         g is the contact part of the step residual: friction depends on u^{i-1} through the
@@ -894,7 +908,9 @@ class ContactTerm(NumericTerm):
         return out
 
     @timed_kernel("adjoint_shape")
-    def adjoint_shape(self, u, lam) -> np.ndarray:
+    def adjoint_shape(
+        self, u: fem.Function | np.ndarray, lam: fem.Function | np.ndarray
+    ) -> np.ndarray:
         """(d g / d X)^T lam over the dofs of the P1 rest-coordinate space (owned entries).
 
         Includes the barrier shape derivative with area-weight terms and the 3D edge-edge
@@ -946,7 +962,9 @@ class ContactTerm(NumericTerm):
             self.surface.body_index,
         )
 
-    def adjoint_parameter(self, name: str, u, lam) -> np.ndarray:
+    def adjoint_parameter(
+        self, name: str, u: fem.Function | np.ndarray, lam: fem.Function | np.ndarray
+    ) -> np.ndarray:
         """Lam . dG_i/d(friction coefficient of each pair of :attr:`friction_pairs`)."""
         if name != "friction":
             return super().adjoint_parameter(name, u, lam)
@@ -964,7 +982,9 @@ class ContactTerm(NumericTerm):
         )
 
     @timed_kernel("adjoint_friction")
-    def adjoint_friction(self, u, lam) -> np.ndarray:
+    def adjoint_friction(
+        self, u: fem.Function | np.ndarray, lam: fem.Function | np.ndarray
+    ) -> np.ndarray:
         """(d g / d mu_p)^T lam for each pair p of :attr:`friction_pairs` (global, all ranks).
 
         The friction gradient is linear in each collision's mu (static = kinetic): per pair, its

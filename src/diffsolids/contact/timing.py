@@ -4,6 +4,7 @@ import contextlib
 import functools
 import time
 from collections.abc import Callable, Iterator
+from typing import Any
 
 __all__ = ["timed", "timed_kernel", "timing_summary"]
 
@@ -26,7 +27,7 @@ def timed_kernel(name: str) -> Callable[[Callable], Callable]:
 
     def decorate(method: Callable) -> Callable:
         @functools.wraps(method)
-        def wrapped(self, *args, **kwargs):
+        def wrapped(self: Any, *args: Any, **kwargs: Any) -> Any:
             with timed(self.timings, name):
                 return method(self, *args, **kwargs)
 
