@@ -206,7 +206,7 @@ class Integrator(ABC):
 
     dynamic: bool = False
 
-    def __init__(self, dt: float, num_steps: int):
+    def __init__(self, dt: float, num_steps: int) -> None:
         if not (isinstance(dt, numbers.Real) and math.isfinite(dt)) or dt <= 0:
             raise ParameterError(f"time step dt = {dt} must be a positive finite number")
         if not isinstance(num_steps, int) or num_steps < 1:
@@ -241,7 +241,7 @@ class Static(Integrator):
 
     dynamic = False
 
-    def __init__(self, num_steps: int = 1, dt: float = 1.0):
+    def __init__(self, num_steps: int = 1, dt: float = 1.0) -> None:
         super().__init__(dt, num_steps)
 
     @override
@@ -268,7 +268,7 @@ class BDF(Integrator):
 
     def __init__(
         self, order: int, dt: float, num_steps: int | None = None, t_end: float | None = None
-    ):
+    ) -> None:
         bdf_coefficients(order)  # validates the order
         if num_steps is None:
             if t_end is None or not math.isfinite(t_end) or t_end <= 0:

@@ -3,14 +3,16 @@
 import logging
 import time
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
 
 from diffsolids.adjoint import AdjointSolverOptions, BackwardSweep, Sensitivities
-from diffsolids.adjoint.checkpointing import CheckpointedRun, Checkpointing
+from diffsolids.adjoint.checkpointing import CheckpointedRun, CheckpointedTrajectory, Checkpointing
 from diffsolids.adjoint.forms import check_objective_fields
 from diffsolids.controls import Control, ControlSet
 from diffsolids.errors import DiffsolidsError, ParameterError
@@ -19,6 +21,9 @@ from diffsolids.objectives.terms import objective_terms
 from diffsolids.parallel import collective_comm
 from diffsolids.solvers import compile_form
 from diffsolids.solvers.factor_store import FactorStore
+
+if TYPE_CHECKING:
+    from diffsolids.simulation import Simulation, StateHistory, Trajectory
 
 __all__ = ["AdjointError", "ReducedFunctional"]
 
@@ -62,13 +67,13 @@ class ReducedFunctional:
 
     def __init__(
         self,
-        simulation,
+        simulation: "Simulation",
         objective: Objective,
         controls: Control | Sequence[Control],
         adjoint_options: AdjointSolverOptions | None = None,
         factor_memory_mb: float | None = None,
         checkpointing: Checkpointing | None = None,
-    ):
+    ) -> None:
         if checkpointing is not None and not isinstance(checkpointing, Checkpointing):
             raise ParameterError(
                 f"checkpointing must be a Checkpointing policy, got {type(checkpointing).__name__}"
@@ -121,7 +126,7 @@ class ReducedFunctional:
         return TimeGrid(integ.num_steps, integ.dt, integ.dynamic)
 
     # -- forward ---------------------------------------------------------------------------
-    def forward(self, q) -> float:
+    def forward(self, q: npt.ArrayLike) -> float:
         """Assign q, run the simulation and evaluate J."""
         q = np.array(q, dtype=float)
         self.controls.assign(q)
@@ -142,7 +147,7 @@ class ReducedFunctional:
         self._state = (q, traj, table, reg, J)
         return J
 
-    def _evaluate_leaves(self, traj) -> dict:
+    def _evaluate_leaves(self, traj: "StateHistory") -> dict:
         table, needed = self._empty_table()
         steps = sorted(set().union(*needed.values())) if needed else []
         for i in steps:
@@ -155,7 +160,7 @@ class ReducedFunctional:
         table = {leaf: np.full(grid.num_steps + 1, np.nan) for leaf in self.leaves}
         return table, needed
 
-    def _evaluate_step(self, i: int, traj, table: dict, needed: dict) -> None:
+    def _evaluate_step(self, i: int, traj: "StateHistory", table: dict, needed: dict) -> None:
         """The objective's integrals of step i (``traj`` holds u^{i-d..i}, v^{i-d..i})."""
         if not any(i in leaf_steps for leaf_steps in needed.values()):
             return
@@ -173,7 +178,9 @@ class ReducedFunctional:
                 local = fem.assemble_scalar(self._value_forms[leaf])
                 table[leaf][i] = collective_comm(self.comm).allreduce(local, op=MPI.SUM)
 
-    def _checkpointed_forward(self, run: CheckpointedRun):
+    def _checkpointed_forward(
+        self, run: CheckpointedRun
+    ) -> "tuple[Trajectory | CheckpointedTrajectory, dict]":
         """Forward run of a checkpointing schedule, the integrals evaluated as states appear."""
         table, needed = self._empty_table()
         run.on_state = lambda i, view: self._evaluate_step(i, view, table, needed)
@@ -188,7 +195,7 @@ class ReducedFunctional:
             self._run.close()
             self._run = None
 
-    def __call__(self, q) -> float:
+    def __call__(self, q: npt.ArrayLike) -> float:
         """J(q) (reuses the last forward run when q is unchanged)."""
         q = np.asarray(q, dtype=float)
         if self._state is not None and np.array_equal(self._state[0], q):
@@ -242,12 +249,12 @@ class ReducedFunctional:
                 elif key in sens.coefficients:
                     sens.coefficients[key] += seed * g[: len(sens.coefficients[key])]
 
-    def gradient(self, q) -> np.ndarray:
+    def gradient(self, q: npt.ArrayLike) -> np.ndarray:
         """dJ/dq at q (runs the forward problem if q changed)."""
         self(q)
         return self.derivative()
 
-    def value_and_gradient(self, q) -> tuple[float, np.ndarray]:
+    def value_and_gradient(self, q: npt.ArrayLike) -> tuple[float, np.ndarray]:
         """(J(q), dJ/dq)."""
         J = self(q)
         return J, self.derivative()
@@ -263,11 +270,11 @@ class ReducedFunctional:
         _, _, table, reg, _ = self._state
         return {t.label: t.value(table, reg, self.grid) for t in objective_terms(self.objective)}
 
-    def snapshot(self):
+    def snapshot(self) -> tuple | None:
         """An opaque record of the last forward run (parameters, trajectory, values)."""
         return self._state
 
-    def restore(self, snapshot) -> None:
+    def restore(self, snapshot: tuple | None) -> None:
         """Return to a :meth:`snapshot`: assign its parameters and make it the last forward run.
 
         The controls (model coefficients, mesh) are reset even if a later ``assign`` failed
@@ -279,7 +286,7 @@ class ReducedFunctional:
         self._state = snapshot
         self.simulation.trajectory = snapshot[1]
 
-    def tao_objective_gradient(self, tao, x, g) -> float:
+    def tao_objective_gradient(self, tao: PETSc.TAO, x: PETSc.Vec, g: PETSc.Vec) -> float:
         """PETSc TAO objective-and-gradient callback: returns J(x) and fills ``g``.
 
         ``x`` and ``g`` are either sequential Vecs holding the full parameter vector on every
@@ -303,7 +310,7 @@ class ReducedFunctional:
         return J
 
     @property
-    def trajectory(self):
+    def trajectory(self) -> "Trajectory | CheckpointedTrajectory | None":
         """Trajectory of the last forward run."""
         return None if self._state is None else self._state[1]
 

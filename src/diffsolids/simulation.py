@@ -16,11 +16,18 @@ from diffsolids.solvers import NewtonSolver, SolverOptions
 if TYPE_CHECKING:
     import os
 
-    from diffsolids.adjoint.checkpointing import CheckpointedRun
+    from diffsolids.adjoint.checkpointing import CheckpointedRun, CheckpointedTrajectory
     from diffsolids.io.output import TrajectoryWriter
     from diffsolids.model import Model
 
-__all__ = ["CanonicalValues", "Simulation", "StateHistory", "StepRecord", "Trajectory"]
+__all__ = [
+    "CanonicalValues",
+    "Simulation",
+    "StateHistory",
+    "StateRecorder",
+    "StepRecord",
+    "Trajectory",
+]
 
 logger = logging.getLogger("diffsolids")
 
@@ -42,7 +49,8 @@ class StateHistory(Protocol):
     """The states a step reads: u^k, v^k by absolute step k (local arrays incl. ghosts).
 
     A :class:`Trajectory`, or the view of a checkpointed run that holds the states the step
-    reads (u^{i-j}, v^{i-j} for j = 1..d); the forward also appends the step's state to it.
+    reads (u^{i-j}, v^{i-j} for j = 1..d); the forward appends the step's state to a
+    :class:`StateRecorder`.
     """
 
     @property
@@ -52,6 +60,18 @@ class StateHistory(Protocol):
     @property
     def v(self) -> Sequence[np.ndarray]:
         """Velocities by step."""
+
+
+class StateRecorder(StateHistory, Protocol):
+    """A :class:`StateHistory` a forward step appends its state to.
+
+    A :class:`Trajectory`, or the view of a checkpointed run that keeps the states its
+    schedule needs.
+    """
+
+    def append_state(self, t: float, u: np.ndarray, v: np.ndarray, record: StepRecord) -> None:
+        """Append u^i, v^i of the step at time ``t`` and its record."""
+        ...
 
 
 @dataclass
@@ -206,7 +226,7 @@ class Simulation:
         progress: bool | None = None,
         callback: Callable | None = None,
         startup: Sequence[tuple[InitialValue, InitialValue]] | None = None,
-    ):
+    ) -> None:
         self.model = model
         self.integrator = integrator
         V = model.V
@@ -381,7 +401,9 @@ class Simulation:
         return min(b.max_step(x, dx) for b in numeric) <= 1.0
 
     # -- run -----------------------------------------------------------------------------
-    def run(self, checkpoints: "CheckpointedRun | None" = None) -> Trajectory:
+    def run(
+        self, checkpoints: "CheckpointedRun | None" = None
+    ) -> "Trajectory | CheckpointedTrajectory":
         """Solve all steps and return the trajectory (also kept as ``self.trajectory``).
 
         Args:
@@ -428,7 +450,7 @@ class Simulation:
         if self.solver.factor_store is not None:
             self.solver.factor_store.clear()
 
-    def advance(self, i: int, traj: StateHistory, replay: bool = False) -> None:
+    def advance(self, i: int, traj: StateRecorder, replay: bool = False) -> None:
         """Solve (or prescribe) step ``i`` from the states of ``traj`` and append u^i, v^i.
 
         Args:
@@ -443,7 +465,7 @@ class Simulation:
         else:
             self._step(i, traj, replay)
 
-    def _step(self, i: int, traj: StateHistory, replay: bool = False) -> None:
+    def _step(self, i: int, traj: StateRecorder, replay: bool = False) -> None:
         t0 = time.perf_counter()
         c = self.begin_step(i, traj)
         if i == len(self.startup) + 1:  # first solved step
@@ -487,12 +509,12 @@ class Simulation:
             rec.seconds,
         )
 
-    def _prescribe(self, i: int, traj: StateHistory) -> None:
+    def _prescribe(self, i: int, traj: StateRecorder) -> None:
         u_i, v_i = self.startup[i - 1]
         t = self.integrator.time(i)
         traj.append_state(t, u_i.copy(), v_i.copy(), StepRecord(i, t, 0, 0, np.nan, np.nan, 0.0))
 
-    def _open_writer(self):
+    def _open_writer(self) -> "TrajectoryWriter | None":
         if self.output is None:
             return None
         if isinstance(self.output, str | bytes) or hasattr(self.output, "__fspath__"):

@@ -25,13 +25,14 @@ import contextlib
 import os
 import shutil
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from checkpoint_schedules import (
+    CheckpointAction,
     Copy,
     EndForward,
     EndReverse,
@@ -51,7 +52,9 @@ from diffsolids.parallel import collective_comm
 from diffsolids.solvers.factor_store import node_memory_mb
 
 if TYPE_CHECKING:
-    from diffsolids.simulation import Simulation
+    import h5py
+
+    from diffsolids.simulation import Simulation, StepRecord
 
 __all__ = [
     "CheckpointedRun",
@@ -115,7 +118,7 @@ class Checkpointing:
     directory: str | os.PathLike | None = None
     memory_fraction: float = 0.5
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if self.policy not in _POLICIES:
             raise ParameterError(
                 f"unknown checkpointing policy {self.policy!r}; choose one of {_POLICIES}"
@@ -133,7 +136,7 @@ class Checkpointing:
         if not 0.0 < self.memory_fraction <= 1.0:
             raise ParameterError(f"memory_fraction must be in (0, 1], got {self.memory_fraction}")
 
-    def resolve(self, simulation) -> "Checkpointing":
+    def resolve(self, simulation: "Simulation") -> "Checkpointing":
         """The concrete policy (never ``"auto"``) for a run of ``simulation`` (collective)."""
         if self.policy != "auto":
             return self
@@ -151,7 +154,8 @@ class Checkpointing:
             return Checkpointing("memory", snaps=min(snaps, N), directory=self.directory)
         return Checkpointing("disk", directory=self.directory)
 
-    def make_schedule(self, num_steps: int):
+    # a checkpoint_schedules.CheckpointSchedule: Any, as the docs have no inventory of that package
+    def make_schedule(self, num_steps: int) -> Any:
         """The ``checkpoint_schedules`` schedule of this (resolved) policy for N steps."""
         N = num_steps
         if self.policy == "all":
@@ -168,7 +172,7 @@ class Checkpointing:
         raise ParameterError("resolve() the 'auto' policy before making a schedule")
 
 
-def _state_budget_mb(simulation, fraction: float) -> float:
+def _state_budget_mb(simulation: "Simulation", fraction: float) -> float:
     """Memory (MB) per rank the states of a run may take: see :class:`Checkpointing`."""
     memory = node_memory_mb()
     if memory is None:
@@ -201,7 +205,7 @@ def state_depth(simulation: "Simulation") -> int:
 class _MemoryStorage:
     """Checkpoints in memory: the state arrays themselves (states are never modified)."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.records: dict[int, dict] = {}
 
     def put(self, n: int, record: dict) -> None:
@@ -220,7 +224,7 @@ class _MemoryStorage:
 class _DiskStorage:
     """Checkpoints in one HDF5 file per rank (its owned and ghost entries), a group each."""
 
-    def __init__(self, comm: MPI.Comm, directory):
+    def __init__(self, comm: MPI.Comm, directory: str | os.PathLike | None) -> None:
         root = None
         if comm.rank == 0:
             root = tempfile.mkdtemp(prefix="diffsolids-checkpoints-", dir=directory)
@@ -230,7 +234,7 @@ class _DiskStorage:
         self.path = self.root / f"rank{self.rank}.h5"
         self._file = None
 
-    def _open(self):
+    def _open(self) -> "h5py.File":
         if self._file is None:
             import h5py
 
@@ -277,10 +281,10 @@ class _DiskStorage:
 
 
 # -- trajectories ----------------------------------------------------------------------------
-class _States:
+class _States(Sequence[np.ndarray]):
     """Read-only sequence view of the u (0) or v (1) arrays of a dict of states."""
 
-    def __init__(self, states: dict, which: int, length: Callable[[], int]):
+    def __init__(self, states: dict, which: int, length: Callable[[], int]) -> None:
         self._states, self._which, self._length = states, which, length
 
     def __len__(self) -> int:
@@ -306,14 +310,19 @@ class _StateView:
     N + 1 in recomputations and in the backward sweep.
     """
 
-    def __init__(self, states: dict, length: Callable[[], int], on_append=None):
+    def __init__(
+        self,
+        states: dict,
+        length: Callable[[], int],
+        on_append: Callable[[int, float, "StepRecord"], None] | None = None,
+    ) -> None:
         self.states = states
         self.u = _States(states, 0, length)
         self.v = _States(states, 1, length)
         self._on_append = on_append
         self.next = 0
 
-    def append_state(self, t, u, v, record) -> None:
+    def append_state(self, t: float, u: np.ndarray, v: np.ndarray, record: "StepRecord") -> None:
         self.states[self.next] = (u, v)
         if self._on_append is not None:
             self._on_append(self.next, t, record)
@@ -327,7 +336,7 @@ class CheckpointedTrajectory:
     u^N, v^N are always held). ``run`` is the :class:`CheckpointedRun` holding the checkpoints.
     """
 
-    def __init__(self, num_steps: int, states: dict):
+    def __init__(self, num_steps: int, states: dict) -> None:
         self.run: CheckpointedRun | None = None  # the run holding the checkpoints
         self.times: list[float] = [0.0]
         self.records: list = []
@@ -360,7 +369,7 @@ class CheckpointedRun:
             once (checkpoints, working states and adjoint dependencies, each array once).
     """
 
-    def __init__(self, simulation, policy: Checkpointing):
+    def __init__(self, simulation: "Simulation", policy: Checkpointing) -> None:
         if policy.policy == "auto":
             policy = policy.resolve(simulation)
         self.sim = simulation
@@ -446,7 +455,7 @@ class CheckpointedRun:
         sim.warm_start = self.warm_start  # the initial guesses of the first forward
         solver.factor_store = store if adj else None
 
-        def record(j: int, t: float, rec) -> None:
+        def record(j: int, t: float, rec: "StepRecord") -> None:
             traj.times.append(t)
             traj.records.append(rec)
 
@@ -477,7 +486,7 @@ class CheckpointedRun:
             sim.warm_start = warm
         self._n = n1
 
-    def _action(self, action, first: bool = False) -> None:
+    def _action(self, action: CheckpointAction, first: bool = False) -> None:
         schedule = self.schedule
         if isinstance(action, Forward):
             n0, n1 = action.n0, min(action.n1, self.N)
@@ -503,7 +512,7 @@ class CheckpointedRun:
         else:
             raise CheckpointingError(f"unknown checkpointing action {action}")
 
-    def _load(self, action) -> None:
+    def _load(self, action: Copy | Move) -> None:
         n, source, target = action.n, action.from_storage, action.to_storage
         if target == StorageType.NONE:
             self._storage[source].delete(n)
@@ -569,7 +578,7 @@ class CheckpointedRun:
         self._adj.clear()
         self.closed = True
 
-    def __del__(self):
+    def __del__(self) -> None:
         with contextlib.suppress(Exception):
             if StorageType.DISK in self._storage:
                 self._storage[StorageType.DISK].close_local()

@@ -15,6 +15,7 @@ refuses the objectives whose history fields are undefined (at step 0, or u_tilde
 run).
 """
 
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import ufl
@@ -27,8 +28,9 @@ from diffsolids.objectives.functional import NumericIntegral
 from diffsolids.solvers.forms import compile_form
 
 if TYPE_CHECKING:
+    from diffsolids.model import Model
     from diffsolids.model.terms import StepFields
-    from diffsolids.objectives.functional import Objective, TimeGrid
+    from diffsolids.objectives.functional import Integral, Objective, TimeGrid
 
 __all__ = ["STATE_FIELDS", "AdjointForms", "check_objective_fields", "state_fields_read"]
 
@@ -38,7 +40,7 @@ __all__ = ["STATE_FIELDS", "AdjointForms", "check_objective_fields", "state_fiel
 STATE_FIELDS = ("u", "v", "u_prev", "u_tilde")
 
 
-def _nonempty(form):
+def _nonempty(form: ufl.Form | None) -> ufl.Form | None:
     """The form, or None when it has no integrals after expanding derivatives."""
     if form is None:
         return None
@@ -109,7 +111,13 @@ class AdjointForms:
         targets: Which parameter/shape sensitivities are needed.
     """
 
-    def __init__(self, model, dynamic: bool, leaves, targets: Targets):
+    def __init__(
+        self,
+        model: "Model",
+        dynamic: bool,
+        leaves: Sequence["Integral | NumericIntegral"],
+        targets: Targets,
+    ) -> None:
         f = model.fields
         V = model.V
         mesh = V.mesh

@@ -14,10 +14,14 @@ are reused where that stays exact:
 
 from contextlib import nullcontext
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from petsc4py import PETSc
 
 from diffsolids.solvers.action import JacobianAction
+
+if TYPE_CHECKING:
+    from diffsolids.solvers.newton import NewtonSolver
 
 __all__ = ["AdjointLinearSolver", "AdjointSolverOptions"]
 
@@ -40,10 +44,10 @@ class AdjointSolverOptions:
 class _FrozenPC:
     """petsc4py python PC applying an existing factorisation (never re-set-up)."""
 
-    def __init__(self, pc: PETSc.PC):
+    def __init__(self, pc: PETSc.PC) -> None:
         self.pc = pc
 
-    def apply(self, pc, x, y):
+    def apply(self, pc: PETSc.PC, x: PETSc.Vec, y: PETSc.Vec) -> None:
         self.pc.apply(x, y)
 
 
@@ -55,7 +59,7 @@ class AdjointLinearSolver:
         options: Krylov and refactorisation options.
     """
 
-    def __init__(self, newton, options: AdjointSolverOptions | None = None):
+    def __init__(self, newton: "NewtonSolver", options: AdjointSolverOptions | None = None) -> None:
         self.newton = newton
         self.options = options or AdjointSolverOptions()
         self.comm = newton.comm
@@ -150,7 +154,7 @@ class AdjointLinearSolver:
         self.stats["direct_solves"] += 1
         return 0
 
-    def _krylov(self, A, pc, b, x) -> int | None:
+    def _krylov(self, A: PETSc.Mat, pc: PETSc.PC, b: PETSc.Vec, x: PETSc.Vec) -> int | None:
         ksp = self._gmres
         ksp.setOperators(A)
         ksp.getPC().setPythonContext(_FrozenPC(pc))

@@ -25,7 +25,7 @@ import logging
 import time
 from collections import defaultdict
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from typing import TYPE_CHECKING
 
 import dolfinx.la
@@ -38,7 +38,7 @@ from diffsolids.adjoint.forms import AdjointForms
 from diffsolids.adjoint.linear import AdjointLinearSolver, AdjointSolverOptions
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.integrators import TimeStep
-from diffsolids.io.progress import progress_bar
+from diffsolids.io.progress import ProgressBar, progress_bar
 from diffsolids.parallel import collective_comm
 
 if TYPE_CHECKING:
@@ -54,7 +54,7 @@ logger = logging.getLogger("diffsolids")
 class _Adjoints(dict):
     """Accumulated adjoints ubar^i (or vbar^i) by step, created as zeros when first touched."""
 
-    def __init__(self, n: int):
+    def __init__(self, n: int) -> None:
         super().__init__()
         self.n = n
 
@@ -84,7 +84,7 @@ class BackwardSweep:
         leaves: Sequence["Integral | NumericIntegral"],
         targets: Targets,
         options: AdjointSolverOptions | None = None,
-    ):
+    ) -> None:
         self.sim = simulation
         self.model = simulation.model
         self.targets = targets
@@ -131,7 +131,7 @@ class BackwardSweep:
                 bar.update()
         return self._finish((traj.u[0], traj.v[0]))
 
-    def _progress(self, num_steps: int):
+    def _progress(self, num_steps: int) -> AbstractContextManager[ProgressBar]:
         """The adjoint's progress bar (shown where the simulation shows its own)."""
         return progress_bar(num_steps, self.model.domain.comm, self.sim.progress, "adjoint")
 

@@ -2,11 +2,20 @@
 
 import contextlib
 import sys
-from typing import TextIO
+from collections.abc import Iterator
+from typing import Any, Protocol, TextIO
 
 from mpi4py import MPI
 
-__all__ = ["progress_bar", "write_line"]
+__all__ = ["ProgressBar", "progress_bar", "write_line"]
+
+
+class ProgressBar(Protocol):
+    """What :func:`progress_bar` yields: a tqdm bar, or one that shows nothing."""
+
+    def update(self, n: int = 1) -> None:
+        """Advance the bar by ``n`` steps."""
+        ...
 
 
 class _NullBar:
@@ -15,7 +24,9 @@ class _NullBar:
 
 
 @contextlib.contextmanager
-def progress_bar(total: int, comm: MPI.Comm, enabled: bool | None = None, desc: str = "steps"):
+def progress_bar(
+    total: int, comm: MPI.Comm, enabled: bool | None = None, desc: str = "steps"
+) -> Iterator[Any]:  # a ProgressBar (not in diffsolids.io's __all__, so not in the docs)
     """A tqdm bar on rank 0; ``enabled=None`` shows it only when stderr is a terminal."""
     if enabled is None:
         enabled = sys.stderr.isatty()

@@ -3,13 +3,18 @@
 import inspect
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
+import dolfinx.mesh
 import numpy as np
 from dolfinx import fem
 from mpi4py import MPI
 
 from diffsolids.errors import ParameterError, TagError
 from diffsolids.parallel import collective_comm
+
+if TYPE_CHECKING:
+    from diffsolids.mesh import Domain
 
 __all__ = ["DirichletCondition", "OnBody", "RealisedDirichlet"]
 
@@ -61,7 +66,9 @@ class RealisedDirichlet:
         dofs: Sorted unrolled local indices (owned and ghost) of all constrained dofs.
     """
 
-    def __init__(self, condition: DirichletCondition, V: fem.FunctionSpace, domain):
+    def __init__(
+        self, condition: DirichletCondition, V: fem.FunctionSpace, domain: "Domain"
+    ) -> None:
         self.condition = condition
         mesh = V.mesh
         self.dim = mesh.geometry.dim
@@ -90,7 +97,7 @@ class RealisedDirichlet:
         self.dofs = np.unique(np.concatenate([bc.dof_indices()[0] for bc in self.bcs]))
         self.update(0.0)
 
-    def set_value(self, value) -> None:
+    def set_value(self, value: Value) -> None:
         """Replace the prescribed value (same forms as DirichletCondition.value)."""
         self._nparams = _num_params(value)
         self.condition.value = value
@@ -123,7 +130,9 @@ class RealisedDirichlet:
                 gc.x.array[cdofs] = vals[c]
 
 
-def _located_entities(where, mesh, domain) -> tuple[int, np.ndarray | None]:
+def _located_entities(
+    where: int | str | OnBody | Callable, mesh: dolfinx.mesh.Mesh, domain: "Domain"
+) -> tuple[int, np.ndarray | None]:
     """The entity dimension and local entities a condition's ``where`` names (None: a locator)."""
     if isinstance(where, OnBody):
         tdim = mesh.topology.dim
@@ -134,7 +143,7 @@ def _located_entities(where, mesh, domain) -> tuple[int, np.ndarray | None]:
     return mesh.topology.dim - 1, domain.facets_of(where)
 
 
-def _num_params(value) -> int:
+def _num_params(value: Value) -> int:
     if not callable(value):
         return 0
     n = len(inspect.signature(value).parameters)

@@ -11,9 +11,11 @@ import numbers
 from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
+import numpy.typing as npt
 import ufl
 from dolfinx import default_scalar_type, fem
 from mpi4py import MPI
+from ufl.core.expr import Expr
 
 from diffsolids import forms
 from diffsolids.errors import ParameterError, TagError
@@ -73,7 +75,7 @@ class Model:
         quadrature_degree: int | None = None,
         fields: Mapping[str, fem.Function] | None = None,
         damping: bool = False,
-    ):
+    ) -> None:
         if degree not in (1, 2, 3):
             raise ParameterError(f"displacement degree {degree} not supported (1, 2 or 3)")
         self.domain = domain
@@ -106,7 +108,9 @@ class Model:
         self._frozen = False
 
     # -- construction helpers -------------------------------------------------------------
-    def _body_materials(self, materials) -> dict[int, Material]:
+    def _body_materials(
+        self, materials: Material | Mapping[int | str, Material]
+    ) -> dict[int, Material]:
         bodies = self.domain.body_ids
         if isinstance(materials, Material):
             return dict.fromkeys(bodies, materials)
@@ -194,7 +198,7 @@ class Model:
             coefficients=self.coefficients,
         )
 
-    def lame(self, f: StepFields | None = None):
+    def lame(self, f: StepFields | None = None) -> tuple[Expr | float, Expr | float]:
         """UFL expressions (lambda, mu) of the parameter fields (plane stress aware)."""
         c = self.coefficients
         if self.parametrisation == ("E", "nu"):
@@ -255,7 +259,7 @@ class Model:
         self.terms.append(term)
         return term
 
-    def _uniform_vector_field(self, name: str, value) -> fem.Function:
+    def _uniform_vector_field(self, name: str, value: npt.ArrayLike | Callable) -> fem.Function:
         """A load vector as a uniform DG0 field, so UFL can differentiate with respect to it."""
         if name in self.coefficients:
             raise ParameterError(f"a coefficient named {name!r} already exists")
@@ -272,7 +276,10 @@ class Model:
         return field
 
     def add_body_force(
-        self, acceleration, bodies: Sequence[int | str] | None = None, name: str | None = None
+        self,
+        acceleration: npt.ArrayLike | Callable,
+        bodies: Sequence[int | str] | None = None,
+        name: str | None = None,
     ) -> Term:
         """Body force rho g (e.g. gravity), ``acceleration`` a vector or ``g(t)``.
 
@@ -305,7 +312,9 @@ class Model:
         vec[axis] = -g
         return self.add_body_force(vec, name="gravity")
 
-    def add_traction(self, facet_tag: int | str, traction, name: str | None = None) -> Term:
+    def add_traction(
+        self, facet_tag: int | str, traction: npt.ArrayLike | Callable, name: str | None = None
+    ) -> Term:
         """Dead traction on tagged facets, ``traction`` a vector or ``t(t)``.
 
         Raises:

@@ -23,7 +23,8 @@ from dolfinx import fem
 from petsc4py import PETSc
 
 if TYPE_CHECKING:
-    from diffsolids.simulation import Simulation, Trajectory
+    from diffsolids.integrators import TimeStep
+    from diffsolids.simulation import Simulation, StateHistory
 
 __all__ = ["NumericTerm"]
 
@@ -100,10 +101,12 @@ class NumericTerm(ABC):
         return None
 
     # -- per-step hooks --------------------------------------------------------------------
-    def begin_step(self, i: int, traj: "Trajectory", coeffs, sim: "Simulation" = None) -> None:  # noqa: B027 - optional hook
+    def begin_step(  # noqa: B027 - optional hook
+        self, i: int, traj: "StateHistory", coeffs: "TimeStep", sim: "Simulation | None" = None
+    ) -> None:
         """Called before step ``i`` is solved (forward) or differentiated (backward)."""
 
-    def end_step(self, i: int, traj: "Trajectory") -> Any:
+    def end_step(self, i: int, traj: "StateHistory") -> Any:
         """Called after step ``i`` converged; may return a record of the step."""
         return None
 

@@ -12,6 +12,7 @@ from typing import override
 
 import ufl
 from dolfinx import fem
+from ufl.core.expr import Expr
 
 from diffsolids import forms
 
@@ -84,7 +85,7 @@ class Term:
         """A form bounding the magnitude of the energy's addends (roundoff estimate)."""
         return abs(self.energy_density(f)) * self.measure(f)
 
-    def energy_density(self, f: StepFields):
+    def energy_density(self, f: StepFields) -> Expr:
         """The integrand of the energy (override together with :meth:`measure`)."""
         raise NotImplementedError
 
@@ -108,14 +109,16 @@ class ElasticEnergy(_DensityTerm):
         lame: Callable returning (lambda, mu) UFL expressions from the step fields.
     """
 
-    def __init__(self, law: forms.StrainEnergy, bodies: Sequence[int] | None, lame: Callable):
+    def __init__(
+        self, law: forms.StrainEnergy, bodies: Sequence[int] | None, lame: Callable
+    ) -> None:
         self.law, self.bodies, self.lame = law, bodies, lame
         self.name = f"elastic[{law.name}]"
         self.quadratic = law.small_strain
         self.finite_strain = not law.small_strain
 
     @override
-    def energy_density(self, f: StepFields):
+    def energy_density(self, f: StepFields) -> Expr:
         lmbda, mu = self.lame(f)
         return self.law.energy(f.u, lmbda, mu)
 
@@ -143,7 +146,7 @@ class Inertia(_DensityTerm):
     quadratic = True
 
     @override
-    def energy_density(self, f: StepFields):
+    def energy_density(self, f: StepFields) -> Expr:
         return forms.inertia_energy(f.u, f.u_tilde, f.coefficients["density"], f.beta_dt)
 
 
@@ -154,7 +157,7 @@ class Damping(_DensityTerm):
     dynamic_only = True
 
     @override
-    def energy_density(self, f: StepFields):
+    def energy_density(self, f: StepFields) -> Expr:
         c = f.coefficients
         return forms.damping_potential(f.u, f.u_prev, f.dt, c["damping_psi"], c["damping_phi"])
 
@@ -166,13 +169,13 @@ class Damping(_DensityTerm):
 class BodyForce(_DensityTerm):
     """Body force rho g on some or all bodies; ``g`` is the named Constant coefficient."""
 
-    def __init__(self, coefficient: str, bodies: Sequence[int] | None = None):
+    def __init__(self, coefficient: str, bodies: Sequence[int] | None = None) -> None:
         self.coefficient, self.bodies = coefficient, bodies
         self.name = coefficient
         self.quadratic = True
 
     @override
-    def energy_density(self, f: StepFields):
+    def energy_density(self, f: StepFields) -> Expr:
         c = f.coefficients
         return forms.body_force_potential(f.u, c["density"], c[self.coefficient])
 
@@ -184,13 +187,13 @@ class BodyForce(_DensityTerm):
 class Traction(_DensityTerm):
     """Dead traction on tagged facets; ``t`` is the named Constant coefficient."""
 
-    def __init__(self, coefficient: str, facet_tag: int):
+    def __init__(self, coefficient: str, facet_tag: int) -> None:
         self.coefficient, self.facet_tag = coefficient, facet_tag
         self.name = coefficient
         self.quadratic = True
 
     @override
-    def energy_density(self, f: StepFields):
+    def energy_density(self, f: StepFields) -> Expr:
         return forms.traction_potential(f.u, f.coefficients[self.coefficient])
 
     @override
@@ -214,7 +217,7 @@ class EnergyTerm(Term):
         name: str = "user",
         quadratic: bool = False,
         dynamic_only: bool = False,
-    ):
+    ) -> None:
         self._energy, self.name = energy, name
         self.quadratic, self.dynamic_only = quadratic, dynamic_only
 

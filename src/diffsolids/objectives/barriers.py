@@ -19,6 +19,7 @@ proper) needs the contact module's distance kernels and is not one of these.
 """
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 import ufl
@@ -30,6 +31,9 @@ from diffsolids.forms.objectives import log_barrier
 from diffsolids.objectives.functional import Integral, Objective, Series, final_value
 from diffsolids.objectives.library import Tags, _volume_measure
 from diffsolids.objectives.targets import _measure
+
+if TYPE_CHECKING:
+    from diffsolids.model import Model, StepFields
 
 __all__ = ["inversion_barrier", "scalar_log_barrier", "sdf_barrier", "series_barrier"]
 
@@ -57,7 +61,7 @@ def _scalar_log_barrier_derivative(z: np.ndarray, z_hat: float) -> np.ndarray:
 
 
 def _barrier_objective(
-    model, form: Callable, deformed: bool, deformed_name: str, rest_name: str
+    model: "Model", form: Callable, deformed: bool, deformed_name: str, rest_name: str
 ) -> Series | Objective:
     """A per-step Integral of ``form`` (deformed) or its value at the rest design (a scalar).
 
@@ -70,7 +74,7 @@ def _barrier_objective(
 
 
 def sdf_barrier(
-    model,
+    model: "Model",
     sdf: Callable,
     z_hat: float,
     facets: Tags = None,
@@ -91,7 +95,7 @@ def sdf_barrier(
     """
     z_hat = _check_margin(z_hat, "sdf_barrier")
 
-    def form(f):
+    def form(f: "StepFields") -> ufl.Form:
         x = forms.deformed_position(f.X, f.u) if deformed else f.X
         d = sdf(x)
         if not isinstance(d, ufl.core.expr.Expr) or d.ufl_shape != ():
@@ -102,7 +106,7 @@ def sdf_barrier(
 
 
 def inversion_barrier(
-    model,
+    model: "Model",
     threshold: float,
     z_hat: float,
     bodies: Tags = None,
@@ -136,7 +140,7 @@ def inversion_barrier(
             fem.Expression(detJ, initial.function_space.element.interpolation_points)
         )
 
-    def form(f):
+    def form(f: "StepFields") -> ufl.Form:
         J = ufl.det(forms.deformation_gradient(f.u)) if deformed else detJ / initial
         return log_barrier(J - float(threshold), z_hat) * _volume_measure(model, f, bodies)
 

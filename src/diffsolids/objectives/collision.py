@@ -12,7 +12,7 @@ The surfaces are gathered on every rank in input order (the contact module's
 :class:`~diffsolids.contact.surface.CollisionSurface`), so the values are partition independent.
 """
 
-from typing import override
+from typing import TYPE_CHECKING, override
 
 import ipctk
 import numpy as np
@@ -21,6 +21,9 @@ from diffsolids.contact.surface import CollisionSurface
 from diffsolids.errors import ParameterError
 from diffsolids.objectives.functional import NumericIntegral, ObjectiveError, Regulariser
 from diffsolids.objectives.regularisers import _check_model
+
+if TYPE_CHECKING:
+    from diffsolids.model import Model
 
 __all__ = ["DeformedCollisionBarrier", "RestCollisionBarrier"]
 
@@ -31,7 +34,9 @@ def _check_barrier(dhat: float, stiffness: float) -> None:
             raise ParameterError(f"collision barrier: {name} must be > 0, got {value}")
 
 
-def _collision_set(surface, X: np.ndarray, dhat: float, broad_phase, what: str):
+def _collision_set(
+    surface: CollisionSurface, X: np.ndarray, dhat: float, broad_phase: ipctk.BroadPhase, what: str
+) -> ipctk.NormalCollisions:
     """The pairs within d_hat at positions X; refuses intersecting or touching surfaces."""
     mesh = surface.mesh
     if ipctk.has_intersections(mesh, X):
@@ -59,7 +64,7 @@ class RestCollisionBarrier(Regulariser):
         ParameterError: d_hat or kappa not positive.
     """
 
-    def __init__(self, model, dhat: float, stiffness: float = 1.0):
+    def __init__(self, model: "Model", dhat: float, stiffness: float = 1.0) -> None:
         _check_barrier(dhat, stiffness)
         self.model, self.dhat, self.stiffness = model, float(dhat), float(stiffness)
         self.name = f"rest collision barrier (dhat={dhat:g})"
@@ -79,13 +84,13 @@ class RestCollisionBarrier(Regulariser):
         )
 
     @override
-    def evaluate(self, model) -> float:
+    def evaluate(self, model: "Model") -> float:
         _check_model(self, model)
         X, C = self._collisions()
         return float(self.barrier(C, self.surface.mesh, X))
 
     @override
-    def gradient(self, model) -> dict[str, np.ndarray]:
+    def gradient(self, model: "Model") -> dict[str, np.ndarray]:
         _check_model(self, model)
         X, C = self._collisions()
         dim = self.surface.dim
@@ -112,7 +117,7 @@ class DeformedCollisionBarrier(NumericIntegral):
         stiffness: kappa > 0.
     """
 
-    def __init__(self, model, dhat: float, stiffness: float = 1.0):
+    def __init__(self, model: "Model", dhat: float, stiffness: float = 1.0) -> None:
         _check_barrier(dhat, stiffness)
         self.model, self.dhat, self.stiffness = model, float(dhat), float(stiffness)
         self.name = "deformed collision barrier"
@@ -120,7 +125,7 @@ class DeformedCollisionBarrier(NumericIntegral):
         self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness)
         self.broad_phase = ipctk.LBVH()
 
-    def _state(self, model):
+    def _state(self, model: "Model") -> tuple[np.ndarray, ipctk.NormalCollisions]:
         if model is not self.model:
             raise ObjectiveError(f"{self.name} was built for a different model")
         surface = self.surface
@@ -133,21 +138,21 @@ class DeformedCollisionBarrier(NumericIntegral):
         self._last = (X, _collision_set(surface, X, self.dhat, self.broad_phase, what))
         return self._last
 
-    def _vertex_gradient(self, model) -> np.ndarray:
+    def _vertex_gradient(self, model: "Model") -> np.ndarray:
         X, C = self._state(model)
         return np.asarray(self.barrier.gradient(C, self.surface.mesh, X)).ravel()
 
-    def evaluate(self, model) -> float:
+    def evaluate(self, model: "Model") -> float:
         """The barrier at the state in ``model.fields`` (collective)."""
         X, C = self._state(model)
         return float(self.barrier(C, self.surface.mesh, X))
 
-    def state_gradient(self, model) -> np.ndarray:
+    def state_gradient(self, model: "Model") -> np.ndarray:
         """dJ/du on the owned collision dofs of the displacement space (local layout)."""
         g = self._vertex_gradient(model)
         return self.surface.to_local(g, len(model.fields.u.x.array))
 
-    def shape_gradient(self, model) -> np.ndarray:
+    def shape_gradient(self, model: "Model") -> np.ndarray:
         """dJ/dX (x = X + u: the same vertex gradient) on the owned shape-space entries."""
         dim = self.surface.dim
         G = self._vertex_gradient(model).reshape(-1, dim)

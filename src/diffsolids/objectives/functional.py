@@ -12,12 +12,16 @@ combined form per step.
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partialmethod
-from typing import override
+from typing import TYPE_CHECKING, override
 
 import numpy as np
+import numpy.typing as npt
 import ufl
 
 from diffsolids.errors import DiffsolidsError
+
+if TYPE_CHECKING:
+    from diffsolids.model import Model, StepFields
 
 __all__ = [
     "Integral",
@@ -48,7 +52,7 @@ class TimeGrid:
     dynamic: bool
 
 
-def _wrap(other, kind):
+def _wrap(other: object, kind: "type[Series] | type[Objective]") -> "Series | Objective":
     if isinstance(other, kind):
         return other
     if np.isscalar(other):
@@ -67,7 +71,9 @@ class _Algebra:
     _binary_node: type
     _mapped_node: type
 
-    def _operation(self, other, op: str, reflected: bool = False):
+    def _operation(
+        self, other: "_Algebra | float", op: str, reflected: bool = False
+    ) -> "Series | Objective":
         """``self op other`` (``other op self`` when ``reflected``); numbers become constants."""
         other = _wrap(other, self._kind)
         if other is NotImplemented:
@@ -81,21 +87,23 @@ class _Algebra:
     __truediv__ = partialmethod(_operation, op="/")
     __rtruediv__ = partialmethod(_operation, op="/", reflected=True)
 
-    def __pow__(self, p: float):
+    def __pow__(self, p: float) -> "Series | Objective":
         return self.apply(lambda x: x**p, lambda x: p * x ** (p - 1), f"pow{p}")
 
-    def __neg__(self):
+    def __neg__(self) -> "Series | Objective":
         return self * -1.0
 
-    def _binary(self, other, op):
+    def _binary(self, other: "_Algebra", op: str) -> "Series | Objective":
         return self._binary_node(self, other, op)
 
-    def apply(self, fn: Callable, dfn: Callable, name: str = "fn"):
+    def apply(self, fn: Callable, dfn: Callable, name: str = "fn") -> "Series | Objective":
         """Elementwise ``fn`` with derivative ``dfn`` (e.g. ``np.sqrt`` and its derivative)."""
         return self._mapped_node(self, fn, dfn, name)
 
 
-def _binary_grad(op, a, b):
+def _binary_grad(
+    op: str, a: np.ndarray | float, b: np.ndarray | float
+) -> tuple[np.ndarray | float, np.ndarray | float]:
     if op == "+":
         return 1.0, 1.0
     if op == "-":
@@ -105,7 +113,7 @@ def _binary_grad(op, a, b):
     return 1.0 / b, -a / b**2
 
 
-def _binary_value(op, a, b):
+def _binary_value(op: str, a: np.ndarray | float, b: np.ndarray | float) -> np.ndarray | float:
     if op == "+":
         return a + b
     if op == "-":
@@ -118,7 +126,7 @@ def _binary_value(op, a, b):
 class Series(_Algebra):
     """Values of a quantity at every step 0..N."""
 
-    def leaves(self) -> list["Integral"]:
+    def leaves(self) -> list["Integral | NumericIntegral"]:
         """Integrals this series depends on."""
         raise NotImplementedError
 
@@ -135,15 +143,15 @@ class _Leaf(Series):
     """A series whose per-step values are evaluated directly (a leaf of the value table)."""
 
     @override
-    def leaves(self):
-        return [self]
+    def leaves(self) -> list["Integral | NumericIntegral"]:
+        return [self]  # type: ignore[list-item]  # every leaf is one of the two
 
     @override
-    def values(self, table):
+    def values(self, table: dict) -> np.ndarray:
         return table[self]
 
     @override
-    def backward(self, table, seed, out):
+    def backward(self, table: dict, seed: np.ndarray, out: dict) -> None:
         out[self] = out.get(self, 0.0) + seed
 
 
@@ -154,10 +162,10 @@ class Integral(_Leaf):
     coefficients) holding u^i, v^i when step i is evaluated; any UFL expression of them works.
     """
 
-    def __init__(self, integrand: Callable, name: str = "integral"):
+    def __init__(self, integrand: Callable, name: str = "integral") -> None:
         self.integrand, self.name = integrand, name
 
-    def form(self, fields) -> ufl.Form:
+    def form(self, fields: "StepFields") -> ufl.Form:
         """The scalar UFL form of this integral."""
         return self.integrand(fields)
 
@@ -173,22 +181,22 @@ class NumericIntegral(_Leaf):
 
     name = "numeric integral"
 
-    def form(self, fields) -> ufl.Form:
+    def form(self, fields: "StepFields") -> ufl.Form:
         """Refused: a numeric leaf has no UFL form."""
         raise ObjectiveError(
             f"{self.name!r} is computed by numeric code, not a UFL form: it needs a "
             "ReducedFunctional that evaluates numeric objective leaves"
         )
 
-    def evaluate(self, model) -> float:
+    def evaluate(self, model: "Model") -> float:
         """The value at the state in ``model.fields`` (collective; the same on every rank)."""
         raise NotImplementedError
 
-    def state_gradient(self, model) -> np.ndarray:
+    def state_gradient(self, model: "Model") -> np.ndarray:
         """dJ/du as a local array of the displacement space (owned entries; ghosts zero)."""
         raise NotImplementedError
 
-    def shape_gradient(self, model) -> np.ndarray | None:
+    def shape_gradient(self, model: "Model") -> np.ndarray | None:
         """dJ/dX on the owned entries of ``model.shape_space`` (None: no shape dependence)."""
         return None
 
@@ -202,32 +210,32 @@ class DataSeries(Series):
         return len(next(iter(table.values()))) if table else default
 
     @override
-    def leaves(self):
+    def leaves(self) -> list["Integral | NumericIntegral"]:
         return []
 
     @override
-    def backward(self, table, seed, out):
+    def backward(self, table: dict, seed: np.ndarray, out: dict) -> None:
         pass
 
 
 class ConstantSeries(DataSeries):
     """The same value at every step."""
 
-    def __init__(self, value: float):
+    def __init__(self, value: float) -> None:
         self.value = value
 
     @override
-    def values(self, table):
+    def values(self, table: dict) -> np.ndarray:
         return np.full(self.num_states(table, 1), self.value)
 
 
 class _BinaryNode:
     """a (op) b of two series or two objectives: the operands and the integrals they read."""
 
-    def __init__(self, a, b, op: str):
+    def __init__(self, a: "Series | Objective", b: "Series | Objective", op: str) -> None:
         self.a, self.b, self.op = a, b, op
 
-    def leaves(self) -> list[Integral]:
+    def leaves(self) -> list["Integral | NumericIntegral"]:
         """Integrals of both operands."""
         return self.a.leaves() + self.b.leaves()
 
@@ -235,10 +243,10 @@ class _BinaryNode:
 class _MappedNode:
     """fn(a) of a series or an objective, with the derivative dfn."""
 
-    def __init__(self, a, fn: Callable, dfn: Callable, name: str):
+    def __init__(self, a: "Series | Objective", fn: Callable, dfn: Callable, name: str) -> None:
         self.a, self.fn, self.dfn, self.name = a, fn, dfn, name
 
-    def leaves(self) -> list[Integral]:
+    def leaves(self) -> list["Integral | NumericIntegral"]:
         """Integrals of the operand."""
         return self.a.leaves()
 
@@ -246,12 +254,15 @@ class _MappedNode:
 class BinarySeries(_BinaryNode, Series):
     """Elementwise a (op) b."""
 
+    a: Series
+    b: Series
+
     @override
-    def values(self, table):
+    def values(self, table: dict) -> np.ndarray:
         return _binary_value(self.op, self.a.values(table), self.b.values(table))
 
     @override
-    def backward(self, table, seed, out):
+    def backward(self, table: dict, seed: np.ndarray, out: dict) -> None:
         da, db = _binary_grad(self.op, self.a.values(table), self.b.values(table))
         self.a.backward(table, _masked(seed, da), out)
         self.b.backward(table, _masked(seed, db), out)
@@ -260,19 +271,21 @@ class BinarySeries(_BinaryNode, Series):
 class MappedSeries(_MappedNode, Series):
     """Elementwise fn(a)."""
 
+    a: Series
+
     @override
-    def values(self, table):
+    def values(self, table: dict) -> np.ndarray:
         return self.fn(self.a.values(table))
 
     @override
-    def backward(self, table, seed, out):
+    def backward(self, table: dict, seed: np.ndarray, out: dict) -> None:
         self.a.backward(table, _masked(seed, self.dfn(self.a.values(table))), out)
 
 
 Series._kind, Series._binary_node, Series._mapped_node = Series, BinarySeries, MappedSeries
 
 
-def _masked(seed, factor):
+def _masked(seed: npt.ArrayLike, factor: npt.ArrayLike) -> np.ndarray:
     """Seed * factor, exactly zero where seed is zero (factor may be NaN there)."""
     seed = np.asarray(seed, dtype=float)
     factor = np.broadcast_to(np.asarray(factor, dtype=float), seed.shape)
@@ -283,7 +296,7 @@ def _masked(seed, factor):
 class Objective(_Algebra):
     """A scalar objective J."""
 
-    def leaves(self) -> list[Integral]:
+    def leaves(self) -> list["Integral | NumericIntegral"]:
         """Integrals the objective depends on."""
         raise NotImplementedError
 
@@ -295,7 +308,9 @@ class Objective(_Algebra):
         """J from leaf values (``table``) and regulariser values (``reg``)."""
         raise NotImplementedError
 
-    def backward(self, table, reg, grid, seed: float, out: dict, reg_out: dict) -> None:
+    def backward(
+        self, table: dict, reg: dict, grid: TimeGrid, seed: float, out: dict, reg_out: dict
+    ) -> None:
         """Accumulate dJ/d(leaf at step i) into ``out`` and dJ/d(regulariser) into ``reg_out``."""
         raise NotImplementedError
 
@@ -304,7 +319,7 @@ class Objective(_Algebra):
         raise NotImplementedError
 
 
-def _merge(*dicts) -> dict:
+def _merge(*dicts: dict) -> dict:
     out: dict = {}
     for d in dicts:
         for k, v in d.items():
@@ -315,49 +330,56 @@ def _merge(*dicts) -> dict:
 class ConstantObjective(Objective):
     """A constant."""
 
-    def __init__(self, value: float):
+    def __init__(self, value: float) -> None:
         self.c = value
 
     @override
-    def leaves(self):
+    def leaves(self) -> list["Integral | NumericIntegral"]:
         return []
 
     @override
-    def regularisers(self):
+    def regularisers(self) -> list["Regulariser"]:
         return []
 
     @override
-    def value(self, table, reg, grid):
+    def value(self, table: dict, reg: dict, grid: TimeGrid) -> float:
         return self.c
 
     @override
-    def requirements(self, grid):
+    def requirements(self, grid: TimeGrid) -> dict:
         return {}
 
     @override
-    def backward(self, table, reg, grid, seed, out, reg_out):
+    def backward(
+        self, table: dict, reg: dict, grid: TimeGrid, seed: float, out: dict, reg_out: dict
+    ) -> None:
         pass
 
 
 class BinaryObjective(_BinaryNode, Objective):
     """a (op) b of scalar objectives."""
 
+    a: Objective
+    b: Objective
+
     @override
-    def regularisers(self):
+    def regularisers(self) -> list["Regulariser"]:
         return self.a.regularisers() + self.b.regularisers()
 
     @override
-    def value(self, table, reg, grid):
+    def value(self, table: dict, reg: dict, grid: TimeGrid) -> float:
         return _binary_value(
             self.op, self.a.value(table, reg, grid), self.b.value(table, reg, grid)
         )
 
     @override
-    def requirements(self, grid):
+    def requirements(self, grid: TimeGrid) -> dict:
         return _merge(self.a.requirements(grid), self.b.requirements(grid))
 
     @override
-    def backward(self, table, reg, grid, seed, out, reg_out):
+    def backward(
+        self, table: dict, reg: dict, grid: TimeGrid, seed: float, out: dict, reg_out: dict
+    ) -> None:
         a, b = self.a.value(table, reg, grid), self.b.value(table, reg, grid)
         da, db = _binary_grad(self.op, a, b)
         self.a.backward(table, reg, grid, seed * da, out, reg_out)
@@ -367,20 +389,24 @@ class BinaryObjective(_BinaryNode, Objective):
 class MappedObjective(_MappedNode, Objective):
     """fn(a) of a scalar objective."""
 
+    a: Objective
+
     @override
-    def regularisers(self):
+    def regularisers(self) -> list["Regulariser"]:
         return self.a.regularisers()
 
     @override
-    def value(self, table, reg, grid):
+    def value(self, table: dict, reg: dict, grid: TimeGrid) -> float:
         return float(self.fn(self.a.value(table, reg, grid)))
 
     @override
-    def requirements(self, grid):
+    def requirements(self, grid: TimeGrid) -> dict:
         return self.a.requirements(grid)
 
     @override
-    def backward(self, table, reg, grid, seed, out, reg_out):
+    def backward(
+        self, table: dict, reg: dict, grid: TimeGrid, seed: float, out: dict, reg_out: dict
+    ) -> None:
         a = self.a.value(table, reg, grid)
         self.a.backward(table, reg, grid, seed * float(self.dfn(a)), out, reg_out)
 
@@ -394,7 +420,7 @@ def series_name(series: Series) -> str:
     return str(getattr(series, "name", None) or type(series).__name__)
 
 
-def check_finite_steps(series: Series, values: np.ndarray, steps) -> None:
+def check_finite_steps(series: Series, values: np.ndarray, steps: npt.ArrayLike) -> None:
     """Raise if the series is not finite at one of the steps an objective uses.
 
     Raises:
@@ -410,7 +436,7 @@ def check_finite_steps(series: Series, values: np.ndarray, steps) -> None:
         )
 
 
-def step_weights(spec, grid: TimeGrid) -> np.ndarray:
+def step_weights(spec: str | npt.ArrayLike, grid: TimeGrid) -> np.ndarray:
     """Weights w_0..w_N of a time reduction.
 
     Args:
@@ -455,33 +481,35 @@ class SeriesObjective(Objective):
     series: Series
 
     @override
-    def leaves(self):
+    def leaves(self) -> list["Integral | NumericIntegral"]:
         return self.series.leaves()
 
     @override
-    def regularisers(self):
+    def regularisers(self) -> list["Regulariser"]:
         return []
 
 
 class TimeIntegral(SeriesObjective):
     """sum_i w_i s_i of a series (paper eq. 4 objective with weights w_i)."""
 
-    def __init__(self, series: Series, spec):
+    def __init__(self, series: Series, spec: str | npt.ArrayLike) -> None:
         self.series, self.spec = series, spec
 
     @override
-    def value(self, table, reg, grid):
+    def value(self, table: dict, reg: dict, grid: TimeGrid) -> float:
         w = step_weights(self.spec, grid)
         s = np.broadcast_to(self.series.values(table), w.shape)
         check_finite_steps(self.series, s, np.flatnonzero(w))
         return float(np.sum(np.where(w != 0.0, w * np.where(w != 0.0, s, 0.0), 0.0)))
 
     @override
-    def backward(self, table, reg, grid, seed, out, reg_out):
+    def backward(
+        self, table: dict, reg: dict, grid: TimeGrid, seed: float, out: dict, reg_out: dict
+    ) -> None:
         self.series.backward(table, seed * step_weights(self.spec, grid), out)
 
     @override
-    def requirements(self, grid):
+    def requirements(self, grid: TimeGrid) -> dict:
         steps = set(np.flatnonzero(step_weights(self.spec, grid)).tolist())
         return {leaf: set(steps) for leaf in self.series.leaves()}
 
@@ -507,29 +535,31 @@ class Regulariser(Objective):
     """
 
     @override
-    def leaves(self):
+    def leaves(self) -> list["Integral | NumericIntegral"]:
         return []
 
     @override
-    def regularisers(self):
+    def regularisers(self) -> list["Regulariser"]:
         return [self]
 
     @override
-    def value(self, table, reg, grid):
+    def value(self, table: dict, reg: dict, grid: TimeGrid) -> float:
         return reg[self]
 
     @override
-    def requirements(self, grid):
+    def requirements(self, grid: TimeGrid) -> dict:
         return {}
 
     @override
-    def backward(self, table, reg, grid, seed, out, reg_out):
+    def backward(
+        self, table: dict, reg: dict, grid: TimeGrid, seed: float, out: dict, reg_out: dict
+    ) -> None:
         reg_out[self] = reg_out.get(self, 0.0) + seed
 
-    def evaluate(self, model) -> float:
+    def evaluate(self, model: "Model") -> float:
         """Value of the regulariser for the model's current shape and parameters."""
         raise NotImplementedError
 
-    def gradient(self, model) -> dict[str, np.ndarray]:
+    def gradient(self, model: "Model") -> dict[str, np.ndarray]:
         """Partial derivatives (owned entries, local layout of the target)."""
         raise NotImplementedError

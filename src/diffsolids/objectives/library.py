@@ -15,11 +15,13 @@ Targets, weights and other data may be given as
 """
 
 from collections.abc import Callable, Sequence
-from typing import override
+from typing import TYPE_CHECKING, override
 
 import numpy as np
+import numpy.typing as npt
 import ufl
 from dolfinx import default_scalar_type, fem
+from ufl.core.expr import Expr
 
 from diffsolids import forms
 from diffsolids.errors import ParameterError
@@ -33,6 +35,9 @@ from diffsolids.objectives.functional import (
     Series,
     final_value,
 )
+
+if TYPE_CHECKING:
+    from diffsolids.model import Model, StepFields
 
 __all__ = [
     "StepValues",
@@ -49,6 +54,8 @@ __all__ = [
 
 _STRESSES = ("cauchy", "piola", "von_mises")
 Tags = int | str | Sequence[int | str] | None
+# a number or vector, a callable of rest positions, a UFL expression or Function
+Data = npt.ArrayLike | Callable | Expr
 
 
 class StepValues(DataSeries):
@@ -66,7 +73,7 @@ class StepValues(DataSeries):
         ObjectiveError: Not 1D, or an infinite entry (naming the states).
     """
 
-    def __init__(self, values, name: str = "step values"):
+    def __init__(self, values: npt.ArrayLike, name: str = "step values") -> None:
         self.array = np.asarray(values, dtype=float)
         if self.array.ndim != 1:
             raise ObjectiveError(
@@ -83,7 +90,7 @@ class StepValues(DataSeries):
         self.name = name
 
     @override
-    def values(self, table):
+    def values(self, table: dict) -> np.ndarray:
         n = self.num_states(table, len(self.array))
         if len(self.array) != n:
             raise ObjectiveError(
@@ -93,7 +100,7 @@ class StepValues(DataSeries):
 
 
 # -- helpers ---------------------------------------------------------------------------------
-def _tags(ids) -> tuple:
+def _tags(ids: Tags) -> tuple:
     if ids is None:
         return ()
     if isinstance(ids, int | str | np.integer):
@@ -101,19 +108,19 @@ def _tags(ids) -> tuple:
     return tuple(ids)
 
 
-def _volume_measure(model, f, bodies: Tags):
+def _volume_measure(model: "Model", f: "StepFields", bodies: Tags) -> ufl.Measure:
     ids = tuple(model.domain.body_id(b) for b in _tags(bodies))
     return f.dx(ids) if ids else f.dx
 
 
-def _facet_measure(model, f, facets: Tags):
+def _facet_measure(model: "Model", f: "StepFields", facets: Tags) -> ufl.Measure:
     ids = tuple(model.domain.facet_id(t) for t in _tags(facets))
     if not ids:
         raise ParameterError("a boundary objective needs at least one facet tag")
     return f.ds(ids)
 
 
-def _data(model, value, shape: tuple, what: str):
+def _data(model: "Model", value: Data, shape: tuple, what: str) -> Expr:
     """A number/vector (Constant), callable of rest positions (interpolated), or UFL as is."""
     mesh = model.domain.mesh
     if isinstance(value, ufl.core.expr.Expr):
@@ -135,7 +142,9 @@ def _data(model, value, shape: tuple, what: str):
     return fem.Constant(mesh, np.broadcast_to(arr, shape).copy() if shape else arr)
 
 
-def _stress_tensor(kind: str, law: str, u, lmbda, mu, plane_strain: bool):
+def _stress_tensor(
+    kind: str, law: str, u: Expr, lmbda: Expr | float, mu: Expr | float, plane_strain: bool
+) -> Expr:
     if kind == "piola":
         return forms.first_piola_kirchhoff(law, u, lmbda, mu)
     sigma = forms.cauchy_stress(law, u, lmbda, mu)
@@ -146,7 +155,9 @@ def _stress_tensor(kind: str, law: str, u, lmbda, mu, plane_strain: bool):
     return forms.von_mises_tensor(sigma, sigma_zz)
 
 
-def _stress_integral(model, integrand: Callable, kind: str, bodies: Tags, name: str) -> Integral:
+def _stress_integral(
+    model: "Model", integrand: Callable, kind: str, bodies: Tags, name: str
+) -> Integral:
     """Integral of integrand(stress) over the bodies of every elastic law of the model."""
     if kind not in _STRESSES:
         raise ParameterError(f"unknown stress {kind!r}; choose from {_STRESSES}")
@@ -154,7 +165,7 @@ def _stress_integral(model, integrand: Callable, kind: str, bodies: Tags, name: 
     laws = [t for t in model.terms if isinstance(t, ElasticEnergy)]
     plane_strain = model.dim == 2 and not model.plane_stress
 
-    def form(f):
+    def form(f: "StepFields") -> ufl.Form:
         total = 0
         for term in laws:
             ids = wanted if term.bodies is None else wanted & set(term.bodies)
@@ -171,7 +182,9 @@ def _stress_integral(model, integrand: Callable, kind: str, bodies: Tags, name: 
 
 
 # -- stress ----------------------------------------------------------------------------------
-def stress_lp_norm(model, p: float = 2.0, stress: str = "cauchy", bodies: Tags = None) -> Series:
+def stress_lp_norm(
+    model: "Model", p: float = 2.0, stress: str = "cauchy", bodies: Tags = None
+) -> Series:
     """L_p norm of stress per step, (int ||sigma||_F^p dx)^(1/p) (paper eq. 30).
 
     Large p approximates the maximal stress. The norm is not differentiable at a state with
@@ -194,7 +207,7 @@ def stress_lp_norm(model, p: float = 2.0, stress: str = "cauchy", bodies: Tags =
 
 
 def stress_bound_penalty(
-    model, bound: float, stress: str = "cauchy", bodies: Tags = None
+    model: "Model", bound: float, stress: str = "cauchy", bodies: Tags = None
 ) -> Series:
     """Soft upper bound on stress per step, int phi(||sigma||_F - s_t) dx (paper eq. 36).
 
@@ -213,14 +226,22 @@ def stress_bound_penalty(
 
 
 # -- deformation targets -----------------------------------------------------------------
-def _target_integral(model, target, weight, facets, bodies, positions: bool, name) -> Integral:
+def _target_integral(
+    model: "Model",
+    target: Data,
+    weight: Data,
+    facets: Tags,
+    bodies: Tags,
+    positions: bool,
+    name: str,
+) -> Integral:
     dim = model.dim
     trg = _data(model, target, (dim,), f"{name} target")
     w = _data(model, weight, (), f"{name} weight")
     if facets is not None and bodies is not None:
         raise ParameterError("give facets (boundary target) or bodies (volume target), not both")
 
-    def form(f):
+    def form(f: "StepFields") -> ufl.Form:
         x = forms.deformed_position(f.X, f.u) if positions else f.u
         measure = (
             _facet_measure(model, f, facets)
@@ -235,7 +256,7 @@ def _target_integral(model, target, weight, facets, bodies, positions: bool, nam
 
 
 def target_displacement(
-    model, target, weight=1.0, facets: Tags = None, bodies: Tags = None
+    model: "Model", target: Data, weight: Data = 1.0, facets: Tags = None, bodies: Tags = None
 ) -> Series:
     """Weighted squared distance of u from a target displacement, per step (paper eq. 31).
 
@@ -254,7 +275,9 @@ def target_displacement(
     return _target_integral(model, target, weight, facets, bodies, False, "target displacement")
 
 
-def target_positions(model, target, weight=1.0, facets: Tags = None, bodies: Tags = None) -> Series:
+def target_positions(
+    model: "Model", target: Data, weight: Data = 1.0, facets: Tags = None, bodies: Tags = None
+) -> Series:
     """Weighted squared distance of the deformed positions X + u from targets (paper eq. 31).
 
     Arguments as in :func:`target_displacement`; ``target`` is a position x^trg (e.g. a
@@ -263,7 +286,7 @@ def target_positions(model, target, weight=1.0, facets: Tags = None, bodies: Tag
     return _target_integral(model, target, weight, facets, bodies, True, "target positions")
 
 
-def boundary_graph_fit(model, facets: Tags, function: Callable, axis: int = -1) -> Series:
+def boundary_graph_fit(model: "Model", facets: Tags, function: Callable, axis: int = -1) -> Series:
     """Misfit of a deformed boundary part to the graph of a function, per step.
 
     int_{facets} (x^d_axis - f(other coordinates of x^d))^2 ds with x^d = X + u, e.g.
@@ -278,7 +301,7 @@ def boundary_graph_fit(model, facets: Tags, function: Callable, axis: int = -1) 
     if not -model.dim <= axis < model.dim:
         raise ParameterError(f"axis {axis} out of range for dimension {model.dim}")
 
-    def form(f):
+    def form(f: "StepFields") -> ufl.Form:
         x = forms.deformed_position(f.X, f.u)
         return forms.graph_misfit(x, function, axis) * _facet_measure(model, f, facets)
 
@@ -287,14 +310,14 @@ def boundary_graph_fit(model, facets: Tags, function: Callable, axis: int = -1) 
 
 
 # -- centre of mass ----------------------------------------------------------------------------
-def _mass_and_moments(model, bodies: Tags) -> tuple[Integral, list[Integral]]:
+def _mass_and_moments(model: "Model", bodies: Tags) -> tuple[Integral, list[Integral]]:
     """J^D = int rho dx and J^P_k = int rho x^d_k dx with x^d = X + u (paper eq. 32)."""
     rho = model.coefficients["density"]
     _volume_measure(model, model.fields, bodies)  # unknown bodies fail here
     mass = Integral(lambda f: rho * _volume_measure(model, f, bodies), "mass")
 
-    def moment(k):
-        def form(f):
+    def moment(k: int) -> Integral:
+        def form(f: "StepFields") -> ufl.Form:
             x = forms.deformed_position(f.X, f.u)
             return rho * x[k] * _volume_measure(model, f, bodies)
 
@@ -303,7 +326,7 @@ def _mass_and_moments(model, bodies: Tags) -> tuple[Integral, list[Integral]]:
     return mass, [moment(k) for k in range(model.dim)]
 
 
-def center_of_mass(model, bodies: Tags = None) -> list[Series]:
+def center_of_mass(model: "Model", bodies: Tags = None) -> list[Series]:
     """Components of the deformed centre of mass per step, J^P_k / J^D (paper eq. 32).
 
     Series of an objective, and the numbers along any trajectory: ``series_values(sim,
@@ -317,7 +340,9 @@ def center_of_mass(model, bodies: Tags = None) -> list[Series]:
     return [m / mass for m in moments]
 
 
-def center_of_mass_trajectory(model, target, bodies: Tags = None) -> Series:
+def center_of_mass_trajectory(
+    model: "Model", target: npt.ArrayLike | Callable, bodies: Tags = None
+) -> Series:
     """Squared distance of the centre of mass from a target, per step (paper eq. 32).
 
     ||c^i - x^ctr(t_i)||^2 with c the deformed centre of mass.
@@ -336,7 +361,7 @@ def center_of_mass_trajectory(model, target, bodies: Tags = None) -> Series:
         trg = _data(model, target(model.fields.t), (dim,), "centre-of-mass target")
         rho = model.coefficients["density"]
 
-        def weighted_target(k):
+        def weighted_target(k: int) -> Series:
             return Integral(lambda f: rho * trg[k] * _volume_measure(model, f, bodies), "target")
 
         parts = [weighted_target(k) / mass for k in range(dim)]
@@ -354,7 +379,7 @@ def center_of_mass_trajectory(model, target, bodies: Tags = None) -> Series:
     return sum(terms[1:], terms[0])
 
 
-def height_objective(model, axis: int | None = None, bodies: Tags = None) -> Series:
+def height_objective(model: "Model", axis: int | None = None, bodies: Tags = None) -> Series:
     """Negative height of the centre of mass per step, -J^P_z / J^D (paper eqs. 33-34).
 
     Minimising it maximises the height.
@@ -372,7 +397,7 @@ def height_objective(model, axis: int | None = None, bodies: Tags = None) -> Ser
 
 # -- volume ----------------------------------------------------------------------------------
 def volume_penalty(
-    model,
+    model: "Model",
     target: float,
     bound: str = "upper",
     bodies: Tags = None,
@@ -396,7 +421,7 @@ def volume_penalty(
         raise ParameterError(f"target volume {target} is not finite")
     one = fem.Constant(model.domain.mesh, default_scalar_type(1.0))
 
-    def form(f):
+    def form(f: "StepFields") -> ufl.Form:
         density = ufl.det(forms.deformation_gradient(f.u)) if deformed else one
         return density * _volume_measure(model, f, bodies)
 

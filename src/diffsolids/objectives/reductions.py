@@ -13,9 +13,10 @@ series, so the adjoint sees only the steps that are nearly minimal.
 """
 
 from collections.abc import Sequence
-from typing import override
+from typing import TYPE_CHECKING, override
 
 import numpy as np
+import numpy.typing as npt
 
 from diffsolids.errors import ParameterError
 from diffsolids.objectives.functional import (
@@ -29,6 +30,9 @@ from diffsolids.objectives.functional import (
     step_weights,
 )
 from diffsolids.objectives.library import Tags, center_of_mass_trajectory
+
+if TYPE_CHECKING:
+    from diffsolids.model import Model
 
 __all__ = ["SoftMin", "min_distance_target", "soft_min"]
 
@@ -45,7 +49,9 @@ class SoftMin(SeriesObjective):
         kind: "logsumexp" or "harmonic".
     """
 
-    def __init__(self, series: Series, steps, alpha: float, kind: str):
+    def __init__(
+        self, series: Series, steps: Sequence[int] | None, alpha: float, kind: str
+    ) -> None:
         if not isinstance(series, Series):
             raise ObjectiveError("soft_min expects a Series (e.g. a distance per step)")
         if kind not in _KINDS:
@@ -64,7 +70,7 @@ class SoftMin(SeriesObjective):
             raise ObjectiveError("soft_min steps must be a non-empty list of step indices")
         return np.flatnonzero(step_weights(arr, grid))
 
-    def _selected(self, table, grid) -> tuple[np.ndarray, np.ndarray]:
+    def _selected(self, table: dict, grid: TimeGrid) -> tuple[np.ndarray, np.ndarray]:
         steps = self.steps(grid)
         values = np.broadcast_to(self.series.values(table), (grid.num_steps + 1,))
         check_finite_steps(self.series, values, steps)
@@ -88,19 +94,21 @@ class SoftMin(SeriesObjective):
         return float(low - np.log(total) / self.alpha), e / total
 
     @override
-    def value(self, table, reg, grid):
+    def value(self, table: dict, reg: dict, grid: TimeGrid) -> float:
         _, s = self._selected(table, grid)
         return self._value_and_weights(s)[0]
 
     @override
-    def backward(self, table, reg, grid, seed, out, reg_out):
+    def backward(
+        self, table: dict, reg: dict, grid: TimeGrid, seed: float, out: dict, reg_out: dict
+    ) -> None:
         steps, s = self._selected(table, grid)
         full = np.zeros(grid.num_steps + 1)
         full[steps] = seed * self._value_and_weights(s)[1]
         self.series.backward(table, full, out)
 
     @override
-    def requirements(self, grid):
+    def requirements(self, grid: TimeGrid) -> dict:
         steps = set(self.steps(grid).tolist())
         return {leaf: set(steps) for leaf in self.series.leaves()}
 
@@ -129,8 +137,8 @@ def soft_min(
 
 
 def min_distance_target(
-    model,
-    target,
+    model: "Model",
+    target: npt.ArrayLike,
     steps: Sequence[int] | None = None,
     bodies: Tags = None,
     kind: str = "harmonic",

@@ -7,7 +7,7 @@ ranks and independent of the partition; each rank then fills the gradient entrie
 """
 
 from collections.abc import Sequence
-from typing import override
+from typing import TYPE_CHECKING, Protocol, override
 
 import dolfinx.mesh
 import numpy as np
@@ -18,6 +18,9 @@ from diffsolids.errors import ParameterError
 from diffsolids.objectives.functional import ObjectiveError, Regulariser
 from diffsolids.parallel import collective_comm
 
+if TYPE_CHECKING:
+    from diffsolids.model import Model
+
 __all__ = ["BoundarySmoothing", "MaterialSmoothing"]
 
 
@@ -27,7 +30,13 @@ def _allgather_concat(comm: MPI.Comm, local: np.ndarray) -> np.ndarray:
     return np.concatenate(parts, axis=0)
 
 
-def _check_model(reg, model) -> None:
+class _BuiltForAModel(Protocol):
+    """A regulariser or numeric leaf that keeps the model it was made for."""
+
+    model: "Model"
+
+
+def _check_model(reg: _BuiltForAModel, model: "Model") -> None:
     if model is not reg.model:
         raise ObjectiveError(f"{type(reg).__name__} was built for a different model")
 
@@ -45,7 +54,9 @@ class BoundarySmoothing(Regulariser):
         exclude_facets: Facet tags whose vertices are left out of B (e.g. fixed parts).
     """
 
-    def __init__(self, model, p: float = 2.0, exclude_facets: Sequence[int | str] = ()):
+    def __init__(
+        self, model: "Model", p: float = 2.0, exclude_facets: Sequence[int | str] = ()
+    ) -> None:
         p = float(p)
         if not (np.isfinite(p) and p > 1.0):
             raise ParameterError(f"boundary smoothing needs p > 1, got {p}")
@@ -98,7 +109,7 @@ class BoundarySmoothing(Regulariser):
         out[rows] = values
         return out
 
-    def _sums(self, X):
+    def _sums(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         d = X[self._src] - X[self._dst]
         length = np.linalg.norm(d, axis=1)
         n = len(X)
@@ -109,7 +120,7 @@ class BoundarySmoothing(Regulariser):
         return d, length, S, L
 
     @override
-    def evaluate(self, model) -> float:
+    def evaluate(self, model: "Model") -> float:
         _check_model(self, model)
         _, _, S, L = self._sums(self.positions())
         s = S / L[:, None]
@@ -138,7 +149,7 @@ class BoundarySmoothing(Regulariser):
         )
 
     @override
-    def gradient(self, model) -> dict[str, np.ndarray]:
+    def gradient(self, model: "Model") -> dict[str, np.ndarray]:
         _check_model(self, model)
         G = self.vertex_gradient()
         rows = self._dof_rows
@@ -159,7 +170,7 @@ class MaterialSmoothing(Regulariser):
             model, ("E", "nu") or ("lmbda", "mu")).
     """
 
-    def __init__(self, model, coefficients: Sequence[str] | None = None):
+    def __init__(self, model: "Model", coefficients: Sequence[str] | None = None) -> None:
         self.model = model
         names = tuple(model.parametrisation if coefficients is None else coefficients)
         if not names:
@@ -179,7 +190,7 @@ class MaterialSmoothing(Regulariser):
         self.layouts = {n: CanonicalLayout(model.coefficients[n].function_space) for n in names}
         self.pairs = self._adjacent_pairs(mesh)
 
-    def _adjacent_pairs(self, mesh) -> np.ndarray:
+    def _adjacent_pairs(self, mesh: dolfinx.mesh.Mesh) -> np.ndarray:
         """Pairs (t, t') of input cell indices sharing a facet (each pair once, sorted)."""
         tdim = mesh.topology.dim
         owned = mesh.topology.index_map(tdim).size_local
@@ -207,7 +218,7 @@ class MaterialSmoothing(Regulariser):
         return c
 
     @override
-    def evaluate(self, model) -> float:
+    def evaluate(self, model: "Model") -> float:
         _check_model(self, model)
         a, b = self.pairs[:, 0], self.pairs[:, 1]
         total = 0.0
@@ -217,7 +228,7 @@ class MaterialSmoothing(Regulariser):
         return total
 
     @override
-    def gradient(self, model) -> dict[str, np.ndarray]:
+    def gradient(self, model: "Model") -> dict[str, np.ndarray]:
         _check_model(self, model)
         a, b = self.pairs[:, 0], self.pairs[:, 1]
         out = {}

@@ -24,19 +24,22 @@ series, trajectory)``; those of an objective's series at the last forward run ``
 
 import itertools
 from collections.abc import Callable, Sequence
-from typing import override
+from typing import TYPE_CHECKING, override
 
 import dolfinx.la
 import numpy as np
+import numpy.typing as npt
 import ufl
 from dolfinx import fem
 from mpi4py import MPI
+from ufl.core.expr import Expr
 
 from diffsolids import forms
 from diffsolids.errors import ParameterError
 from diffsolids.model.terms import BodyForce, Traction
 from diffsolids.objectives.functional import Integral, ObjectiveError, Series
 from diffsolids.objectives.library import (
+    Data,
     Tags,
     _data,
     _facet_measure,
@@ -46,6 +49,10 @@ from diffsolids.objectives.library import (
 )
 from diffsolids.objectives.values import series_values
 from diffsolids.parallel import collective_comm
+
+if TYPE_CHECKING:
+    from diffsolids.model import Model, StepFields
+    from diffsolids.simulation import Simulation, Trajectory
 
 __all__ = [
     "TrajectoryTarget",
@@ -60,7 +67,7 @@ __all__ = [
 _MATCHES = ("positions", "displacement")
 
 
-def _measure(model, f, facets: Tags, bodies: Tags):
+def _measure(model: "Model", f: "StepFields", facets: Tags, bodies: Tags) -> ufl.Measure:
     if facets is not None and bodies is not None:
         raise ParameterError("give facets (boundary target) or bodies (volume target), not both")
     if facets is not None:
@@ -68,7 +75,7 @@ def _measure(model, f, facets: Tags, bodies: Tags):
     return _volume_measure(model, f, bodies)
 
 
-def step_selector(t, times: Sequence[float]) -> list:
+def step_selector(t: Expr | float, times: Sequence[float]) -> list:
     """UFL indicators chi_i(t), 1 when t is (nearest to) the time t_i of state i, else 0.
 
     The states' times split the line at their midpoints: chi_i = 1 on [m_{i-1}, m_i) (the
@@ -95,12 +102,12 @@ def step_selector(t, times: Sequence[float]) -> list:
 class TrajectoryTarget(Integral):
     """An Integral of per-state data: refuses a run with another number of states."""
 
-    def __init__(self, integrand: Callable, name: str, num_states: int):
+    def __init__(self, integrand: Callable, name: str, num_states: int) -> None:
         super().__init__(integrand, name)
         self.num_states = num_states
 
     @override
-    def values(self, table):
+    def values(self, table: dict) -> np.ndarray:
         values = table[self]
         if len(values) != self.num_states:
             raise ObjectiveError(
@@ -110,7 +117,9 @@ class TrajectoryTarget(Integral):
         return values
 
 
-def _target_states(simulation, target) -> list[np.ndarray]:
+def _target_states(
+    simulation: "Simulation", target: "Trajectory | Sequence[np.ndarray]"
+) -> list[np.ndarray]:
     """The target's displacement arrays, checked against the run's steps, times and layout."""
     integ = simulation.integrator
     V = simulation.model.V
@@ -145,13 +154,13 @@ def _target_states(simulation, target) -> list[np.ndarray]:
 
 
 def target_trajectory(
-    simulation,
-    target,
+    simulation: "Simulation",
+    target: "Trajectory | Sequence[np.ndarray]",
     facets: Tags = None,
     bodies: Tags = None,
     match: str = "positions",
-    weight=1.0,
-    rest_positions=None,
+    weight: Data = 1.0,
+    rest_positions: Callable | npt.ArrayLike | None = None,
 ) -> Series:
     """Per-step distance of the deformed state from a stored trajectory, node matched.
 
@@ -210,7 +219,7 @@ def target_trajectory(
     w = _data(model, weight, (), "target trajectory weight")
     times = [simulation.integrator.time(i) for i in range(len(states))]
 
-    def form(f):
+    def form(f: "StepFields") -> ufl.Form:
         chi = step_selector(f.t, times)
         u_trg = sum(
             (c * fn for c, fn in zip(chi[1:], targets[1:], strict=True)), chi[0] * targets[0]
@@ -225,7 +234,7 @@ def target_trajectory(
     return TrajectoryTarget(form, "target trajectory", len(states))
 
 
-def center_target(simulation, target, bodies: Tags = None) -> Series:
+def center_target(simulation: "Simulation", target: "Trajectory", bodies: Tags = None) -> Series:
     """Per-step squared distance of the centre of mass from that of a stored run.
 
     ||c^i - c^trg,i||^2 with c the deformed centre of mass of ``bodies`` (PolyFEM's
@@ -247,7 +256,9 @@ def center_target(simulation, target, bodies: Tags = None) -> Series:
 
 
 # -- node targets ------------------------------------------------------------------------------
-def _vertex_nodes(model, nodes) -> tuple[fem.FunctionSpace, np.ndarray, np.ndarray | None]:
+def _vertex_nodes(
+    model: "Model", nodes: Callable | npt.ArrayLike
+) -> tuple[fem.FunctionSpace, np.ndarray, np.ndarray | None]:
     """The P1 space and the local dofs (owned and ghost) of the selected vertices.
 
     For a list of indices also the position of each selected dof in that list (else None).
@@ -284,7 +295,13 @@ def _vertex_nodes(model, nodes) -> tuple[fem.FunctionSpace, np.ndarray, np.ndarr
     return Q, dofs, order
 
 
-def node_target(model, nodes, target, match: str = "positions", weight: float = 1.0) -> Series:
+def node_target(
+    model: "Model",
+    nodes: Callable | npt.ArrayLike,
+    target: npt.ArrayLike | Callable,
+    match: str = "positions",
+    weight: float = 1.0,
+) -> Series:
     """Per-step squared distance of selected mesh vertices from their targets.
 
     s_i = w sum_n ||x_n^i - x_n^trg||^2 over the selected vertices n, with x_n = X_n + u_n
@@ -348,7 +365,7 @@ def node_target(model, nodes, target, match: str = "positions", weight: float = 
     T.x.scatter_forward()
     positions = match == "positions"
 
-    def form(f):
+    def form(f: "StepFields") -> ufl.Form:
         x = forms.deformed_position(f.X, f.u) if positions else f.u
         return forms.weighted_squared_distance(x, T, chi) / detJ * vertex_dx
 
@@ -357,7 +374,7 @@ def node_target(model, nodes, target, match: str = "positions", weight: float = 
 
 # -- signed distance -------------------------------------------------------------------------
 def sdf_target(
-    model, sdf: Callable, facets: Tags = None, bodies: Tags = None, deformed: bool = True
+    model: "Model", sdf: Callable, facets: Tags = None, bodies: Tags = None, deformed: bool = True
 ) -> Series:
     """Per-step int sdf(x)^2 of a signed-distance function of the deformed position x = X + u.
 
@@ -373,7 +390,7 @@ def sdf_target(
         deformed: Evaluate at X + u (default); False: at the rest position X (shape design).
     """
 
-    def form(f):
+    def form(f: "StepFields") -> ufl.Form:
         x = forms.deformed_position(f.X, f.u) if deformed else f.X
         d = sdf(x)
         if not isinstance(d, ufl.core.expr.Expr) or d.ufl_shape != ():
@@ -385,7 +402,7 @@ def sdf_target(
 
 
 # -- loads -----------------------------------------------------------------------------------
-def compliance(model, loads: Sequence[str] | None = None) -> Series:
+def compliance(model: "Model", loads: Sequence[str] | None = None) -> Series:
     """Per-step compliance, the work of the dead loads on the displacement.
 
     s_i = sum over body forces int rho g . u^i dx + sum over tractions int t . u^i ds (for a
@@ -410,7 +427,7 @@ def compliance(model, loads: Sequence[str] | None = None) -> Series:
     if not terms:
         raise ParameterError("compliance: the model has no body force or traction")
 
-    def form(f):
+    def form(f: "StepFields") -> ufl.Form:
         parts = [-t.energy_density(f) * t.measure(f) for t in terms]
         return sum(parts[1:], parts[0])
 

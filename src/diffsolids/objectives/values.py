@@ -11,15 +11,20 @@ integrals, soft minima) along the last forward run of a ReducedFunctional, by la
 """
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 from dolfinx import fem
 from mpi4py import MPI
 
-from diffsolids.objectives.functional import NumericIntegral, ObjectiveError, Series
+from diffsolids.objectives.functional import NumericIntegral, Objective, ObjectiveError, Series
 from diffsolids.objectives.terms import series_label
 from diffsolids.parallel import collective_comm
 from diffsolids.solvers.forms import compile_form
+
+if TYPE_CHECKING:
+    from diffsolids.reduced_functional import ReducedFunctional
+    from diffsolids.simulation import Simulation, StateHistory
 
 __all__ = ["objective_series", "series_values", "step_values"]
 
@@ -37,9 +42,9 @@ def _state_indices(steps: Sequence[int] | None, num_states: int) -> list[int]:
 
 
 def series_values(
-    simulation,
+    simulation: "Simulation",
     series: Series | Sequence[Series],
-    trajectory,
+    trajectory: "StateHistory",
     steps: Sequence[int] | None = None,
 ) -> np.ndarray:
     """Values of one or several series at the states of a trajectory (collective).
@@ -103,7 +108,7 @@ def series_values(
     return values[:, 0] if single else values
 
 
-def objective_series(objective) -> dict[str, Series]:
+def objective_series(objective: Objective) -> dict[str, Series]:
     """The series an objective reduces over steps (time integrals, soft minima), by label.
 
     Labels are those of the objective's terms (e.g. ``"target trajectory"``); a repeated label
@@ -111,7 +116,7 @@ def objective_series(objective) -> dict[str, Series]:
     """
     found: list[Series] = []
 
-    def walk(node) -> None:
+    def walk(node: object) -> None:
         series = getattr(node, "series", None)
         if isinstance(series, Series):
             if all(series is not s for s in found):
@@ -133,7 +138,7 @@ def objective_series(objective) -> dict[str, Series]:
     return out
 
 
-def step_values(rf) -> dict[str, np.ndarray]:
+def step_values(rf: "ReducedFunctional") -> dict[str, np.ndarray]:
     """Per-state values of the series of an objective along the last forward run (collective).
 
     Every state 0..N is evaluated (also those the objective gives zero weight, so there is no

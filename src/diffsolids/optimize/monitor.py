@@ -16,6 +16,9 @@ from diffsolids.optimize.checkpoint import atomic_write_bytes
 from diffsolids.optimize.options import OptimizationError
 
 if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+    from diffsolids.controls import ControlSet
     from diffsolids.model import Model
     from diffsolids.simulation import Trajectory
 
@@ -85,7 +88,7 @@ class IterationRecord:
         return cls(**d)
 
 
-def control_summary(controls, q: np.ndarray, max_values: int = 3) -> str:
+def control_summary(controls: "ControlSet", q: np.ndarray, max_values: int = 3) -> str:
     """The controls at ``q`` in a few characters, for a log line.
 
     A control with at most ``max_values`` parameters shows them (``E=1.2e+05``,
@@ -268,7 +271,7 @@ def _log_format(path: Path) -> str:
     )
 
 
-def _csv_value(value) -> str:
+def _csv_value(value: object) -> str:
     if value is None:
         return ""
     if isinstance(value, float):
@@ -295,7 +298,7 @@ def read_log(path: str | os.PathLike) -> list[IterationRecord]:
     return records
 
 
-def _from_csv(field_name: str, text: str):
+def _from_csv(field_name: str, text: str) -> int | str | bool | float | None:
     if field_name in ("iteration", "trials", "invalid_trials"):
         return int(text)
     if field_name == "parameter_summary":
@@ -402,7 +405,7 @@ def plot_log(
     return path
 
 
-def _save(fig, path: Path) -> None:
+def _save(fig: "Figure", path: Path) -> None:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)
     atomic_write_bytes(path, buf.getvalue())
@@ -432,7 +435,7 @@ class OptimizationOutput:
         plot_every: int = 10,
         iterate_every: int = 0,
         iterate_format: str = "bp",
-    ):
+    ) -> None:
         if iterate_format not in ("bp", "xdmf"):
             raise OptimizationError(
                 f"iterate_format must be 'bp' or 'xdmf', not {iterate_format!r}"

@@ -6,7 +6,13 @@ The optimiser calls each observer as ``observer(record, optimizer)`` once per ac
 after remeshing), whose model holds the iterate.
 """
 
+from typing import TYPE_CHECKING
+
 from diffsolids.optimize.invariants import BoundaryIntersection, inverted_rest_cells
+
+if TYPE_CHECKING:
+    from diffsolids.optimize.monitor import IterationRecord
+    from diffsolids.optimize.optimizer import LBFGS
 
 __all__ = ["InvariantMonitor", "TrajectoryKeeper"]
 
@@ -25,7 +31,7 @@ class TrajectoryKeeper:
         self.last = None
         self.accepted = 0
 
-    def __call__(self, record, optimizer) -> None:
+    def __call__(self, record: "IterationRecord", optimizer: "LBFGS") -> None:
         """Keep the accepted iterate's trajectory."""
         traj = optimizer.point.trajectory
         if self.first is None:
@@ -59,7 +65,7 @@ class InvariantMonitor:
         self.checked = 0
         self._checks: dict[int, BoundaryIntersection] = {}
 
-    def __call__(self, record, optimizer) -> None:
+    def __call__(self, record: "IterationRecord", optimizer: "LBFGS") -> None:
         """Check the accepted iterate of ``optimizer``."""
         rf = optimizer.rf
         model = rf.model

@@ -33,9 +33,10 @@ import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from os import PathLike
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, overload
 
 import numpy as np
+import numpy.typing as npt
 from mpi4py import MPI
 
 from diffsolids.errors import DiffsolidsError
@@ -61,7 +62,10 @@ from diffsolids.optimize.options import LBFGSOptions, OptimizationError, Optimiz
 from diffsolids.parallel import collective_comm
 
 if TYPE_CHECKING:
+    from diffsolids.adjoint.checkpointing import CheckpointedTrajectory
+    from diffsolids.optimize.remesh import Remesher
     from diffsolids.reduced_functional import ReducedFunctional
+    from diffsolids.simulation import Trajectory
 
 __all__ = ["LBFGS", "OptimizationResult", "minimize"]
 
@@ -125,8 +129,8 @@ class _Point:
     q: np.ndarray
     J: float
     g: np.ndarray
-    trajectory: object = None
-    snapshot: object = None
+    trajectory: "Trajectory | CheckpointedTrajectory | None" = None
+    snapshot: tuple | None = None
 
 
 class LBFGS:
@@ -170,11 +174,11 @@ class LBFGS:
         options: LBFGSOptions | None = None,
         *,
         inner_product: Callable[[np.ndarray], np.ndarray] | None = None,
-        remesher=None,
+        remesher: "Remesher | None" = None,
         stop_conditions: Sequence[Callable] = (),
         on_accept: Observer | Sequence[Observer] | None = None,
-        output_dir=None,
-        checkpoint_dir=None,
+        output_dir: str | PathLike | None = None,
+        checkpoint_dir: str | PathLike | None = None,
         resume: bool = True,
         progress: bool | None = None,
         log: bool = False,
@@ -183,7 +187,7 @@ class LBFGS:
         plot_every: int = 10,
         iterate_every: int = 0,
         iterate_format: str = "bp",
-    ):
+    ) -> None:
         self.rf = rf
         self.options = options or LBFGSOptions()
         self.options.validate()
@@ -220,7 +224,11 @@ class LBFGS:
         self._t_start = 0.0
 
     # -- evaluation ---------------------------------------------------------------------------
-    def _sync(self, J: float, g: np.ndarray | None = None):
+    @overload
+    def _sync(self, J: float) -> float: ...
+    @overload
+    def _sync(self, J: float, g: np.ndarray) -> tuple[float, np.ndarray]: ...
+    def _sync(self, J: float, g: np.ndarray | None = None) -> float | tuple[float, np.ndarray]:
         """Rank 0's values on all ranks: every rank takes the same decisions."""
         J = collective_comm(self.comm).bcast(J, root=0)
         if g is None:
@@ -273,7 +281,7 @@ class LBFGS:
         values = getattr(self.rf, "term_values", None)
         return dict(values()) if values is not None else {}
 
-    def _snapshot(self):
+    def _snapshot(self) -> tuple | None:
         snap = getattr(self.rf, "snapshot", None)
         return snap() if snap is not None else None
 
@@ -283,7 +291,7 @@ class LBFGS:
         return lo, hi
 
     # -- start and resume ------------------------------------------------------------------------
-    def _start(self, q0) -> None:
+    def _start(self, q0: npt.ArrayLike | None) -> None:
         rf = self.rf
         q = np.array(rf.initial_parameters() if q0 is None else q0, dtype=float)
         if q.shape != (rf.size,):
@@ -395,7 +403,13 @@ class LBFGS:
 
     # -- iterations ------------------------------------------------------------------------------
     def _record(
-        self, step_norm, step_length, trials, invalid, t_forward, t_grad
+        self,
+        step_norm: float,
+        step_length: float,
+        trials: int,
+        invalid: int,
+        t_forward: float,
+        t_grad: float,
     ) -> IterationRecord:
         p = self.point
         lo, hi = self._bounds(p.q)
@@ -479,7 +493,7 @@ class LBFGS:
             else:
                 save(self.checkpoint.mesh_directory(self.remesh_count), new_rf)
 
-    def _direction(self, g, free) -> np.ndarray:
+    def _direction(self, g: np.ndarray, free: np.ndarray) -> np.ndarray:
         d = -self.memory.apply(g, free)
         if not float(g @ d) < 0 and len(self.memory):
             logger.info("opt: L-BFGS direction is not a descent direction; memory reset")
@@ -487,7 +501,9 @@ class LBFGS:
             d = -self.memory.apply(g, free)
         return d
 
-    def _line_search(self, d: np.ndarray, lo, hi):
+    def _line_search(
+        self, d: np.ndarray, lo: np.ndarray, hi: np.ndarray
+    ) -> tuple[np.ndarray | None, float, float, int, int, float]:
         """Backtracking along the projected path; returns (q, J, t, trials, invalid, seconds)."""
         opts = self.options
         p = self.point
@@ -580,7 +596,7 @@ class LBFGS:
         return None
 
     # -- driver ----------------------------------------------------------------------------------
-    def run(self, q0=None) -> OptimizationResult:
+    def run(self, q0: npt.ArrayLike | None = None) -> OptimizationResult:
         """Minimise from ``q0`` (default: the controls' current parameters), or resume.
 
         Raises:
@@ -657,7 +673,10 @@ _MESSAGES = {
 
 
 def minimize(
-    rf: "ReducedFunctional", q0=None, options: LBFGSOptions | None = None, **kwargs
+    rf: "ReducedFunctional",
+    q0: npt.ArrayLike | None = None,
+    options: LBFGSOptions | None = None,
+    **kwargs,
 ) -> OptimizationResult:
     """Minimise a ReducedFunctional with :class:`LBFGS` (keyword arguments as there).
 
