@@ -44,7 +44,6 @@ TABLE4 = {  # the paper's Table 4: solve / gradient seconds
     "throw": (209.30, 4.3731),
 }
 FOLDERS = {"puzzle": "fig14_puzzle_piece", "kangaroo": "fig20_kangaroo", "throw": "fig1_bunnies"}
-THROW_TARGET = (3.67854, 0.137261)
 
 
 def _parse(argv):
@@ -65,21 +64,17 @@ def build(name: str, data: Path, kappa, steps: int | None, comm):
     from paper_common import experiment, scenes, target_objective
 
     from diffsolids.controls import ParameterControl, RigidVelocity
-    from diffsolids.objectives import center_of_mass, final_value
     from diffsolids.reduced_functional import ReducedFunctional
 
     path, opt = experiment(data, FOLDERS[name])
     run, target = scenes(path, opt)
     if name == "throw":
-        # area-weighted pairs: with PolyFEM's unweighted pairs the suggested kappa is 3.9e13
-        # and step 2 fails (50 Newton iterations, 44 cut by a step bound)
-        model, _contact, sim = build_scene(run, comm, steps, kappa, 1e-8, area_weighting=True)
-        control = RigidVelocity(sim, 2, angular=False)
-        cx, _, cz = center_of_mass(model, 3)
-        x, z = THROW_TARGET
-        objective = (final_value(cx) - x) ** 2 + (final_value(cz) - z) ** 2
-        q = np.array(run.initial_velocity[0].value)
-        return ReducedFunctional(sim, objective, control), q, sim
+        # the demo's problem (paper_throw_bunnies.throw_problem): area-weighted pairs (with
+        # PolyFEM's unweighted pairs the suggested kappa is 3.9e13 and step 2 fails), rtol 1e-8
+        from paper_throw_bunnies import throw_problem
+
+        rf, q, _contact = throw_problem(run, comm, steps, kappa)
+        return rf, q, rf.simulation
     model, _contact, sim = build_scene(run, comm, steps, kappa)
     if name == "puzzle":
         controls = RigidVelocity(sim, 1, angular=False)
