@@ -62,6 +62,7 @@ autosummary_ignore_module_all = False
 nitpicky = True
 nitpick_ignore_regex = [
     ("py:.*", r"(numpy|np|dolfinx|petsc4py|PETSc|ufl|mpi4py|MPI|scipy|basix|ipctk)(\..*)?"),
+    ("py:.*", r"(checkpoint_schedules|h5py|matplotlib|tqdm)(\..*)?"),
     ("py:.*", r"(collections\.abc|typing|types|os|pathlib|abc|contextlib)\..*"),
 ]
 

@@ -28,11 +28,12 @@ import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from checkpoint_schedules import (
     CheckpointAction,
+    CheckpointSchedule,
     Copy,
     EndForward,
     EndReverse,
@@ -154,8 +155,7 @@ class Checkpointing:
             return Checkpointing("memory", snaps=min(snaps, N), directory=self.directory)
         return Checkpointing("disk", directory=self.directory)
 
-    # a checkpoint_schedules.CheckpointSchedule: Any, as the docs have no inventory of that package
-    def make_schedule(self, num_steps: int) -> Any:
+    def make_schedule(self, num_steps: int) -> CheckpointSchedule:
         """The ``checkpoint_schedules`` schedule of this (resolved) policy for N steps."""
         N = num_steps
         if self.policy == "all":

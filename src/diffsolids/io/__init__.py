@@ -16,7 +16,7 @@ from diffsolids.io.polyfem_scene import (
     PolyFEMSetup,
     read_polyfem_scene,
 )
-from diffsolids.io.progress import progress_bar
+from diffsolids.io.progress import ProgressBar, progress_bar
 
 __all__ = [
     "PolyFEMBoundaryValue",
@@ -24,6 +24,7 @@ __all__ = [
     "PolyFEMMaterial",
     "PolyFEMScene",
     "PolyFEMSetup",
+    "ProgressBar",
     "TrajectoryWriter",
     "boundary_edges",
     "configure_logging",

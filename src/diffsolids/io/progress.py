@@ -3,7 +3,7 @@
 import contextlib
 import sys
 from collections.abc import Iterator
-from typing import Any, Protocol, TextIO
+from typing import Protocol, TextIO
 
 from mpi4py import MPI
 
@@ -26,7 +26,7 @@ class _NullBar:
 @contextlib.contextmanager
 def progress_bar(
     total: int, comm: MPI.Comm, enabled: bool | None = None, desc: str = "steps"
-) -> Iterator[Any]:  # a ProgressBar (not in diffsolids.io's __all__, so not in the docs)
+) -> Iterator["ProgressBar"]:
     """A tqdm bar on rank 0; ``enabled=None`` shows it only when stderr is a terminal."""
     if enabled is None:
         enabled = sys.stderr.isatty()
