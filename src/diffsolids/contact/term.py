@@ -230,6 +230,7 @@ class ContactTerm(NumericTerm):
         self._segment = None
         self._tangential = None
         self._pattern_memo = None
+        self._shape_builds: list[tuple] = []
 
     @property
     def ccd(self) -> ipctk.NarrowPhaseCCD:
@@ -412,10 +413,23 @@ class ContactTerm(NumericTerm):
         return self._free
 
     def _build(self, x: np.ndarray, shape_derivatives: bool = False) -> ipctk.NormalCollisions:
+        """Collision set at positions x (with weight gradients when asked).
+
+        The sets with weight gradients are kept for the last two positions (same collision mesh
+        and static mask): the adjoint of step i builds them at x^i and, for the lagged
+        friction, at x^{i-1}, where the adjoint of step i - 1 needs its own again.
+        """
+        surf = self.surface
+        if shape_derivatives:
+            for mesh, static, xc, C in self._shape_builds:
+                if mesh is surf.mesh and static is surf.static and np.array_equal(xc, x):
+                    return C
         C = ipctk.NormalCollisions()
         C.use_area_weighting = self.area_weighting
         C.enable_shape_derivatives = shape_derivatives
-        C.build(self.surface.mesh, np.asfortranarray(x), self.dhat, 0.0, self.broad_phase)
+        C.build(surf.mesh, np.asfortranarray(x), self.dhat, 0.0, self.broad_phase)
+        if shape_derivatives:
+            self._shape_builds = [(surf.mesh, surf.static, np.array(x), C), *self._shape_builds[:1]]
         return C
 
     def _build_on_segment(self, U: np.ndarray, x: np.ndarray) -> ipctk.NormalCollisions:
