@@ -8,8 +8,11 @@ variable ``DIFFSOLIDS_DATA`` + ``/diffipc``, else ``../shared/data/diffipc`` nex
 repository, as the tests do) and never copy the data.
 
 Here: the data folder, the scenes of an experiment (run and target must place the same
-meshes), the paper's ``transient_integral`` of a ``target`` objective (opt.json) as our
-objective, and a Simulation that loads the target of each step.
+meshes), opt.json's objective checked (``paper_functional``) and its ``transient_integral`` of a
+``target`` as our objective, a Simulation that loads the target of each step, and the steps
+the demos' ``main`` share: setup with the time grid recorded, the optimisation with its three
+trajectories, the report with the invariants and the recovery outcome, the figures of
+``report.extra`` and the closing figure and summary.
 """
 
 import json
@@ -17,21 +20,29 @@ import os
 from pathlib import Path
 
 from common import ROOT
-from dynamic_common import TargetSimulation
+from dynamic_common import TargetSimulation, check_invariants, finish_transient
 
 import diffsolids as ds
 from diffsolids.io.polyfem_scene import PolyFEMScene, read_polyfem_scene
 from diffsolids.objectives import target_displacement, time_integral
-from diffsolids.optimize import LBFGSOptions
+from diffsolids.optimize import LBFGSOptions, check_trajectories
 
 __all__ = [
     "DEFAULT_DATA",
     "TargetSimulation",
     "add_data_argument",
     "build",
+    "contact_figures",
     "experiment",
+    "finish_paper",
+    "gradient_stop_options",
     "kappa_argument",
+    "optimise_paths",
+    "paper_functional",
+    "paper_report",
+    "paper_setup",
     "plot_paths",
+    "recovery_figures",
     "scenes",
     "target_objective",
 ]
@@ -96,6 +107,43 @@ def kappa_argument(value: str | None):
     return float(value)
 
 
+def paper_functional(
+    opt: dict,
+    integral_type: str,
+    static_type: str,
+    default_integral: str | None = None,
+    **static_fields,
+) -> tuple[dict, dict]:
+    """opt.json's one functional and its static objective, checked for the expected kind.
+
+    Args:
+        opt: The opt.json.
+        integral_type: The expected ``integral_type`` of the ``transient_integral``.
+        static_type: The expected ``type`` of its ``static_objective``.
+        default_integral: ``integral_type`` when opt.json gives none (None: it must be given).
+        **static_fields: Further entries the static objective must have, e.g.
+            ``volume_selection=[1]``.
+
+    Returns:
+        (functional, static objective) as dicts.
+
+    Raises:
+        ds.ParameterError: opt.json holds another objective (named in the message).
+    """
+    (functional,) = opt["functionals"]
+    static = functional.get("static_objective", {})
+    if (
+        functional.get("type") != "transient_integral"
+        or functional.get("integral_type", default_integral) != integral_type
+        or static.get("type") != static_type
+        or any(static.get(k) != v for k, v in static_fields.items())
+    ):
+        raise ds.ParameterError(
+            f"opt.json objective {functional!r} is not a {integral_type} {static_type}"
+        )
+    return functional, static
+
+
 def target_objective(sim: TargetSimulation, opt: dict):
     """The paper's objective of opt.json: ``transient_integral`` of a ``target`` term.
 
@@ -106,14 +154,7 @@ def target_objective(sim: TargetSimulation, opt: dict):
     Raises:
         ds.ParameterError: opt.json holds another objective.
     """
-    (functional,) = opt["functionals"]
-    static = functional.get("static_objective", {})
-    if (
-        functional.get("type") != "transient_integral"
-        or static.get("type") != "target"
-        or functional.get("integral_type", "uniform") != "uniform"
-    ):
-        raise ds.ParameterError(f"opt.json objective {functional!r} is not a uniform target")
+    functional, static = paper_functional(opt, "uniform", "target", default_integral="uniform")
     facets = static["surface_selection"]
     misfit = target_displacement(sim.model, sim.target, facets=facets)
     return time_integral(misfit, "uniform") * float(functional.get("weight", 1.0))
@@ -165,6 +206,79 @@ def gradient_stop_options(opt: dict, iterations: int, **kwargs) -> LBFGSOptions:
     nonlinear = opt["solver"]["nonlinear"]
     atol = float(nonlinear.get("grad_norm", 1e-4)) * 1e-3
     return LBFGSOptions(max_iterations=iterations, gradient_atol=atol, gradient_rtol=0.0, **kwargs)
+
+
+def paper_setup(run, setup) -> tuple:
+    """``setup(args, comm)`` of a paper demo, its steps and time step recorded in ``run.args``.
+
+    Returns:
+        What ``setup`` returns: (model, contact, simulation, ...).
+    """
+    values = setup(run.args, run.comm)
+    integrator = values[2].integrator
+    run.args.steps, run.args.dt = integrator.num_steps, integrator.dt
+    return values
+
+
+def optimise_paths(run, rf, q0, options: LBFGSOptions, target) -> tuple:
+    """``run.optimise`` (q in the history) and the three trajectories of the checks and figure.
+
+    Returns:
+        (result, keeper, {"target": target, "initial": ..., "final": ...})
+    """
+    result, keeper = run.optimise(rf, q0, options, write_parameters=True)
+    return result, keeper, {"target": target, "initial": keeper.first, "final": keeper.last}
+
+
+def paper_report(run, result, sim, trajectories: dict, contact, recovery: tuple | None = None):
+    """The DemoReport with the invariants of the trajectories and a recovery outcome.
+
+    Args:
+        run: The DemoRun.
+        result: The OptimizationResult.
+        sim: The Simulation of the trajectories.
+        trajectories: The trajectories checked (no inverted element, no intersection).
+        contact: The contact term (its collision surface is checked).
+        recovery: (what, relative error, tolerance, text): the outcome "relative error of the
+            recovered <what>", not checked in ``--tiny`` runs (None: none).
+    """
+    report = run.report(result)
+    check_invariants(report, check_trajectories(sim, list(trajectories.values()), contact))
+    if recovery is not None and not run.args.tiny:
+        what, error, rtol, text = recovery
+        report.check(f"relative error of the recovered {what}", error, rtol, error < rtol, text)
+    return report
+
+
+def contact_figures(contact, final) -> dict:
+    """The contact's kappa and dhat and the Newton iterations of the final run (report.extra)."""
+    return {
+        "kappa": contact.stiffness,
+        "dhat": contact.dhat,
+        "newton_iterations_final_run": final.newton_iterations(),
+    }
+
+
+def recovery_figures(name: str, true, initial, final, errors, contact, trajectory) -> dict:
+    """report.extra of a recovery of ``name`` (true, initial, final values, relative errors).
+
+    The keys: ``<name>_true``, ``_initial``, ``_final``, ``_error_initial``, ``_error_final``
+    (``errors``: the initial and the final relative error) and :func:`contact_figures` of the
+    final run ``trajectory``.
+    """
+    values = {"true": true, "initial": initial, "final": final}
+    values.update({"error_initial": errors[0], "error_final": errors[1]})
+    figures = {f"{name}_{key}": value for key, value in values.items()}
+    return {**figures, **contact_figures(contact, trajectory)}
+
+
+def finish_paper(run, report, model, result, figures: dict, headline: str, paths, title: str):
+    """``finish_transient`` with the figure of :func:`plot_paths` (centre paths, objective)."""
+
+    def figure(path):
+        plot_paths(path, paths, result, title, run.comm)
+
+    return finish_transient(run, report, model, result, [], figures, headline, figure)
 
 
 def plot_paths(path, paths: dict, result, title: str, comm) -> None:

@@ -52,14 +52,16 @@ from dataclasses import dataclass
 
 import numpy as np
 from common import DemoReport, DemoRun, by_size, run_demo
-from dynamic_common import check_invariants, finish_transient
 from material_common import check_recovered
 from mpi4py import MPI
 from paper_common import (
     add_data_argument,
     build,
+    contact_figures,
     experiment,
-    plot_paths,
+    finish_paper,
+    paper_report,
+    paper_setup,
     scenes,
     target_objective,
 )
@@ -72,7 +74,6 @@ from diffsolids.optimize import (
     OptimizationOutput,
     OptimizationResult,
     TrajectoryKeeper,
-    check_trajectories,
 )
 from diffsolids.optimize.monitor import control_summary, log_iteration
 from diffsolids.reduced_functional import ReducedFunctional
@@ -282,8 +283,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     """Recover the kangaroo's E and nu; returns the report (printed on rank 0)."""
     run = parse_args(argv, comm)
     args = run.args
-    model, contact, sim, rf, target, true, q0, opt = setup(args, comm)
-    args.steps, args.dt = sim.integrator.num_steps, sim.integrator.dt
+    model, contact, sim, rf, target, true, q0, opt = paper_setup(run, setup)
     box = opt["solver"]["nonlinear"].get("box_constraints", {})
     max_change = (float(box.get("max_change", MAX_CHANGE[0])), MAX_CHANGE[1])
     output = OptimizationOutput(args.out, comm, write_parameters=True, plot_every=0)
@@ -294,8 +294,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     com = center_of_mass(model, KANGAROO)
     paths = {k: series_values(sim, com, t) for k, t in trajs.items()}
 
-    report = run.report(result)
-    check_invariants(report, check_trajectories(sim, list(trajs.values()), contact))
+    report = paper_report(run, result, sim, trajs, contact)
     found = {"E": float(np.exp(result.q[0])), "nu": float(result.q[1])}
     start = {"E": float(np.exp(q0[0])), "nu": float(q0[1])}
     truth = {"E": float(np.exp(true[0])), "nu": float(true[1])}
@@ -306,9 +305,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
         "recovered": found,
         "final_gradient_norm": float(result.history[-1].gradient_norm),
         "best_gradient": [float(x) for x in result.gradient],
-        "kappa": contact.stiffness,
-        "dhat": contact.dhat,
-        "newton_iterations_final_run": keeper.last.newton_iterations(),
+        **contact_figures(contact, keeper.last),
     }
     headline = (
         f"paper_kangaroo (Fig. 20): E {start['E']:.3g} -> {found['E']:.6g} (true "
@@ -316,11 +313,8 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
         f"J {result.objective:.3g}, |g| {np.linalg.norm(result.gradient):.3g}; "
         f"kappa {contact.stiffness:.3g}"
     )
-
-    def figure(path):
-        plot_paths(path, paths, result, "Fig. 20 kangaroo: centre-of-mass paths", comm)
-
-    return finish_transient(run, report, model, result, [], figures, headline, figure)
+    title = "Fig. 20 kangaroo: centre-of-mass paths"
+    return finish_paper(run, report, model, result, figures, headline, paths, title)
 
 
 if __name__ == "__main__":

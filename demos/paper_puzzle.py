@@ -27,21 +27,23 @@ Output in ``output/paper_puzzle/``: ``history.jsonl``, ``result.json``, ``paper_
 
 import numpy as np
 from common import DemoReport, DemoRun, by_size, run_demo
-from dynamic_common import check_invariants, finish_transient
 from mpi4py import MPI
 from paper_common import (
     add_data_argument,
     build,
     experiment,
+    finish_paper,
     gradient_stop_options,
-    plot_paths,
+    optimise_paths,
+    paper_report,
+    paper_setup,
+    recovery_figures,
     scenes,
     target_objective,
 )
 
 from diffsolids.controls import RigidVelocity
 from diffsolids.objectives import center_of_mass, series_values
-from diffsolids.optimize import check_trajectories
 from diffsolids.reduced_functional import ReducedFunctional
 
 FOLDER = "fig14_puzzle_piece"
@@ -83,48 +85,25 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     """Recover the piece's initial velocity; returns the report (printed on rank 0)."""
     run = parse_args(argv, comm)
     args = run.args
-    model, contact, sim, rf, target, true, q0, opt = setup(args, comm)
-    args.steps = sim.integrator.num_steps
-    args.dt = sim.integrator.dt
+    model, contact, sim, rf, target, true, q0, opt = paper_setup(run, setup)
     options = gradient_stop_options(opt, args.iterations, max_change=2.0)
-    result, keeper = run.optimise(rf, q0, options, write_parameters=True)
-    trajs = {"target": target, "initial": keeper.first, "final": keeper.last}
+    result, keeper, trajs = optimise_paths(run, rf, q0, options, target)
     com = center_of_mass(model, PIECE)
     paths = {k: series_values(sim, com, t) for k, t in trajs.items()}
     error0 = float(np.linalg.norm(q0 - true) / np.linalg.norm(true))
     error1 = float(np.linalg.norm(result.q - true) / np.linalg.norm(true))
 
-    report = run.report(result)
-    check_invariants(report, check_trajectories(sim, list(trajs.values()), contact))
-    if not args.tiny:
-        report.check(
-            "relative error of the recovered v0",
-            error1,
-            RECOVERY_RTOL,
-            error1 < RECOVERY_RTOL,
-            f"({q0.tolist()} -> {np.round(result.q, 6).tolist()}, true {true.tolist()})",
-        )
-    final = keeper.last
-    figures = {
-        "v0_true": true.tolist(),
-        "v0_initial": q0.tolist(),
-        "v0_final": result.q.tolist(),
-        "v0_error_initial": error0,
-        "v0_error_final": error1,
-        "kappa": contact.stiffness,
-        "dhat": contact.dhat,
-        "newton_iterations_final_run": final.newton_iterations(),
-    }
+    text = f"({q0.tolist()} -> {np.round(result.q, 6).tolist()}, true {true.tolist()})"
+    report = paper_report(run, result, sim, trajs, contact, ("v0", error1, RECOVERY_RTOL, text))
+    values = (true.tolist(), q0.tolist(), result.q.tolist(), (error0, error1))
+    figures = recovery_figures("v0", *values, contact, keeper.last)
     headline = (
         f"paper_puzzle (Fig. 14): v0 {q0.tolist()} -> {np.round(result.q, 5).tolist()} "
         f"(true {true.tolist()}); relative error {error0:.3f} -> {error1:.2e}; "
         f"kappa {contact.stiffness:.3g}"
     )
-
-    def figure(path):
-        plot_paths(path, paths, result, "Fig. 14 puzzle piece: centre-of-mass paths", comm)
-
-    return finish_transient(run, report, model, result, [], figures, headline, figure)
+    title = "Fig. 14 puzzle piece: centre-of-mass paths"
+    return finish_paper(run, report, model, result, figures, headline, paths, title)
 
 
 if __name__ == "__main__":

@@ -27,15 +27,24 @@ Output in ``output/paper_sliding_bunny/``: ``history.jsonl``, ``result.json``,
 
 import numpy as np
 from common import DemoReport, DemoRun, by_size, run_demo
-from dynamic_common import check_invariants, finish_transient
 from mpi4py import MPI
-from paper_common import add_data_argument, build, experiment, gradient_stop_options, plot_paths
+from paper_common import (
+    add_data_argument,
+    build,
+    experiment,
+    finish_paper,
+    gradient_stop_options,
+    optimise_paths,
+    paper_functional,
+    paper_report,
+    paper_setup,
+    recovery_figures,
+)
 
 import diffsolids as ds
 from diffsolids.controls import FrictionControl
 from diffsolids.io.polyfem_scene import read_polyfem_scene
 from diffsolids.objectives import center_of_mass, final_value, series_values
-from diffsolids.optimize import check_trajectories
 from diffsolids.reduced_functional import ReducedFunctional
 
 FOLDER = "fig21_friction_bunny"
@@ -57,15 +66,7 @@ def paper_objective(model, opt: dict, target_centre: np.ndarray):
     Raises:
         ds.ParameterError: opt.json holds another objective.
     """
-    (functional,) = opt["functionals"]
-    static = functional.get("static_objective", {})
-    if (
-        functional.get("type") != "transient_integral"
-        or functional.get("integral_type") != "final"
-        or static.get("type") != "center-target"
-        or static.get("volume_selection") != [BUNNY]
-    ):
-        raise ds.ParameterError(f"opt.json objective {functional!r} is not a final center-target")
+    functional, _ = paper_functional(opt, "final", "center-target", volume_selection=[BUNNY])
     com = center_of_mass(model, BUNNY)
     misfit = sum((com[k] - float(target_centre[k])) ** 2 for k in range(model.dim))
     return final_value(misfit) * float(functional.get("weight", 1.0))
@@ -96,12 +97,9 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     """Identify the bunny's friction coefficient; returns the report (printed on rank 0)."""
     run = parse_args(argv, comm)
     args = run.args
-    model, contact, sim, rf, target, true, q0, opt = setup(args, comm)
-    args.steps = sim.integrator.num_steps
-    args.dt = sim.integrator.dt
+    model, contact, sim, rf, target, true, q0, opt = paper_setup(run, setup)
     options = gradient_stop_options(opt, args.iterations, initial_step=0.5, max_change=0.5)
-    result, keeper = run.optimise(rf, np.log(q0), options, write_parameters=True)
-    trajs = {"target": target, "initial": keeper.first, "final": keeper.last}
+    result, keeper, trajs = optimise_paths(run, rf, np.log(q0), options, target)
     com = center_of_mass(model, BUNNY)
     # the slide runs along z, gravity along -y: the paths in the (z, y) plane
     paths = {k: series_values(sim, com, t)[:, [2, 1]] for k, t in trajs.items()}
@@ -109,39 +107,18 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     error0 = float(abs(q0[0] - true[0]) / true[0])
     error1 = float(abs(mu - true[0]) / true[0])
 
-    report = run.report(result)
-    check_invariants(report, check_trajectories(sim, list(trajs.values()), contact))
-    if not args.tiny:
-        report.check(
-            "relative error of the recovered mu",
-            error1,
-            RECOVERY_RTOL,
-            error1 < RECOVERY_RTOL,
-            f"({q0[0]:g} -> {mu:.6f}, true {true[0]:g})",
-        )
-    final = keeper.last
-    figures = {
-        "mu_true": float(true[0]),
-        "mu_initial": float(q0[0]),
-        "mu_final": mu,
-        "mu_error_initial": error0,
-        "mu_error_final": error1,
-        "kappa": contact.stiffness,
-        "dhat": contact.dhat,
-        "eps_v": contact.eps_v,
-        "newton_iterations_final_run": final.newton_iterations(),
-    }
+    text = f"({q0[0]:g} -> {mu:.6f}, true {true[0]:g})"
+    report = paper_report(run, result, sim, trajs, contact, ("mu", error1, RECOVERY_RTOL, text))
+    values = (float(true[0]), float(q0[0]), mu, (error0, error1))
+    figures = recovery_figures("mu", *values, contact, keeper.last)
+    figures["eps_v"] = contact.eps_v
     headline = (
         f"paper_sliding_bunny (Fig. 21): mu {q0[0]:g} -> {mu:.5f} (true {true[0]:g}); "
         f"relative error {error0:.3f} -> {error1:.2e}; {args.steps} steps, "
         f"kappa {contact.stiffness:.3g}"
     )
-
-    def figure(path):
-        title = "Fig. 21 sliding bunny: centre-of-mass paths (z, y)"
-        plot_paths(path, paths, result, title, comm)
-
-    return finish_transient(run, report, model, result, [], figures, headline, figure)
+    title = "Fig. 21 sliding bunny: centre-of-mass paths (z, y)"
+    return finish_paper(run, report, model, result, figures, headline, paths, title)
 
 
 if __name__ == "__main__":
