@@ -160,3 +160,28 @@ def test_edge_edge_distance_types_and_barrier():
     b, db = contact_shape._barrier(barrier, s, 1.0)
     assert _rel(b, np.array([barrier(v, 1.0) for v in s])) <= TOL
     assert _rel(db, np.array([barrier.first_derivative(v, 1.0) for v in s])) <= TOL
+
+
+def test_raw_sparse_vectors_only_for_the_reading_thread():
+    """Inside the weight-gradient gather other threads still get real scipy matrices."""
+    import threading
+
+    import scipy.sparse
+
+    from diffsolids.contact.friction_adjoint import _sparse_as_arrays
+
+    parts = (np.ones(1), np.zeros(1, dtype=np.int32), np.array([0, 1], dtype=np.int32))
+    seen = {}
+
+    def other():
+        seen["other"] = scipy.sparse.csc_matrix(parts, shape=(2, 1))
+
+    original = scipy.sparse.csc_matrix
+    with _sparse_as_arrays():
+        mine = scipy.sparse.csc_matrix(parts, (2, 1))
+        thread = threading.Thread(target=other)
+        thread.start()
+        thread.join()
+    assert mine is parts
+    assert type(seen["other"]) is original and seen["other"].toarray()[0, 0] == 1.0
+    assert scipy.sparse.csc_matrix is original

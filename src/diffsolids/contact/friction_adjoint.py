@@ -22,6 +22,7 @@ distances, closest points, tangent bases and relative velocities of each collisi
 """
 
 import contextlib
+import threading
 from collections.abc import Iterator
 
 import ipctk
@@ -46,11 +47,21 @@ def _sparse_as_arrays() -> Iterator[None]:
     """Let pybind11 return Eigen sparse vectors as (data, indices, indptr) arrays.
 
     pybind11 casts an Eigen sparse matrix by calling ``scipy.sparse.csc_matrix((data, indices,
-    indptr), shape)``; scipy's checks cost ~30 us per call, most of the cost of reading one
-    weight gradient per collision. Inside this block the call returns the arrays themselves.
+    indptr), shape)``, looked up at each cast; scipy's checks cost ~30 us per call, most of the
+    cost of reading one weight gradient per collision. Inside this block that name is a
+    subclass whose constructor returns the arrays themselves to this thread and a real
+    ``csc_matrix`` to any other thread.
     """
     original = scipy.sparse.csc_matrix
-    scipy.sparse.csc_matrix = lambda arrays, shape=None: arrays
+    owner = threading.get_ident()
+
+    class _Raw(original):
+        def __new__(cls, arg: tuple, shape: tuple | None = None, **kwargs: object) -> object:
+            if threading.get_ident() == owner:
+                return arg
+            return original(arg, shape=shape, **kwargs)
+
+    scipy.sparse.csc_matrix = _Raw
     try:
         yield
     finally:
