@@ -57,7 +57,7 @@ __all__ = ["LazyForm", "background_enabled", "build_form", "compile_stats", "mod
 
 _LOCK = threading.Lock()
 _POOL: ThreadPoolExecutor | None = None
-_STATS = {"kernels_built": 0, "codegen_seconds": 0.0, "compiler_seconds": 0.0}
+_STATS = {"kernels_built": 0, "codegen_seconds": 0.0, "compiler_seconds": 0.0, "wait_seconds": 0.0}
 # builds started by this process, by cache file: a form compiled twice waits for the first build
 # (FFCx's own wait for another process polls once a second)
 _BUILDS: dict[Path, Future] = {}
@@ -82,7 +82,12 @@ def background_enabled() -> bool:
 
 
 def compile_stats() -> dict:
-    """Kernels built by this process, seconds of code generation and of compiler runs."""
+    """What this process compiled in the background.
+
+    Returns:
+        ``kernels_built``; seconds of ``codegen`` (UFL, FFCx), of ``compiler`` runs (summed over
+        parallel runs) and of ``wait`` on first use (for the compiler, and loading the module).
+    """
     with _LOCK:
         return dict(_STATS)
 
@@ -227,10 +232,13 @@ class LazyForm(fem.Form):
 
     def _resolve(self) -> fem.Form:
         if self._compiled is None:
+            t0 = time.perf_counter()
             if self._build is not None:
                 self._build.result()  # raises the compiler's error
             self._compiled = fem.form(self._ufl_form, jit_options=self._jit_options)
             self._build = None
+            with _LOCK:
+                _STATS["wait_seconds"] += time.perf_counter() - t0
         return self._compiled
 
     @property
