@@ -217,6 +217,28 @@ def test_states_not_held_and_bad_policies():
         run.reverse(lambda i, view: None)
 
 
+def test_auto_keeps_a_small_run_in_memory_on_a_busy_node(monkeypatch):
+    """A run whose states take <= 1% of the available memory is never checkpointed, even when
+    the factor store claims all the spare memory (a busy node: available < its reserve)."""
+    import diffsolids.solvers.factor_store as fs
+
+    sim = beam()[0]
+    state_mb = MPI.COMM_WORLD.allreduce(16 * len(sim.u0) / 2**20, op=MPI.MAX)
+    node = MPI.COMM_WORLD.Split_type(MPI.COMM_TYPE_SHARED)
+    ranks = node.size
+    node.Free()
+    run_mb = (BEAM_STEPS + 1) * state_mb * ranks
+    store = sim.solver.factor_store
+    sim.solver.factor_store = fs.FactorStore()
+    try:
+        for share, expected in ((0.009, "all"), (0.02, "memory")):
+            available = run_mb / share
+            monkeypatch.setattr(ckpt, "node_memory_mb", lambda a=available: (a, 5 * a))
+            assert Checkpointing().resolve(sim).policy == expected, share
+    finally:
+        sim.solver.factor_store = store
+
+
 @pytest.mark.parametrize(("states", "expected"), [(1000, "all"), (10, "memory"), (3, "disk")])
 def test_auto_policy_follows_available_memory(monkeypatch, states, expected):
     """The rule of Checkpointing: the states take half of what the factor store leaves."""
@@ -237,9 +259,12 @@ def test_auto_policy_follows_available_memory(monkeypatch, states, expected):
         assert policy.policy == expected
         if expected == "memory":
             assert policy.snaps == states // 2  # checkpoints of d = 2 states
-        # a store keeping factors by spare memory leaves a quarter of the total to them
+        # a store keeping factors by spare memory leaves a quarter of the total to them: 0 spare
+        # (4 x available total), so the states get the 1% of the available memory of any run
         sim.solver.factor_store = fs.FactorStore()
-        assert Checkpointing().resolve(sim).policy == "disk"  # 0 spare: 4 x available total
+        floor = int(ckpt._SMALL_RUN_SHARE * available / ranks // state_mb)
+        busy = "all" if floor >= BEAM_STEPS + 1 else "memory" if floor // 2 >= 2 else "disk"
+        assert Checkpointing().resolve(sim).policy == busy
     finally:
         sim.solver.factor_store = store
     monkeypatch.undo()

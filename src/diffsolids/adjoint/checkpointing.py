@@ -93,7 +93,10 @@ class Checkpointing:
         the states of all ranks on the node may take ``memory_fraction`` of what the factor
         store leaves (available - reserve x total, reserve = the store's 0.25 when it keeps
         factors by spare memory, or available - its fixed budget x ranks on the node).
-        Every state in memory when N + 1 states fit; else Revolve with as many checkpoints
+        Every state in memory when N + 1 states fit, or when they take at most 1% of the
+        available memory whatever the store claims (a small run is never checkpointed because
+        the node is busy: its recomputation would cost more than the memory); else Revolve
+        with as many checkpoints
         (of d states each, d = max(m, 2)) as fit, at least 2; else every state on disk. Where
         the memory is unknown, every state in memory up to 2000 MB per rank. Factorisations
         are never kept beyond the factor store's own budget, and in checkpointed runs only for
@@ -145,6 +148,9 @@ class Checkpointing:
         depth = state_depth(simulation)
         state_mb = 2 * 8 * len(simulation.u0) / 2**20  # u and v, owned and ghost entries
         budget = _state_budget_mb(simulation, self.memory_fraction)
+        memory = node_memory_mb()
+        if memory is not None:
+            budget = max(budget, _SMALL_RUN_SHARE * memory[0] / _ranks_on_node(simulation))
         # the most demanding rank decides for all
         fitting = int(budget // max(state_mb, 1e-300))
         states = collective_comm(simulation.model.domain.comm).allreduce(fitting, op=MPI.MIN)
@@ -172,16 +178,24 @@ class Checkpointing:
         raise ParameterError("resolve() the 'auto' policy before making a schedule")
 
 
+#: The share of the available memory the states of a run may always take (see "auto").
+_SMALL_RUN_SHARE = 0.01
+
+
+def _ranks_on_node(simulation: "Simulation") -> int:
+    node = simulation.model.domain.comm.Split_type(MPI.COMM_TYPE_SHARED)
+    ranks = node.size
+    node.Free()
+    return ranks
+
+
 def _state_budget_mb(simulation: "Simulation", fraction: float) -> float:
     """Memory (MB) per rank the states of a run may take: see :class:`Checkpointing`."""
     memory = node_memory_mb()
     if memory is None:
         return 2000.0
     available, total = memory
-    comm = simulation.model.domain.comm
-    node = comm.Split_type(MPI.COMM_TYPE_SHARED)
-    ranks = node.size
-    node.Free()
+    ranks = _ranks_on_node(simulation)
     store = simulation.solver.factor_store
     if store is None:
         spare = available
