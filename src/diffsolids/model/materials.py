@@ -37,7 +37,7 @@ class Material:
     damping_psi: float = 0.0
     damping_phi: float = 0.0
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         try:
             object.__setattr__(self, "law", strain_law(self.law))
         except KeyError as error:
