@@ -54,7 +54,7 @@ import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import dolfinx
 import numpy as np
@@ -70,6 +70,14 @@ from diffsolids.mesh.selections import (
     Selection,
     SphereSelection,
 )
+
+if TYPE_CHECKING:
+    from diffsolids.contact import ContactTerm, Obstacle
+    from diffsolids.integrators import BDF, Integrator
+    from diffsolids.model.materials import Material
+    from diffsolids.model.model import Model
+    from diffsolids.simulation import Simulation
+    from diffsolids.solvers.newton import SolverOptions
 
 __all__ = [
     "PolyFEMBoundaryValue",
@@ -124,7 +132,7 @@ def _check_keys(section: Mapping, known: set, where: str) -> None:
         )
 
 
-def _numbers(value, where: str, size: int | None = None) -> np.ndarray:
+def _numbers(value: object, where: str, size: int | None = None) -> np.ndarray:
     if isinstance(value, str) or (
         isinstance(value, Sequence) and any(isinstance(v, str | Mapping) for v in value)
     ):
@@ -172,7 +180,7 @@ class PolyFEMMaterial:
     phi: float = 0.0
     psi: float = 0.0
 
-    def material(self, **overrides):
+    def material(self, **overrides: float) -> "Material":
         """The diffsolids Material (``overrides``: e.g. ``E=...``, ``nu=...``)."""
         from diffsolids.model.materials import Material
 
@@ -207,10 +215,10 @@ class PolyFEMSetup:
     """What :meth:`PolyFEMScene.build` makes: the pieces of a simulation of the scene."""
 
     domain: Domain
-    model: Any
-    integrator: Any
-    contact: Any
-    simulation: Any
+    model: "Model"
+    integrator: "Integrator"
+    contact: "ContactTerm | None"
+    simulation: "Simulation"
 
 
 @dataclass
@@ -344,7 +352,9 @@ class PolyFEMScene:
         )
         return Domain(mesh, cell_tags, facet_tags, {})
 
-    def model(self, domain: Domain, materials: Mapping[int, Any] | None = None, **kwargs):
+    def model(
+        self, domain: Domain, materials: Mapping[int, "Material"] | None = None, **kwargs: Any
+    ) -> "Model":
         """The Model: materials per body, plane stress in 2D, loads and Dirichlet conditions.
 
         Args:
@@ -391,13 +401,13 @@ class PolyFEMScene:
         if self.rhs is not None and len(self.rhs) != dim:
             raise ParameterError(f"{self.path}: rhs {list(self.rhs)} for a {dim}D scene")
 
-    def integrator(self):
+    def integrator(self) -> "BDF":
         """The BDF integrator of ``time``."""
         from diffsolids.integrators import BDF
 
         return BDF(self.bdf_order, self.dt, self.num_steps)
 
-    def obstacles(self, dim: int) -> list:
+    def obstacles(self, dim: int) -> list["Obstacle"]:
         """The kinematic obstacles: each obstacle entry's mesh boundary, placed, fixed.
 
         Args:
@@ -420,7 +430,13 @@ class PolyFEMScene:
             for g in self.obstacle_geometry
         ]
 
-    def contact_term(self, model, integrator=None, stiffness: float | None = None, **kwargs):
+    def contact_term(
+        self,
+        model: "Model",
+        integrator: "Integrator | None" = None,
+        stiffness: float | str | None = None,
+        **kwargs: Any,
+    ) -> "ContactTerm | None":
         """The ContactTerm with the scene's contact parameters, added to the model.
 
         Args:
@@ -452,7 +468,7 @@ class PolyFEMScene:
         model.add_numeric_term(contact)
         return contact
 
-    def nodal_values(self, model, entries: Sequence[PolyFEMBoundaryValue]) -> np.ndarray:
+    def nodal_values(self, model: "Model", entries: Sequence[PolyFEMBoundaryValue]) -> np.ndarray:
         """A local nodal array (V's layout) holding each body's value (Dirichlet nodes: 0)."""
         dim = model.dim
         out = np.zeros(
@@ -465,7 +481,13 @@ class PolyFEMScene:
         out[prescribed] = 0.0
         return out.ravel()
 
-    def simulation(self, model, integrator, solver_options=None, **kwargs):
+    def simulation(
+        self,
+        model: "Model",
+        integrator: "Integrator",
+        solver_options: "SolverOptions | None" = None,
+        **kwargs: Any,
+    ) -> "Simulation":
         """The Simulation with the scene's initial displacement and velocity."""
         from diffsolids.simulation import Simulation
 
@@ -482,9 +504,9 @@ class PolyFEMScene:
     def build(
         self,
         comm: MPI.Comm = MPI.COMM_WORLD,
-        solver_options=None,
+        solver_options: "SolverOptions | None" = None,
         stiffness: float | str | None = None,
-        simulation_class=None,
+        simulation_class: "type[Simulation] | None" = None,
         **simulation_kwargs,
     ) -> PolyFEMSetup:
         """Domain, model, integrator, contact term and simulation of the scene in one call.
@@ -519,7 +541,7 @@ class PolyFEMScene:
         return self.geometry == other.geometry
 
 
-def _num_cells(mesh) -> int:
+def _num_cells(mesh: dolfinx.mesh.Mesh) -> int:
     imap = mesh.topology.index_map(mesh.topology.dim)
     return imap.size_local + imap.num_ghosts
 
@@ -657,7 +679,7 @@ def _check_obstacle_entry(scene: PolyFEMScene, k: int, g: PolyFEMGeometry, alone
             )
 
 
-def _geometry(entries, folder: Path, obstacles: str) -> list[PolyFEMGeometry]:
+def _geometry(entries: object, folder: Path, obstacles: str) -> list[PolyFEMGeometry]:
     if not isinstance(entries, list) or not entries:
         raise ParameterError("PolyFEM scene: 'geometry' must be a non-empty list")
     out = []
@@ -722,7 +744,7 @@ def _geometry(entries, folder: Path, obstacles: str) -> list[PolyFEMGeometry]:
     return out
 
 
-def _surface(value, where: str):
+def _surface(value: object, where: str) -> int | list[tuple[int, Selection]] | None:
     if value is None or isinstance(value, int):
         return value
     if not isinstance(value, list):
@@ -749,7 +771,7 @@ def _surface(value, where: str):
     return out
 
 
-def _time(time) -> tuple[float, float, int, int]:
+def _time(time: Mapping[str, Any] | None) -> tuple[float, float, int, int]:
     if time is None:
         raise ParameterError("PolyFEM scene: no 'time' section (static scenes are not supported)")
     _check_keys(time, _TIME, "time")
@@ -789,7 +811,7 @@ def _time(time) -> tuple[float, float, int, int]:
     return t0, dt, num_steps, order
 
 
-def _values(entries, where: str, dirichlet: bool = False) -> list[PolyFEMBoundaryValue]:
+def _values(entries: object, where: str, dirichlet: bool = False) -> list[PolyFEMBoundaryValue]:
     if not isinstance(entries, list):
         raise ParameterError(f"{where} must be a list of {{'id', 'value'}} entries")
     out = []
@@ -809,7 +831,7 @@ def _values(entries, where: str, dirichlet: bool = False) -> list[PolyFEMBoundar
     return out
 
 
-def _materials(value, body_ids: list[int]) -> dict[int, PolyFEMMaterial]:
+def _materials(value: object, body_ids: list[int]) -> dict[int, PolyFEMMaterial]:
     if isinstance(value, Mapping):
         entries, default = [value], True
     elif isinstance(value, list) and value:
