@@ -1,12 +1,19 @@
-"""Friction coefficients of the contact term: one per pair of bodies (self-contact included)."""
+"""Friction coefficients of the contact term: one per pair of bodies (self-contact included).
+
+Each collision gets the coefficient of the pair of bodies of its two sides: ipctk blends
+per-vertex values, here the body index of each vertex, and the blend looks the pair up in the
+table (static and kinetic coefficients equal).
+"""
 
 from collections.abc import Callable, Mapping, Sequence
 
+import ipctk
 import numpy as np
 
+from diffsolids.contact.surface import CollisionSurface
 from diffsolids.errors import ParameterError
 
-__all__ = ["body_pairs", "checked_coefficients", "coefficients_of"]
+__all__ = ["body_pairs", "checked_coefficients", "coefficients_of", "tangential_collisions"]
 
 
 def body_pairs(body_ids: Sequence[int]) -> tuple[list[tuple[int, int]], np.ndarray]:
@@ -55,3 +62,29 @@ def checked_coefficients(values: np.ndarray | Sequence[float], num_pairs: int) -
     if not np.all(np.isfinite(mu)) or np.any(mu < 0):
         raise ParameterError(f"friction coefficients {mu} must be finite and >= 0")
     return mu
+
+
+def tangential_collisions(
+    surface: CollisionSurface,
+    x: np.ndarray,
+    collisions: ipctk.NormalCollisions,
+    barrier: ipctk.BarrierPotential,
+    mu_table: np.ndarray,
+) -> ipctk.TangentialCollisions:
+    """Lagged friction collisions at x with the coefficient of each pair of bodies.
+
+    Args:
+        surface: The collision surface.
+        x: (num_vertices, dim) positions of the lagged state.
+        collisions: The collision set at x.
+        barrier: The barrier potential (normal forces).
+        mu_table: (num_bodies, num_bodies) coefficient of each pair of body indices.
+    """
+    T = ipctk.TangentialCollisions()
+    labels = surface.body_index.astype(float)
+
+    def blend(a: float, b: float) -> float:
+        return float(mu_table[round(a), round(b)])
+
+    T.build(surface.mesh, np.asfortranarray(x), collisions, barrier, labels, labels, blend)
+    return T

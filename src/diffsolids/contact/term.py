@@ -62,7 +62,12 @@ from diffsolids.contact.evaluation import (
     contact_hessian,
 )
 from diffsolids.contact.friction_adjoint import friction_weight_adjoint
-from diffsolids.contact.friction_table import body_pairs, checked_coefficients, coefficients_of
+from diffsolids.contact.friction_table import (
+    body_pairs,
+    checked_coefficients,
+    coefficients_of,
+    tangential_collisions,
+)
 from diffsolids.contact.obstacle import Obstacle
 from diffsolids.contact.reach import reach_blocks, step_motion
 from diffsolids.contact.shape import barrier_shape_adjoint
@@ -463,19 +468,11 @@ class ContactTerm(NumericTerm):
             self._lagged = cached
         return cached[key]
 
-    def _labels(self) -> np.ndarray:
-        return self.surface.body_index.astype(float)
-
-    def _tangential_collisions(self, mu_table: np.ndarray, shape_derivatives: bool = False):
+    def _tangential_collisions(
+        self, mu_table: np.ndarray, shape_derivatives: bool = False
+    ) -> ipctk.TangentialCollisions:
         x, C = self._lagged_state(shape_derivatives)
-        T = ipctk.TangentialCollisions()
-        labels = self._labels()
-
-        def blend(a: float, b: float) -> float:
-            return float(mu_table[round(a), round(b)])
-
-        T.build(self.surface.mesh, np.asfortranarray(x), C, self.barrier, labels, labels, blend)
-        return T
+        return tangential_collisions(self.surface, x, C, self.barrier, mu_table)
 
     def _mu_table(self, coefficients: np.ndarray) -> np.ndarray:
         return coefficients[self._pair_index]
