@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 from petsc4py import PETSc
 
 from diffsolids.solvers.action import JacobianAction
+from diffsolids.solvers.factor_store import lu_solver
 
 if TYPE_CHECKING:
     from diffsolids.solvers.newton import NewtonSolver
@@ -91,13 +92,7 @@ class AdjointLinearSolver:
         self._stored = dict(factors)
 
     def _factorise(self, A: PETSc.Mat) -> PETSc.KSP:
-        ksp = PETSc.KSP().create(self.comm)
-        ksp.setOperators(A)
-        ksp.setType("preonly")
-        pc = ksp.getPC()
-        pc.setType("lu")
-        pc.setFactorSolverType("mumps")
-        ksp.setUp()
+        ksp = lu_solver(self.comm, A)
         self.stats["factorisations"] += 1
         return ksp
 

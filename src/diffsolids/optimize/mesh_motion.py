@@ -36,6 +36,7 @@ from diffsolids.controls.ordering import CanonicalLayout
 from diffsolids.controls.shape import ShapeControl, boundary_vertices
 from diffsolids.mesh import Domain, signed_cell_volumes
 from diffsolids.parallel import collective_comm
+from diffsolids.solvers.factor_store import lu_solver
 from diffsolids.solvers.forms import compile_form
 
 if TYPE_CHECKING:
@@ -45,17 +46,6 @@ if TYPE_CHECKING:
 __all__ = ["MeshMotion", "MeshMotionControl", "RieszMap", "ShapeInnerProduct"]
 
 _EXTENSIONS = ("elasticity", "harmonic")
-
-
-def _lu_solver(comm: MPI.Comm, A: PETSc.Mat) -> PETSc.KSP:
-    ksp = PETSc.KSP().create(comm)
-    ksp.setOperators(A)
-    ksp.setType("preonly")
-    pc = ksp.getPC()
-    pc.setType("lu")
-    pc.setFactorSolverType("mumps")
-    ksp.setUp()
-    return ksp
 
 
 class MeshMotion(spla.LinearOperator):
@@ -135,7 +125,7 @@ class MeshMotion(spla.LinearOperator):
         bc = fem.dirichletbc(fem.Function(self.W), constrained)
         self.A = dolfinx.fem.petsc.assemble_matrix(self._a, bcs=[bc])
         self.A.assemble()
-        self._ksp = _lu_solver(self.comm, self.A)
+        self._ksp = lu_solver(self.comm, self.A)
         bs = self.dim
         owned_c = constrained[constrained < self._owned]
         self._owned_constrained_dofs = (owned_c[:, None] * bs + np.arange(bs)).ravel()
@@ -288,7 +278,7 @@ class RieszMap:
         finally:
             geometry[:] = current
         self.R.assemble()
-        self._ksp = _lu_solver(motion.comm, self.R)
+        self._ksp = lu_solver(motion.comm, self.R)
         self._b = dolfinx.fem.petsc.create_vector(motion.W)
         self._x = dolfinx.fem.petsc.create_vector(motion.W)
 

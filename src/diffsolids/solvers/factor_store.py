@@ -10,7 +10,19 @@ from petsc4py import PETSc
 from diffsolids.errors import ParameterError
 from diffsolids.parallel import collective_comm
 
-__all__ = ["FactorStore", "factor_memory_mb", "node_memory_mb"]
+__all__ = ["FactorStore", "factor_memory_mb", "lu_solver", "node_memory_mb"]
+
+
+def lu_solver(comm: MPI.Comm, A: PETSc.Mat) -> PETSc.KSP:
+    """A KSP that solves with ``A`` by a MUMPS LU factorisation, factorised now."""
+    ksp = PETSc.KSP().create(comm)
+    ksp.setOperators(A)
+    ksp.setType("preonly")
+    pc = ksp.getPC()
+    pc.setType("lu")
+    pc.setFactorSolverType("mumps")
+    ksp.setUp()
+    return ksp
 
 
 def node_memory_mb(
