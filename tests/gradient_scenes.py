@@ -10,6 +10,7 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
+import pytest
 import scipy.sparse as sp
 import ufl
 from dolfinx import fem
@@ -500,3 +501,23 @@ def check_case(case: Case) -> CaseResult:
     assert result.along_gradient.relative_error <= FD_TOLERANCE, str(result.along_gradient)
     assert result.taylor.min_rate >= TAYLOR_MIN_RATE, str(result.taylor)
     return result
+
+
+def assert_world_equals_self(
+    comm: MPI.Comm, parallel: tuple, serial: tuple, rtol: float = 1e-8
+) -> None:
+    """(q, J, gradient) of a distributed run against the serial run of the same problem.
+
+    The parameters are in canonical order: a wrong order moves values by O(1), while a field
+    interpolated at dof coordinates (pushed forward from a different cell on each partition)
+    differs by rounding. Every rank must hold the same value and gradient.
+    """
+    (q_par, J_par, g_par), (q_ser, J_ser, g_ser) = parallel, serial
+    np.testing.assert_allclose(q_par, q_ser, rtol=4 * np.finfo(float).eps, atol=0)
+    assert J_par == pytest.approx(J_ser, rel=rtol)
+    assert np.abs(g_ser).max() > 0
+    assert np.abs(g_par - g_ser).max() <= rtol * np.abs(g_ser).max()
+    for value in comm.allgather(J_par):
+        assert value == J_par
+    for gradient in comm.allgather(g_par):
+        assert np.array_equal(gradient, g_par)
