@@ -5,16 +5,16 @@ clamped at its base, under gravity tilted by 25 degrees, with IPC contact (sugge
 stiffness, dhat 1e-3) and lagged smoothed friction (eps_v 1e-3, mu = 0.3), 5 BDF1 steps of
 0.05 s. Objective: int_block x^2 at the final time.
 
-With contact the step potential is not convex. With the default Newton options (the exact contact
-Hessian from the first iteration, PSD-projected only when its step is not a descent
-direction; ``exact_hessian_below=inf``) step 5 of the run at mu - 1e-6 left the basin it was
-approaching after a projected step at iteration 10 and converged (residual 2.5e-11) to another
-stationary point, 2.3e-3 above the minimum that mu and mu + 1e-6 reach (1.9e-3 apart in u, one
-collision less): J jumped by 1.6e-5, and central differences gave 8.9e-3, 0.23 and 7.76 for
-h = 1e-2, 1e-4, 1e-6 against an adjoint -9.42e-4 (relative errors 8.5, 245, 8200). Newton
-steps on the projected Hessian until the residual is below 1e-3 f_char
-(``exact_hessian_below``) descend into the minimum: the differences converge to the adjoint
-(2.9e-3, 2.9e-5, 2.6e-7 for h = 1e-4, 1e-5, 1e-6, as h^2).
+With contact the step potential is not convex. With the exact contact Hessian from the first Newton
+iteration (PSD-projected only when its step is not a descent direction;
+``exact_hessian_below=inf``, the default before 1e-3) step 5 of the run at mu - 1e-6 left the basin
+it was approaching after a projected step at iteration 10 and converged (residual 2.5e-11) to
+another stationary point, 2.3e-3 above the minimum that mu and mu + 1e-6 reach (1.9e-3 apart in u,
+one collision less): J jumped by 1.6e-5, and central differences gave 8.9e-3, 0.23 and 7.76 for h =
+1e-2, 1e-4, 1e-6 against an adjoint -9.42e-4 (relative errors 8.5, 245, 8200). Newton steps on the
+projected Hessian until the residual is below 1e-3 f_char (``exact_hessian_below``) descend into
+the minimum: the differences converge to the adjoint (2.9e-3, 2.9e-5, 2.6e-7 for h = 1e-4, 1e-5,
+1e-6, as h^2).
 """
 
 import numpy as np
@@ -32,7 +32,7 @@ MU = 0.3
 FD_TOLERANCE = 1e-6
 STEPS = np.array([1e-5, 1e-6])  # central-difference steps, times a direction of norm 1
 DHAT = 1e-3
-# projected Newton steps until ||F|| <= 1e-3 f_char (not yet the default, see SolverOptions)
+# projected Newton steps until ||F|| <= 1e-3 f_char: the default (see SolverOptions)
 SMOOTH = ds.SolverOptions(exact_hessian_below=1e-3)
 
 
@@ -84,6 +84,6 @@ def test_friction_gradient_matches_central_differences():
 
 
 def test_exact_hessian_is_not_smooth():
-    """The default, the exact Hessian from the start: J jumps at mu - 1e-6 (module docstring)."""
+    """The exact Hessian from the start (inf): J jumps at mu - 1e-6 (module docstring)."""
     res = friction_checks(ds.SolverOptions(exact_hessian_below=np.inf))["gradient"]
     assert res.relative_error > 1e-2, str(res)

@@ -48,6 +48,7 @@ def test_defaults():
     o = ds.SolverOptions()
     assert o.atol == 0.0
     assert o.initial_guess == "predictor"
+    assert o.exact_hessian_below == 1e-3  # projected contact Newton steps, then exact ones
     assert set(INITIAL_GUESSES) == {"predictor", "previous", "zero"}
     for guess in INITIAL_GUESSES:
         assert ds.SolverOptions(initial_guess=guess).initial_guess == guess
