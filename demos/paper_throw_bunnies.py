@@ -52,7 +52,8 @@ SPOT = (3.67854, 0.137261)  # x, z of the second bunny's final centre of mass
 STOP = 0.005  # the paper's stop test: each squared deviation <= 0.005
 RTOL = 1e-8  # Newton tolerance of the demo
 # projected Newton steps while ||residual|| > 1e-3 f_char, the exact Hessian below (see
-# throw_problem): J smooth, its gradient verified (tests/test_paper_throw_gradient.py)
+# throw_problem; the solver's default too since 7130d90, stated here because the throw's
+# verified gradient depends on it: tests/test_paper_throw_gradient.py)
 EXACT_HESSIAN_BELOW = 1e-3
 SIZES = by_size(steps=(2, None, None), iterations=(1, 20, 20))
 
@@ -91,15 +92,15 @@ def throw_problem(
         steps: BDF1 steps (None: the scene's 40).
         kappa: ``--kappa`` ("suggest", "scene" or a number).
         rtol: Newton tolerance.
-        exact_hessian_below: ``SolverOptions.exact_hessian_below``: PSD-projected Newton steps
-            while the residual is above this times f_char, the exact Hessian below. With the
-            exact Hessian from the first iteration (``inf``, the solver's default) step 2 at
-            the scene's v0 ends at a stationary point whose incremental potential is 0.083
-            above the minimum projected steps reach (19 instead of 17 pairs), and J jumps by
-            1.4e-3 between the two under perturbations of v0 of 1e-6, so central differences
-            do not verify the gradient; with 1e-3 (default) J is smooth for |dv0| <= 1e-4 and
-            they agree with the adjoint to 1e-7 (tests/test_paper_throw_gradient.py). The
-            40 steps: 539 instead of 633 Newton iterations.
+        exact_hessian_below: ``SolverOptions.exact_hessian_below``: PSD-projected Newton steps while
+            the residual is above this times f_char, the exact Hessian below. With the exact Hessian
+            from the first iteration (``inf``, the solver's default until 7130d90) step 2 at the
+            scene's v0 ends at a stationary point whose incremental potential is 0.083 above the
+            minimum projected steps reach (19 instead of 17 pairs), and J jumps by 1.4e-3 between
+            the two under perturbations of v0 of 1e-6, so central differences do not verify the
+            gradient; with 1e-3 (default) J is smooth for |dv0| <= 1e-4 and they agree with the
+            adjoint to 1e-7 (tests/test_paper_throw_gradient.py). The 40 steps: 539 instead of 633
+            Newton iterations.
 
     Returns:
         (rf, q0, contact): the functional, the scene's initial velocity of the thrown bunny

@@ -6,18 +6,18 @@ mass (x, z), squared distance to the spot; the first bunny's rigid initial veloc
 first ``STEPS`` steps: the bunnies touch in step 2 (17 pairs) and step 3 (56 pairs).
 
 Measured on this scene (2 steps, h = 1e-3 .. 1e-6, random direction and along the gradient):
-with the exact Hessian from the first Newton iteration (the solver's default, the demo's before
-this check) the step-2 solve at the scene's v0 = (2, 0.5, 0) ends at a stationary point with 19
-contact pairs and an incremental potential 0.083 above the minimum (17 pairs) that projected
-Newton reaches from the same start; for v0 + h d Newton lands on either, J jumps by 1.4e-3
-between them, and central differences are off by 0.2 .. 7e4 relative for every h. Neither rtol
-(1e-8, 1e-10), the initial guess ("predictor", "previous"), cut-step marching (march_after 0)
-nor warm starts change that (a warm start is refused: the CCD admits 0.75 of the straight path
-from u^1 to the converged u^2). Projected steps only (exact_hessian_below = 0) converge
+with the exact Hessian from the first Newton iteration (exact_hessian_below = inf, the solver's
+default until 7130d90) the step-2 solve at the scene's v0 = (2, 0.5, 0) ends at a stationary
+point with 19 contact pairs and an incremental potential 0.083 above the minimum (17 pairs) that
+projected Newton reaches from the same start; for v0 + h d Newton lands on either, J jumps by
+1.4e-3 between them, and central differences are off by 0.2 .. 7e4 relative for every h. Neither
+rtol (1e-8, 1e-10), the initial guess ("predictor", "previous"), cut-step marching (march_after
+0) nor warm starts change that (a warm start is refused: the CCD admits 0.75 of the straight
+path from u^1 to the converged u^2). Projected steps only (exact_hessian_below = 0) converge
 linearly and leave a bias of 2e-5.
 
 PSD-projected Newton steps while the residual is above 1e-3 f_char and the exact Hessian below
-(``SolverOptions.exact_hessian_below = 1e-3``, the demo's default since this check) descend
+(``SolverOptions.exact_hessian_below = 1e-3``, the demo's and now the solver's default) descend
 into the minimum and converge quadratically there; then J is smooth for |h| <= 1e-4 (h = 1e-3
 reaches another minimum, 19 pairs, J 1.4e-3 higher) and central differences agree with the
 adjoint to better than 1e-6: at h = 1e-4, 3.4e-7 (random direction) and 1.3e-7 (gradient) over
