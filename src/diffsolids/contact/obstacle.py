@@ -38,9 +38,11 @@ from typing import Any
 
 import dolfinx
 import numpy as np
+import numpy.typing as npt
 from mpi4py import MPI
 
 from diffsolids.errors import MeshError, ParameterError
+from diffsolids.mesh import Domain
 from diffsolids.mesh.readers import _rotation_matrix
 from diffsolids.parallel import collective_comm
 
@@ -74,12 +76,12 @@ class Obstacle:
 
     def __init__(
         self,
-        vertices,
-        edges=None,
-        faces=None,
+        vertices: npt.ArrayLike,
+        edges: npt.ArrayLike | None = None,
+        faces: npt.ArrayLike | None = None,
         motion: Motion | None = None,
         name: str | None = None,
-    ):
+    ) -> None:
         X = np.asarray(vertices, dtype=float)
         label = f"obstacle {name!r}" if name else "obstacle"
         if X.ndim != 2 or X.shape[1] not in (2, 3) or len(X) == 0:
@@ -188,7 +190,12 @@ class Obstacle:
         return self.rest_positions + self.displacement(t)
 
     @classmethod
-    def from_domain(cls, domain, motion: Motion | None = None, name: str | None = None):
+    def from_domain(
+        cls,
+        domain: Domain | dolfinx.mesh.Mesh,
+        motion: Motion | None = None,
+        name: str | None = None,
+    ) -> "Obstacle":
         """The boundary of a volume mesh (e.g. from :func:`diffsolids.mesh.read_mesh`).
 
         Collective over the domain's communicator: the boundary facets of all ranks are
@@ -235,7 +242,7 @@ class Obstacle:
         translation: Sequence[float] | None = None,
         motion: Motion | None = None,
         name: str | None = None,
-    ):
+    ) -> "Obstacle":
         """An obstacle from a mesh file (every rank reads it; x' = R (scale x) + translation).
 
         A surface mesh (3D triangles, e.g. ``.obj``/``.stl``; 2D line segments) is the

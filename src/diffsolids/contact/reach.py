@@ -30,7 +30,7 @@ from diffsolids.contact.surface import CollisionSurface
 from diffsolids.solvers.sparsity import sorted_unique
 
 if TYPE_CHECKING:
-    from diffsolids.simulation import Trajectory
+    from diffsolids.simulation import StateHistory
 
 __all__ = ["box_overlaps", "reach_blocks", "step_motion"]
 
@@ -108,7 +108,9 @@ def box_overlaps(
     return i[overlap].astype(np.int64), j[overlap].astype(np.int64)
 
 
-def _grown_boxes(x: np.ndarray, prims: np.ndarray, grow: Mapping[str, np.ndarray]) -> dict:
+def _grown_boxes(
+    x: np.ndarray, prims: np.ndarray, grow: Mapping[str, np.ndarray]
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Boxes of primitives (rows of vertex indices), grown by the largest value of a vertex."""
     pts = x[prims]
     lo, hi = pts.min(axis=1), pts.max(axis=1)
@@ -134,7 +136,7 @@ class _Primitives:
         grow: Mapping[str, np.ndarray],
         X: np.ndarray,
         rest_grow: np.ndarray,
-    ):
+    ) -> None:
         self.prims = prims
         label = body[prims].min(axis=1)
         order = np.argsort(label, kind="stable")
@@ -277,7 +279,7 @@ def _neighbours(p: _Primitives, q: _Primitives, a: np.ndarray, b: np.ndarray) ->
 
 
 def step_motion(
-    surface: CollisionSurface, num_bodies: int, i: int, traj: "Trajectory", dt: float
+    surface: CollisionSurface, num_bodies: int, i: int, traj: "StateHistory", dt: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """How far each collision vertex may move in step ``i`` (collective).
 

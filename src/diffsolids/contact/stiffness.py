@@ -7,20 +7,28 @@ elasticity with coefficient 1 (energies divided by (beta dt)^2), so the nodal "m
 m / (beta dt)^2 for BDF steps and, for static steps, the nodal elastic stiffness E h^(dim-2).
 """
 
+from typing import TYPE_CHECKING
+
 import dolfinx.la
 import ipctk
 import numpy as np
 import ufl
 from dolfinx import fem
 from mpi4py import MPI
+from ufl.core.expr import Expr
 
 from diffsolids.parallel import collective_comm
 from diffsolids.solvers.forms import compile_form
 
+if TYPE_CHECKING:
+    from diffsolids.contact.term import ContactTerm
+    from diffsolids.integrators import Integrator
+    from diffsolids.model import Model
+
 __all__ = ["suggest_barrier_stiffness"]
 
 
-def _young_modulus(model):
+def _young_modulus(model: "Model") -> Expr:
     c = model.coefficients
     if "E" in c:
         return c["E"]
@@ -28,7 +36,9 @@ def _young_modulus(model):
     return mu * (3 * lmbda + 2 * mu) / (lmbda + mu)
 
 
-def suggest_barrier_stiffness(contact, integrator=None, u: fem.Function | None = None) -> float:
+def suggest_barrier_stiffness(
+    contact: "ContactTerm", integrator: "Integrator | None" = None, u: fem.Function | None = None
+) -> float:
     """Suggest a fixed barrier stiffness kappa for a ContactTerm (collective).
 
     Args:

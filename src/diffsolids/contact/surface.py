@@ -25,6 +25,7 @@ body vertices only. Each obstacle has a body id after the domain's (``body_ids``
 from collections.abc import Sequence
 
 import dolfinx
+import dolfinx.common
 import ipctk
 import numpy as np
 import scipy.sparse as sp
@@ -33,7 +34,9 @@ from mpi4py import MPI
 from mpi4py.util import dtlib
 from petsc4py import PETSc
 
+from diffsolids.contact.obstacle import Obstacle
 from diffsolids.errors import MeshError
+from diffsolids.mesh import Domain
 from diffsolids.parallel import collective_comm
 from diffsolids.portability import ensure_ipctk_runs
 from diffsolids.solvers.sparsity import sorted_unique
@@ -57,7 +60,14 @@ def _vertex_blocks(mesh: dolfinx.mesh.Mesh, space: fem.FunctionSpace) -> np.ndar
 class _OwnedMap:
     """Which collision vertices a rank owns in some function space, and their blocks."""
 
-    def __init__(self, comm: MPI.Comm, owned_cv: np.ndarray, blocks: np.ndarray, imap, nv: int):
+    def __init__(
+        self,
+        comm: MPI.Comm,
+        owned_cv: np.ndarray,
+        blocks: np.ndarray,
+        imap: dolfinx.common.IndexMap,
+        nv: int,
+    ) -> None:
         self.comm = comm
         self.cv = owned_cv
         self.blocks = blocks
@@ -113,7 +123,9 @@ class CollisionSurface:
         mesh: The ipctk CollisionMesh (area Jacobians initialised).
     """
 
-    def __init__(self, domain, V: fem.FunctionSpace, obstacles: Sequence = ()):
+    def __init__(
+        self, domain: Domain, V: fem.FunctionSpace, obstacles: Sequence[Obstacle] = ()
+    ) -> None:
         mesh = domain.mesh
         self.comm = mesh.comm
         self.dim = mesh.geometry.dim
@@ -135,7 +147,7 @@ class CollisionSurface:
         self._shape_map: _OwnedMap | None = None
 
     # -- construction --------------------------------------------------------------------------
-    def _facet_data(self, domain) -> None:
+    def _facet_data(self, domain: Domain) -> None:
         mesh = domain.mesh
         tdim = mesh.topology.dim
         mesh.topology.create_connectivity(tdim - 1, tdim)
@@ -181,7 +193,7 @@ class CollisionSurface:
             pairs = np.sort(prims[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
             self.edges = np.ascontiguousarray(np.unique(pairs, axis=0), dtype=np.int32)
 
-    def _add_obstacles(self, obstacles: Sequence) -> None:
+    def _add_obstacles(self, obstacles: Sequence[Obstacle]) -> None:
         """Append the obstacles' vertices and primitives after the body surface."""
         nb = self.num_vertices
         self.num_body_vertices = nb
@@ -399,7 +411,9 @@ class CollisionSurface:
             rowmap=gdofs[rows_c].astype(PETSc.IntType),
         )
 
-    def matrix_entries(self, block_keys: np.ndarray, free: np.ndarray):
+    def matrix_entries(
+        self, block_keys: np.ndarray, free: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Global (rows, cols) of the owned free entries of the given vertex blocks."""
         nv, d = self.num_vertices, self.dim
         a, b = np.divmod(block_keys, nv)
@@ -414,7 +428,7 @@ class CollisionSurface:
         return gdofs[rows[m]], gdofs[cols[m]]
 
 
-def _block_keys(r, c, rows_c, d, nv) -> np.ndarray:
+def _block_keys(r: np.ndarray, c: np.ndarray, rows_c: np.ndarray, d: int, nv: int) -> np.ndarray:
     return (rows_c[r] // d).astype(np.int64) * nv + c // d
 
 

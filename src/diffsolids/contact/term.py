@@ -86,8 +86,9 @@ from diffsolids.parallel import collective_comm
 from diffsolids.solvers.sparsity import sorted_unique
 
 if TYPE_CHECKING:
-    from diffsolids.integrators import TimeStep
-    from diffsolids.simulation import Trajectory
+    from diffsolids.integrators import Integrator, TimeStep
+    from diffsolids.model import Model
+    from diffsolids.simulation import Simulation, StateHistory
 
 __all__ = ["ContactRecord", "ContactTerm"]
 
@@ -160,7 +161,7 @@ class ContactTerm(NumericTerm):
 
     def __init__(
         self,
-        model,
+        model: "Model",
         dhat: float,
         stiffness: float | None = None,
         friction: float | Mapping = 0.0,
@@ -170,7 +171,7 @@ class ContactTerm(NumericTerm):
         min_gap: float = 1e-6,
         num_threads: int | None = None,
         obstacles: Sequence[Obstacle] = (),
-    ):
+    ) -> None:
         checked = (("dhat", dhat), ("stiffness", stiffness), ("eps_v", eps_v))
         for label, value in checked:
             if value is None and label == "stiffness":
@@ -243,7 +244,7 @@ class ContactTerm(NumericTerm):
         return self.step_bound.ccd
 
     # -- parameters ---------------------------------------------------------------------------
-    def _check_obstacles(self, obstacles) -> tuple[Obstacle, ...]:
+    def _check_obstacles(self, obstacles: Sequence[Obstacle]) -> tuple[Obstacle, ...]:
         obstacles = tuple(obstacles)
         names = set(self.model.domain.names)
         for o in obstacles:
@@ -291,7 +292,7 @@ class ContactTerm(NumericTerm):
         self.friction_coefficients = values
 
     # -- per-step set-up ---------------------------------------------------------------------
-    def _choose_stiffness(self, integrator, u: np.ndarray) -> None:
+    def _choose_stiffness(self, integrator: "Integrator | None", u: np.ndarray) -> None:
         """Fix kappa from the scene (collective): suggest_barrier_stiffness at ``u``."""
         state = fem.Function(self.model.V)
         state.x.array[:] = u
@@ -299,7 +300,9 @@ class ContactTerm(NumericTerm):
         self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness)
         logger.info("contact: barrier stiffness chosen: kappa = %.4g", self.stiffness)
 
-    def begin_step(self, i: int, traj, coeffs, sim=None) -> None:
+    def begin_step(
+        self, i: int, traj: "StateHistory", coeffs: "TimeStep", sim: "Simulation | None" = None
+    ) -> None:
         """Lag friction from u^{i-1} and store the BDF history of step ``i`` (collective)."""
         surf = self.surface
         if surf.update_rest_positions():
@@ -358,7 +361,9 @@ class ContactTerm(NumericTerm):
             return surf.obstacle_displacement(0.0)
         return surf.obstacle_displacement(float(self._clock(k)))
 
-    def _check_obstacle_move(self, lagged: np.ndarray, O_prev: np.ndarray, O_now: np.ndarray):
+    def _check_obstacle_move(
+        self, lagged: np.ndarray, O_prev: np.ndarray, O_now: np.ndarray
+    ) -> None:
         """CCD of the obstacles' move O^{i-1} -> O^i with the bodies held at u^{i-1} (collective).
 
         Free: the Newton start (u^{i-1}, O^i) is admissible. Not free: the move must be made
@@ -388,7 +393,7 @@ class ContactTerm(NumericTerm):
         return obstacle_move_error(self.surface, step["index"], move, self._dynamic)
 
     def _step_motion(
-        self, i: int, traj: "Trajectory", coeffs: "TimeStep"
+        self, i: int, traj: "StateHistory", coeffs: "TimeStep"
     ) -> tuple[np.ndarray, np.ndarray]:
         """How far each collision vertex may move in step ``i`` (:func:`step_motion`)."""
         return step_motion(self.surface, len(self.body_ids), i, traj, coeffs.dt)
@@ -397,7 +402,7 @@ class ContactTerm(NumericTerm):
         if self._free_mask(self.model.dirichlet_dofs(), static=True):
             self._token += 1
 
-    def _free_mask(self, bc_dofs, static: bool = False) -> np.ndarray | bool:
+    def _free_mask(self, bc_dofs: np.ndarray, static: bool = False) -> np.ndarray | bool:
         """Free collision dofs for these (local) Dirichlet dofs; collective.
 
         With ``static``, also mark fully prescribed vertices as static obstacles and return
@@ -458,7 +463,9 @@ class ContactTerm(NumericTerm):
                     return C
         return self._build(x)
 
-    def _lagged_state(self, shape_derivatives: bool = False):
+    def _lagged_state(
+        self, shape_derivatives: bool = False
+    ) -> tuple[np.ndarray, ipctk.NormalCollisions]:
         """(positions, collisions) at x^{i-1}; with weight gradients when asked."""
         key = "lagged_shape" if shape_derivatives else "lagged"
         cached = getattr(self, "_lagged", None) or {}
@@ -477,7 +484,7 @@ class ContactTerm(NumericTerm):
     def _mu_table(self, coefficients: np.ndarray) -> np.ndarray:
         return coefficients[self._pair_index]
 
-    def _friction(self):
+    def _friction(self) -> ipctk.TangentialCollisions | None:
         """The step's TangentialCollisions with the current coefficients (None if all mu = 0)."""
         if self._step is None:
             raise ParameterError("ContactTerm.begin_step must be called before evaluations")
@@ -500,7 +507,7 @@ class ContactTerm(NumericTerm):
         """Wall seconds, calls, mean wall ms and process CPU seconds per contact operation."""
         return timing_summary(self.timings)
 
-    def _evaluate(self, u) -> Evaluation:
+    def _evaluate(self, u: fem.Function | np.ndarray) -> Evaluation:
         values = u.x.array if isinstance(u, fem.Function) else u
         with self._timed("gather"):
             U = self.surface.gather(values)
@@ -696,7 +703,7 @@ class ContactTerm(NumericTerm):
         d = self.surface.gather(np.asarray(direction)).ravel()
         self.surface.add_to_owned(y.array_w, self._hessian(ev) @ d)
 
-    def matrix_pattern(self, u: fem.Function, bc_dofs: np.ndarray):
+    def matrix_pattern(self, u: fem.Function, bc_dofs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Global (rows, cols) of the entries :meth:`add_jacobian` may add at ``u`` (owned rows)."""
         ev = self._evaluate(u)
         blocks = self._blocks(ev)
@@ -749,7 +756,7 @@ class ContactTerm(NumericTerm):
 
     def _collision_free_fraction(
         self, U0: np.ndarray, x0: np.ndarray, x1: np.ndarray, with_candidates: bool = False
-    ):
+    ) -> float | tuple[float, ipctk.Candidates]:
         """Collision-free fraction of the straight path x0 -> x1 (the same on all ranks)."""
 
         def cached() -> ipctk.NormalCollisions | None:
@@ -827,7 +834,7 @@ class ContactTerm(NumericTerm):
         return bool(ipctk.has_intersections(self.surface.mesh, x, ipctk.LBVH()))
 
     # -- output ---------------------------------------------------------------------------------
-    def end_step(self, i: int, traj) -> ContactRecord:
+    def end_step(self, i: int, traj: "StateHistory") -> ContactRecord:
         """Record and log contact forces and the minimum distance of the converged step ``i``."""
         ev = self._evaluate(traj.u[i])
         g = self._gradient(ev)
