@@ -21,7 +21,9 @@ PSD-projected Newton steps while the residual is above 1e-3 f_char and the exact
 into the minimum and converge quadratically there; then J is smooth for |h| <= 1e-4 (h = 1e-3
 reaches another minimum, 19 pairs, J 1.4e-3 higher) and central differences agree with the
 adjoint to better than 1e-6: at h = 1e-4, 3.4e-7 (random direction) and 1.3e-7 (gradient) over
-2 steps, 7.6e-8 and 3.1e-8 over 3 steps, 1.3e-7 (random) over 4.
+2 steps, 7.6e-8 and 3.1e-8 over 3 steps, 1.3e-7 (random) over 4. On the whole 40 steps (one
+run, not a test: 75 s per forward) 1.8e-7 (random) and 5.8e-8 (gradient) at h = 1e-5, 1.7e-5
+and 1.2e-5 at h = 1e-4 (truncation), the same contact pairs per step in all runs.
 """
 
 import os
