@@ -12,7 +12,13 @@ from mpi4py import MPI
 from diffsolids.solvers import jit
 from diffsolids.solvers.forms import compile_args
 
-pytestmark = pytest.mark.skipif(not jit.background_enabled(), reason="no POSIX C compiler")
+pytestmark = pytest.mark.skipif(not jit.background_available(), reason="no POSIX C compiler")
+
+
+@pytest.fixture(autouse=True)
+def _background(monkeypatch):
+    """Background builds are opt-in: these tests opt in."""
+    monkeypatch.setenv("DIFFSOLIDS_JIT_BACKGROUND", "1")
 
 
 def _residual(comm: MPI.Comm = MPI.COMM_SELF, coefficient: float = 0.5) -> ufl.Form:

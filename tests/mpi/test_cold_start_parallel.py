@@ -15,8 +15,13 @@ from diffsolids.solvers import jit
 
 pytestmark = [
     pytest.mark.skipif(MPI.COMM_WORLD.size < 2, reason="needs mpiexec -n 2"),
-    pytest.mark.skipif(not jit.background_enabled(), reason="no POSIX C compiler"),
+    pytest.mark.skipif(not jit.background_available(), reason="no POSIX C compiler"),
 ]
+
+
+@pytest.fixture(autouse=True)
+def _background(monkeypatch):
+    monkeypatch.setenv("DIFFSOLIDS_JIT_BACKGROUND", "1")
 
 
 @pytest.fixture

@@ -11,9 +11,9 @@ flags are DOLFINx's portable defaults.
 kernels: the test suite compiles hundreds of small forms on a cold cache and uses it to spend
 seconds, not minutes, in the C compiler.
 
-:func:`compile_form` runs the C compiler in the background and returns a form that waits for it
-on first use (:mod:`diffsolids.solvers.jit`): a model's forms compile side by side, and while
-Python generates the next one's code.
+With ``DIFFSOLIDS_JIT_BACKGROUND=1`` :func:`compile_form` runs the C compiler in the background
+and returns a form that waits for it on first use (:mod:`diffsolids.solvers.jit`; off by
+default: on a machine without idle cores it saves nothing).
 """
 
 import hashlib
@@ -71,8 +71,9 @@ JIT_OPTIONS = _jit_options()
 def compile_form(form: ufl.Form | None) -> fem.Form | None:
     """Compile a UFL form (None passes through).
 
-    Serially the compiler may still be running when this returns: the form waits for it on
-    first use (:func:`diffsolids.solvers.jit.build_form`).
+    With background builds on (:func:`diffsolids.solvers.jit.background_enabled`) and one
+    rank, the compiler may still be running when this returns: the form waits for it on first
+    use.
     """
     if form is None:
         return None

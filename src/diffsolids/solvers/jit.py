@@ -22,9 +22,13 @@ kernels (318 and 216 kB) compile in 2.4 and 1.5 s at ``-O2`` (without ``-march=n
 ``-O1`` saves 0.8 and 0.4 s, ``-O0`` assembles them 2.5x and 5x slower. Generating their C
 takes longer than compiling it.
 
-Under MPI rank 0 builds (in the foreground) and the other ranks then load the module, as in
-DOLFINx. ``DIFFSOLIDS_JIT_BACKGROUND=0`` switches the background builds off (every form through
-``fem.form``), as does a platform without a POSIX C compiler in ``sysconfig``.
+Off by default (``DIFFSOLIDS_JIT_BACKGROUND=1`` switches it on): on this project's shared 2-core
+machine it saves nothing. The dynamic case of ``bench_gradient --cold`` (29 403-dof beam) costs
+8-10 s of CPU for compiling its 14 kernels either way, 3-4 s of it UFL/FFCx code generation;
+compiling the same 14 forms into empty caches, alternating the two ways, took 8.2-10.3 s through
+DOLFINx and 7.8-12.8 s in the background (load average 3; at load 20, 22-34 s and 17-33 s).
+With other jobs on both cores there is no idle core to compile on. Under MPI rank 0 builds (in
+the foreground) and the other ranks then load the module, as in DOLFINx.
 """
 
 import os
@@ -53,7 +57,14 @@ from dolfinx import jit as dolfinx_jit
 
 from diffsolids.parallel import collective_comm
 
-__all__ = ["LazyForm", "background_enabled", "build_form", "compile_stats", "module_name"]
+__all__ = [
+    "LazyForm",
+    "background_available",
+    "background_enabled",
+    "build_form",
+    "compile_stats",
+    "module_name",
+]
 
 _LOCK = threading.Lock()
 _POOL: ThreadPoolExecutor | None = None
@@ -67,18 +78,25 @@ _BUILDS: dict[Path, Future] = {}
 _SETUPTOOLS_ENV = ("CC", "CFLAGS", "CPPFLAGS", "LDFLAGS", "LDSHARED")
 
 
-def background_enabled() -> bool:
-    """Whether :func:`build_form` compiles in the background (see the module docstring).
+def background_available() -> bool:
+    """Whether this platform can build in the background.
 
-    Not when ``DIFFSOLIDS_JIT_BACKGROUND=0``, on Windows, without a compiler in ``sysconfig``,
-    or when the environment sets the compiler or its flags (``CC``, ``CFLAGS``, ``CPPFLAGS``,
-    ``LDFLAGS``, ``LDSHARED``: DOLFINx's own build, through setuptools, then applies them).
+    Not on Windows, without a compiler in ``sysconfig``, or when the environment sets the
+    compiler or its flags (``CC``, ``CFLAGS``, ``CPPFLAGS``, ``LDFLAGS``, ``LDSHARED``:
+    DOLFINx's own build, through setuptools, then applies them).
     """
-    if os.environ.get("DIFFSOLIDS_JIT_BACKGROUND", "1") == "0":
-        return False
     if any(name in os.environ for name in _SETUPTOOLS_ENV):
         return False
     return not sys.platform.startswith("win32") and bool(sysconfig.get_config_var("LDSHARED"))
+
+
+def background_enabled() -> bool:
+    """Whether :func:`build_form` compiles in the background.
+
+    Only with ``DIFFSOLIDS_JIT_BACKGROUND=1`` (off by default, see the module docstring) and
+    where :func:`background_available`.
+    """
+    return os.environ.get("DIFFSOLIDS_JIT_BACKGROUND", "0") == "1" and background_available()
 
 
 def compile_stats() -> dict:
