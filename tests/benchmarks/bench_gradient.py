@@ -98,7 +98,6 @@ from diffsolids.objectives import (  # noqa: E402
     time_integral,
 )
 from diffsolids.reduced_functional import ReducedFunctional  # noqa: E402
-from diffsolids.solvers import jit  # noqa: E402
 from diffsolids.verification import finite_difference_check  # noqa: E402
 
 COMM = MPI.COMM_WORLD
@@ -390,7 +389,6 @@ def main() -> dict:
         "setup": _rounded(setup),
         "first_gradient": _rounded(first),
         "cold_cache_cost": cold,
-        "jit": {"background": jit.background_enabled(), **jit.compile_stats()},
     }
     return summary
 

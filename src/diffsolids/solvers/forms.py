@@ -10,10 +10,6 @@ flags are DOLFINx's portable defaults.
 ``DIFFSOLIDS_JIT_CFLAGS`` (e.g. ``"-O0 -g0"``) overrides the C compiler flags of the generated
 kernels: the test suite compiles hundreds of small forms on a cold cache and uses it to spend
 seconds, not minutes, in the C compiler.
-
-With ``DIFFSOLIDS_JIT_BACKGROUND=1`` :func:`compile_form` runs the C compiler in the background
-and returns a form that waits for it on first use (:mod:`diffsolids.solvers.jit`; off by
-default: on a machine without idle cores it saves nothing).
 """
 
 import hashlib
@@ -23,8 +19,6 @@ from pathlib import Path
 import numpy as np
 import ufl
 from dolfinx import fem
-
-from diffsolids.solvers.jit import build_form
 
 __all__ = [
     "JIT_OPTIONS",
@@ -69,15 +63,10 @@ JIT_OPTIONS = _jit_options()
 
 
 def compile_form(form: ufl.Form | None) -> fem.Form | None:
-    """Compile a UFL form (None passes through).
-
-    With background builds on (:func:`diffsolids.solvers.jit.background_enabled`) and one
-    rank, the compiler may still be running when this returns: the form waits for it on first
-    use.
-    """
+    """Compile a UFL form (None passes through)."""
     if form is None:
         return None
-    return build_form(form, JIT_OPTIONS)
+    return fem.form(form, jit_options=JIT_OPTIONS)
 
 
 def compile_expression(expr, points: np.ndarray) -> fem.Expression:
