@@ -9,6 +9,7 @@ rewrites only the direction's columns (packing all of them is about a fifth of a
 
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import TYPE_CHECKING
 
 import dolfinx.fem.petsc as fem_petsc
 import dolfinx.la.petsc
@@ -20,6 +21,9 @@ from petsc4py import PETSc
 from diffsolids.solvers.callbacks import WeakContext
 from diffsolids.solvers.forms import compile_form
 
+if TYPE_CHECKING:
+    from diffsolids.solvers.newton import NewtonSolver
+
 __all__ = ["JacobianAction"]
 
 
@@ -30,7 +34,7 @@ class JacobianAction:
         newton: The NewtonSolver (its residual form, model and numeric terms).
     """
 
-    def __init__(self, newton):
+    def __init__(self, newton: "NewtonSolver") -> None:
         model = newton.model
         V = model.V
         self.newton = newton
@@ -97,7 +101,7 @@ class JacobianAction:
             self._packed[key][:, columns] = values[dofs]
         return self._packed
 
-    def mult(self, mat, x: PETSc.Vec, y: PETSc.Vec) -> None:
+    def mult(self, mat: PETSc.Mat, x: PETSc.Vec, y: PETSc.Vec) -> None:
         """PETSc callback: y = K x."""
         d = self.direction
         d.x.petsc_vec.array_w[:] = x.array_r

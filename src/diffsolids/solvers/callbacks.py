@@ -9,15 +9,16 @@ communicators and MUMPS corrupts memory. The wrappers here hold only weak refere
 
 import weakref
 from collections.abc import Callable
+from typing import Any
 
 __all__ = ["WeakContext", "weak_callback"]
 
 
-def weak_callback(method) -> Callable:
+def weak_callback(method: Callable[..., Any]) -> Callable[..., Any]:
     """A function calling the bound ``method`` through a weak reference to its object."""
     ref = weakref.WeakMethod(method)
 
-    def call(*args, **kwargs):
+    def call(*args: Any, **kwargs: Any) -> Any:
         target = ref()
         if target is None:
             raise ReferenceError("the object owning this PETSc callback no longer exists")
@@ -29,10 +30,10 @@ def weak_callback(method) -> Callable:
 class WeakContext:
     """A petsc4py python context (Mat, PC) forwarding its methods to a weakly held object."""
 
-    def __init__(self, obj):
+    def __init__(self, obj: object) -> None:
         self._ref = weakref.ref(obj)
 
-    def __getattr__(self, name: str):
+    def __getattr__(self, name: str) -> Any:
         target = self._ref()
         if target is None:  # PETSc destroying the object looks up optional methods
             raise AttributeError(name)

@@ -121,7 +121,7 @@ class FactorStore:
 
     def __init__(
         self, budget_mb: float | None = None, max_factors: int = 64, reserve: float = 0.25
-    ):
+    ) -> None:
         if max_factors < 1:
             raise ParameterError(f"max_factors must be at least 1, got {max_factors}")
         if budget_mb is not None and not budget_mb >= 0:
@@ -139,7 +139,7 @@ class FactorStore:
         self.stride = 1
         self._ranks_on_node: int | None = None
 
-    def __del__(self):
+    def __del__(self) -> None:
         FactorStore._live -= len(getattr(self, "factors", ()))
 
     def clear(self) -> None:

@@ -69,6 +69,6 @@ def compile_form(form: ufl.Form | None) -> fem.Form | None:
     return fem.form(form, jit_options=JIT_OPTIONS)
 
 
-def compile_expression(expr, points: np.ndarray) -> fem.Expression:
+def compile_expression(expr: ufl.core.expr.Expr, points: np.ndarray) -> fem.Expression:
     """Compile a UFL expression evaluated at reference points."""
     return fem.Expression(expr, points, jit_options=JIT_OPTIONS)

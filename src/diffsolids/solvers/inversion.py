@@ -31,7 +31,7 @@ class InversionGuard:
             step of length 1); larger bounds are reported as inf.
     """
 
-    def __init__(self, V: fem.FunctionSpace, quadrature_degree: int, limit: float = np.inf):
+    def __init__(self, V: fem.FunctionSpace, quadrature_degree: int, limit: float = np.inf) -> None:
         if not limit > 0:
             raise ParameterError(f"InversionGuard limit {limit} must be positive")
         self.limit = float(limit)

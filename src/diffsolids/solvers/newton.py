@@ -8,6 +8,7 @@ and a residual tolerance scaled by a characteristic force of the simulation.
 import logging
 from dataclasses import dataclass, field
 from numbers import Real
+from typing import TYPE_CHECKING
 
 import dolfinx.fem.petsc as fem_petsc
 import dolfinx.la.petsc
@@ -24,6 +25,9 @@ from diffsolids.solvers.factor_store import FactorStore
 from diffsolids.solvers.forms import compile_form
 from diffsolids.solvers.inversion import InversionGuard
 from diffsolids.solvers.sparsity import GrowingPattern
+
+if TYPE_CHECKING:
+    from diffsolids.model.model import Model
 
 logger = logging.getLogger("diffsolids")
 
@@ -119,7 +123,7 @@ class SolverOptions:
     atol: float = 0.0
     initial_guess: str = "predictor"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if self.initial_guess not in INITIAL_GUESSES:
             raise ValueError(
                 f"SolverOptions(initial_guess={self.initial_guess!r}): not one of "
@@ -154,7 +158,7 @@ class NewtonSolver:
         options: Solver options.
     """
 
-    def __init__(self, model, dynamic: bool, options: SolverOptions | None = None):
+    def __init__(self, model: "Model", dynamic: bool, options: SolverOptions | None = None) -> None:
         self.model = model
         self.options = options or SolverOptions()
         f = model.fields
@@ -279,11 +283,11 @@ class NewtonSolver:
         return self._work.norm()
 
     # -- SNES callbacks ----------------------------------------------------------------------
-    def _residual(self, snes, x, b) -> None:
+    def _residual(self, snes: PETSc.SNES, x: PETSc.Vec, b: PETSc.Vec) -> None:
         self._assign(x)
         self.assemble_residual(b)
 
-    def _jacobian(self, snes, x, A, P) -> None:
+    def _jacobian(self, snes: PETSc.SNES, x: PETSc.Vec, A: PETSc.Mat, P: PETSc.Mat) -> None:
         if self.quadratic and self._jacobian_key == self._current_key():
             return  # the Hessian of a quadratic potential does not change: keep the factors
         self._assign(x)
@@ -299,7 +303,7 @@ class NewtonSolver:
             self._exact_factors = True
         self._jacobian_key = self._current_key()
 
-    def _current_key(self):
+    def _current_key(self) -> tuple[float, float]:
         f = self.model.fields
         return (float(f.beta_dt.value), float(f.dt.value))
 
@@ -320,7 +324,7 @@ class NewtonSolver:
         self._energy_cache = (cached[0], e)
         return e
 
-    def _objective(self, snes, x) -> float:
+    def _objective(self, snes: PETSc.SNES, x: PETSc.Vec) -> float:
         e = self._energy_at(x)
         ls = self._line_search
         if not np.isfinite(e):
@@ -344,7 +348,7 @@ class NewtonSolver:
             return ls["f0"] + change
         return e
 
-    def _precheck(self, x, y, *args) -> None:
+    def _precheck(self, x: PETSc.Vec, y: PETSc.Vec, *args: object) -> None:
         scale = max(x.norm(PETSc.NormType.INFINITY), self._length_scale)
         if y.norm(PETSc.NormType.INFINITY) <= 1e-13 * scale:
             # The Newton increment is at machine precision: nothing left to gain. A zero step
@@ -453,7 +457,9 @@ class NewtonSolver:
         self.assemble_residual(self._work)
         return -self._work.dot(y), self._work.norm()
 
-    def _converged(self, snes, it, norms):
+    def _converged(
+        self, snes: PETSc.SNES, it: int, norms: tuple[float, float, float]
+    ) -> PETSc.SNES.ConvergedReason:
         fnorm = norms[2]
         if it == 0 and self._restarted_after == 0 and not self._exact_from_start:
             self._f_char = max(self.reference_force, fnorm)

@@ -10,6 +10,7 @@ the direct solver keeps its symbolic factorisation.
 """
 
 import time
+from typing import TYPE_CHECKING
 
 import dolfinx.fem.petsc as fem_petsc
 import numpy as np
@@ -17,6 +18,9 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from diffsolids.parallel import collective_comm
+
+if TYPE_CHECKING:
+    from diffsolids.solvers.newton import NewtonSolver
 
 __all__ = ["GrowingPattern", "matrix_with_pattern", "sorted_unique"]
 
@@ -85,7 +89,7 @@ class GrowingPattern:
         rebuild_seconds: Part of ``seconds`` spent creating matrices.
     """
 
-    def __init__(self, solver):
+    def __init__(self, solver: "NewtonSolver") -> None:
         self.solver = solver
         self.terms = [t for t in solver.numeric_terms if t.grows_pattern]
         self._keys: dict[int, np.ndarray] = {}
