@@ -167,6 +167,7 @@ def build(
     kappa=None,
     rtol: float = 1e-9,
     area_weighting: bool = False,
+    **solver_options: float | str,
 ):
     """The scene's model, contact term and a TargetSimulation of its first ``steps`` steps.
 
@@ -178,6 +179,8 @@ def build(
         rtol: Newton tolerance.
         area_weighting: Weight contact pairs by area (PolyFEM: no; the 3D throw converges
             with the suggested kappa only with it, see bench_paper).
+        **solver_options: Further :class:`~diffsolids.SolverOptions` (e.g.
+            ``exact_hessian_below``).
 
     Returns:
         (model, contact, simulation)
@@ -193,7 +196,7 @@ def build(
     sim = TargetSimulation(
         model,
         integrator,
-        ds.SolverOptions(rtol=rtol),
+        ds.SolverOptions(rtol=rtol, **solver_options),
         u0=scene.nodal_values(model, scene.initial_displacement),
         v0=scene.nodal_values(model, scene.initial_velocity),
         progress=False,

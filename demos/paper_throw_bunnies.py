@@ -109,9 +109,15 @@ def throw_problem(
         (rf, q0, contact): the functional, the scene's initial velocity of the thrown bunny
         and the contact term.
     """
-    model, contact, sim = build(scene, comm, steps, kappa, rtol, area_weighting=True)
-    # the Newton solver reads its options at each solve (paper_common.build sets rtol only)
-    sim.solver.options.exact_hessian_below = exact_hessian_below
+    model, contact, sim = build(
+        scene,
+        comm,
+        steps,
+        kappa,
+        rtol,
+        area_weighting=True,
+        exact_hessian_below=exact_hessian_below,
+    )
     control = RigidVelocity(sim, THROWN, angular=False)
     (v0,) = [v for v in scene.initial_velocity if v.id == THROWN]
     cx, _, cz = center_of_mass(model, HIT)

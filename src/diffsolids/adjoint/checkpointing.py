@@ -148,9 +148,6 @@ class Checkpointing:
         depth = state_depth(simulation)
         state_mb = 2 * 8 * len(simulation.u0) / 2**20  # u and v, owned and ghost entries
         budget = _state_budget_mb(simulation, self.memory_fraction)
-        memory = node_memory_mb()
-        if memory is not None:
-            budget = max(budget, _SMALL_RUN_SHARE * memory[0] / _ranks_on_node(simulation))
         # the most demanding rank decides for all
         fitting = int(budget // max(state_mb, 1e-300))
         states = collective_comm(simulation.model.domain.comm).allreduce(fitting, op=MPI.MIN)
@@ -182,20 +179,15 @@ class Checkpointing:
 _SMALL_RUN_SHARE = 0.01
 
 
-def _ranks_on_node(simulation: "Simulation") -> int:
-    node = simulation.model.domain.comm.Split_type(MPI.COMM_TYPE_SHARED)
-    ranks = node.size
-    node.Free()
-    return ranks
-
-
 def _state_budget_mb(simulation: "Simulation", fraction: float) -> float:
     """Memory (MB) per rank the states of a run may take: see :class:`Checkpointing`."""
     memory = node_memory_mb()
     if memory is None:
         return 2000.0
     available, total = memory
-    ranks = _ranks_on_node(simulation)
+    node = simulation.model.domain.comm.Split_type(MPI.COMM_TYPE_SHARED)
+    ranks = node.size
+    node.Free()
     store = simulation.solver.factor_store
     if store is None:
         spare = available
@@ -203,7 +195,8 @@ def _state_budget_mb(simulation: "Simulation", fraction: float) -> float:
         spare = available - store.budget_mb * ranks
     else:
         spare = available - store.reserve * total
-    return max(spare, 0.0) * fraction / ranks
+    # a small run is never checkpointed because the store claims the spare memory
+    return max(max(spare, 0.0) * fraction, _SMALL_RUN_SHARE * available) / ranks
 
 
 def state_depth(simulation: "Simulation") -> int:
