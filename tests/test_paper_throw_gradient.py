@@ -44,7 +44,7 @@ H = 1e-4  # central-difference step of the velocity [m/s] (|v0| = 2.06)
 TOLERANCE = 1e-6
 
 
-def throw(steps: int):
+def throw(steps: int, comm: MPI.Comm = COMM):
     """(rf, q0, contact) of the demo's throw over ``steps`` steps (skips without the data)."""
     from demo_modules import load_demo
 
@@ -54,7 +54,7 @@ def throw(steps: int):
         pytest.skip(f"the paper's data is not at {DIFFIPC} (set DIFFSOLIDS_DATA)")
     path, opt = common.experiment(DIFFIPC, demo.FOLDER)
     scene, _ = common.scenes(path, opt)
-    return demo.throw_problem(scene, COMM, steps, "suggest", RTOL, EXACT_HESSIAN_BELOW)
+    return demo.throw_problem(scene, comm, steps, "suggest", RTOL, EXACT_HESSIAN_BELOW)
 
 
 @pytest.mark.slow
