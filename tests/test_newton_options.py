@@ -103,3 +103,16 @@ def test_failed_projected_phase_is_retried_with_the_exact_hessian():
     _, sim, _ = box_on_slab(ds.SolverOptions(exact_hessian_below=0.0, max_iterations=8))
     with pytest.raises(ds.errors.NewtonConvergenceError, match="and so did the step again"):
         sim.run()
+
+
+def test_contact_hessian_projection_names():
+    """"abs" and "clamp" map to ipctk's methods; any other name is refused by name."""
+    import ipctk
+
+    from diffsolids.contact.term import _projection_method
+    from diffsolids.errors import ParameterError
+
+    assert _projection_method("abs") == ipctk.PSDProjectionMethod.ABS
+    assert _projection_method("clamp") == ipctk.PSDProjectionMethod.CLAMP
+    with pytest.raises(ParameterError, match="hessian_projection 'none'"):
+        _projection_method("none")

@@ -100,6 +100,14 @@ _PATTERN_REACH = 2.0
 _MOTION_FACTOR = 1.0
 
 
+def _projection_method(name: str) -> ipctk.PSDProjectionMethod:
+    """The ipctk PSD projection method called ``name`` ("clamp" or "abs")."""
+    methods = {"clamp": ipctk.PSDProjectionMethod.CLAMP, "abs": ipctk.PSDProjectionMethod.ABS}
+    if name not in methods:
+        raise ParameterError(f"hessian_projection {name!r}: expected 'clamp' or 'abs'")
+    return methods[name]
+
+
 @dataclass
 class ContactRecord:
     """Contact summary of one converged step.
@@ -146,6 +154,10 @@ class ContactTerm(NumericTerm):
         obstacles: Kinematic :class:`~diffsolids.contact.obstacle.Obstacle` s (collision-only,
             no dofs, fixed or moving); each is a body of the contact term with the next body id
             after the domain's (``body_ids``), named by its ``name`` in friction tables.
+        hessian_projection: How the projected Newton phase makes each pair's Hessian positive
+            semi-definite: "clamp" (negative eigenvalues set to zero) or "abs" (replaced by their
+            absolute values), ipctk's ``PSDProjectionMethod``. Adjoints always use the exact
+            Hessian.
 
     Raises:
         ParameterError: Non-positive dhat, stiffness or eps_v, negative friction, unknown body,
@@ -171,6 +183,7 @@ class ContactTerm(NumericTerm):
         min_gap: float = 1e-6,
         num_threads: int | None = None,
         obstacles: Sequence[Obstacle] = (),
+        hessian_projection: str = "clamp",
     ) -> None:
         checked = (("dhat", dhat), ("stiffness", stiffness), ("eps_v", eps_v))
         for label, value in checked:
@@ -186,6 +199,7 @@ class ContactTerm(NumericTerm):
         self.eps_v = float(eps_v)
         self.area_weighting = bool(area_weighting)
         self.min_gap = float(min_gap)
+        self.projection = _projection_method(hessian_projection)
         if num_threads is None and self.comm.size > 1:
             num_threads = max(1, (os.cpu_count() or 1) // self.comm.size)
         if num_threads is not None:
@@ -558,7 +572,7 @@ class ContactTerm(NumericTerm):
             )
 
     def _hessian(self, ev: Evaluation, project: bool = False) -> sp.csc_matrix:
-        method = ipctk.PSDProjectionMethod.CLAMP if project else ipctk.PSDProjectionMethod.NONE
+        method = self.projection if project else ipctk.PSDProjectionMethod.NONE
         attr = "projected" if project else "hessian"
         if getattr(ev, attr) is None:
             with self._timed("hessian_projected" if project else "hessian"):
