@@ -231,29 +231,30 @@ def _write_and_read(path: Path, mesh: meshio.Mesh) -> Domain:
     return read_mesh(path, MPI.COMM_WORLD)
 
 
-@pytest.mark.parametrize("suffix", [".vtu", ".vtk"])
-def test_meshio_2d(tmp_path, suffix):
-    dom = _write_and_read(tmp_path / f"square{suffix}", _meshio_square())
-    assert dom.dim == 2
-    assert dom.body_ids == [1, 2] and dom.facet_ids == [4]
-    assert _measure(dom, "dx", 1) == pytest.approx(1.0)
-    assert _measure(dom, "dx", 2) == pytest.approx(1.0)
-    assert _measure(dom, "ds", 4) == pytest.approx(1.0)
-    fmid = dolfinx.mesh.compute_midpoints(dom.mesh, 1, dom.facets_of(4))
-    assert np.allclose(fmid[:, 0], 0.0)
-    assert np.allclose(np.abs(signed_cell_volumes(dom.mesh)), 1 / 8)
+# (mesh, dim, body ids, facet ids, body volumes, tagged facet measure)
+_MESHIO_CASES = {
+    "2d": (_meshio_square, 2, [1, 2], [4], (1.0, 1.0), 1.0),
+    "3d": (_meshio_cube, 3, [1, 3], [8], (0.5, 0.5), 1.0),
+}
 
 
 @pytest.mark.parametrize("suffix", [".vtu", ".vtk"])
-def test_meshio_3d(tmp_path, suffix):
-    dom = _write_and_read(tmp_path / f"cube{suffix}", _meshio_cube())
-    assert dom.dim == 3
-    assert dom.body_ids == [1, 3] and dom.facet_ids == [8]
-    assert _measure(dom, "dx", 1) == pytest.approx(0.5)
-    assert _measure(dom, "dx", 3) == pytest.approx(0.5)
-    assert _measure(dom, "ds", 8) == pytest.approx(1.0)
-    mid = dolfinx.mesh.compute_midpoints(dom.mesh, 3, dom.cells_of(3))
-    assert np.all(mid[:, 2] > 0.5)
+@pytest.mark.parametrize("case", sorted(_MESHIO_CASES))
+def test_meshio_tags_and_measures(tmp_path, suffix, case):
+    make, dim, bodies, facets, volumes, area = _MESHIO_CASES[case]
+    dom = _write_and_read(tmp_path / f"mesh{suffix}", make())
+    assert dom.dim == dim
+    assert dom.body_ids == bodies and dom.facet_ids == facets
+    for body, volume in zip(bodies, volumes, strict=True):
+        assert _measure(dom, "dx", body) == pytest.approx(volume)
+    assert _measure(dom, "ds", facets[0]) == pytest.approx(area)
+    if dim == 2:
+        fmid = dolfinx.mesh.compute_midpoints(dom.mesh, 1, dom.facets_of(4))
+        assert np.allclose(fmid[:, 0], 0.0)
+        assert np.allclose(np.abs(signed_cell_volumes(dom.mesh)), 1 / 8)
+    else:
+        mid = dolfinx.mesh.compute_midpoints(dom.mesh, 3, dom.cells_of(3))
+        assert np.all(mid[:, 2] > 0.5)
 
 
 def test_meshio_without_volume_cells(tmp_path):
