@@ -18,7 +18,18 @@ if TYPE_CHECKING:
 __all__ = ["InitialCondition", "RigidVelocity"]
 
 
-class InitialCondition(Control):
+class _InitialStateControl(Control):
+    """A control of one simulation's initial state (``self.sim``): refused by any other."""
+
+    sim: "Simulation"
+
+    @override
+    def check(self, simulation: "Simulation") -> None:
+        if simulation is not self.sim:
+            raise ControlError(f"control {self.name} belongs to a different simulation")
+
+
+class InitialCondition(_InitialStateControl):
     """Nodal initial displacement or velocity field.
 
     Args:
@@ -38,11 +49,6 @@ class InitialCondition(Control):
 
     def _array(self) -> np.ndarray:
         return self.sim.u0 if self.which == "displacement" else self.sim.v0
-
-    @override
-    def check(self, simulation: "Simulation") -> None:
-        if simulation is not self.sim:
-            raise ControlError(f"control {self.name} belongs to a different simulation")
 
     @override
     def footprint(self) -> set[tuple]:
@@ -81,7 +87,7 @@ class InitialCondition(Control):
         return self.value()
 
 
-class RigidVelocity(Control):
+class RigidVelocity(_InitialStateControl):
     """Initial velocity of one body as a rigid motion v(x) = v + omega x (x - c).
 
     Parameters: the translation velocity (dim) and, with ``angular``, the angular velocity
@@ -115,11 +121,6 @@ class RigidVelocity(Control):
         self.r = x[self.nodes] - self.center
         self.comm = comm
         self.q = np.zeros(self.size)
-
-    @override
-    def check(self, simulation: "Simulation") -> None:
-        if simulation is not self.sim:
-            raise ControlError(f"control {self.name} belongs to a different simulation")
 
     @override
     def footprint(self) -> set[tuple]:
