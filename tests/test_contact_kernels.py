@@ -121,6 +121,18 @@ CASES = [
 ]
 
 
+def _contact_pattern(model, contact, u):
+    """(a V x V mass-like matrix, the Dirichlet dofs, the keys row*N+col of the contact pattern)."""
+    V = model.V
+    like = fem_petsc.create_matrix(
+        fem.form(ufl.inner(ufl.TrialFunction(V), ufl.TestFunction(V)) * ufl.dx)
+    )
+    bc = model.dirichlet_dofs()
+    rows, cols = contact.matrix_pattern(u, bc)
+    N = like.getSize()[1]
+    return like, bc, np.unique(np.asarray(rows, np.int64) * N + cols)
+
+
 @pytest.mark.parametrize(("dim", "degree", "order", "eps_v"), CASES)
 def test_contact_derivative_kernels(dim, degree, order, eps_v):
     model, contact, traj, u, coeffs = _scene(dim, degree, order, eps_v)
@@ -133,14 +145,8 @@ def test_contact_derivative_kernels(dim, degree, order, eps_v):
         assert any(True for _ in _mollified_pairs(ev.collisions, contact.surface.mesh, rest, ev.x))
 
     # exact Hessian (adjoint Jacobian) against the residual
-    V = model.V
-    like = fem_petsc.create_matrix(
-        fem.form(ufl.inner(ufl.TrialFunction(V), ufl.TestFunction(V)) * ufl.dx)
-    )
-    bc = model.dirichlet_dofs()
-    rows, cols = contact.matrix_pattern(u, bc)
-    N = like.getSize()[1]
-    A = matrix_with_pattern(like, np.unique(np.asarray(rows, np.int64) * N + cols))
+    like, bc, keys = _contact_pattern(model, contact, u)
+    A = matrix_with_pattern(like, keys)
     A.zeroEntries()
     contact.add_adjoint_jacobian(u, A, bc)
     A.assemble()
@@ -232,14 +238,8 @@ def test_shape_derivative_needs_the_mollifier_correction():
 def test_projected_newton_matrix_is_psd_and_exact_is_not():
     """The Newton fallback adds the PSD-projected contact Hessian on the exact one's pattern."""
     model, contact, _, u, _ = _scene(3, 1, 1, comm=MPI.COMM_SELF)
-    V = model.V
-    like = fem_petsc.create_matrix(
-        fem.form(ufl.inner(ufl.TrialFunction(V), ufl.TestFunction(V)) * ufl.dx)
-    )
-    bc = model.dirichlet_dofs()
-    rows, cols = contact.matrix_pattern(u, bc)
+    like, bc, keys = _contact_pattern(model, contact, u)
     N = like.getSize()[1]
-    keys = np.unique(np.asarray(rows, np.int64) * N + cols)
     free = np.setdiff1d(np.arange(N), bc)
     eigenvalues = {}
     for project in (False, True):
