@@ -2,7 +2,10 @@
 
 The Newton line search and the obstacles' moves are capped by the fraction of a straight path
 x0 -> x1 of the collision surface that is collision-free (ipctk's broad phase and narrow-phase
-CCD, AdditiveCCD or Tight Inclusion), reduced with a min over ranks. In 2D the vertex-edge pairs
+CCD, AdditiveCCD or Tight Inclusion), reduced with a min over ranks. Every rank builds the
+broad-phase candidates of the whole path and runs the narrow phase on its share of them
+(:class:`~diffsolids.contact.partition.CollisionPartition`); the min over the ranks is the
+fraction of the whole surface. In 2D the vertex-edge pairs
 that rest a tiny gap above an edge while they slide along it get the exact bound of
 :func:`_edge_vertex_bounds` instead of ipctk's narrow phase (see
 :meth:`StepBound._near_pairs_2d`).
@@ -14,6 +17,7 @@ import ipctk
 import numpy as np
 from mpi4py import MPI
 
+from diffsolids.contact.partition import CollisionPartition
 from diffsolids.contact.surface import CollisionSurface
 from diffsolids.parallel import collective_comm
 
@@ -40,6 +44,8 @@ class StepBound:
         broad_phase: ipctk broad phase.
         dhat: Barrier activation distance (the candidates' inflation).
         comm: Communicator of the ranks that must agree.
+        partition: Which candidates this rank checks (default: all of them, the fraction
+            still reduced over ``comm``).
 
     Attributes:
         floor_held: After a query, the smallest gap floor that held a near pair (2D), or None.
@@ -52,12 +58,14 @@ class StepBound:
         broad_phase: ipctk.BroadPhase,
         dhat: float,
         comm: MPI.Comm,
+        partition: CollisionPartition | None = None,
     ) -> None:
         self.surface = surface
         self.ccd = ccd
         self.broad_phase = broad_phase
         self.dhat = float(dhat)
         self.comm = comm
+        self.partition = partition if partition is not None else CollisionPartition(MPI.COMM_SELF)
         self.floor_held: float | None = None
 
     def fraction(
@@ -72,16 +80,18 @@ class StepBound:
         Args:
             x0: (num_vertices, dim) start positions (Fortran order), intersection-free.
             x1: (num_vertices, dim) end positions (Fortran order).
-            cached: The collision set at x0 if one is at hand (else None), asked only when
-                needed.
-            with_candidates: Also return the broad-phase candidates of the path.
+            cached: This rank's collision set at x0 if one is at hand (else None), asked only
+                when needed.
+            with_candidates: Also return this rank's share of the broad-phase candidates of
+                the path.
 
         Returns:
             The fraction, or (fraction, candidates).
         """
         self.floor_held = None
-        candidates = ipctk.Candidates()
-        candidates.build(self.surface.mesh, x0, x1, self.dhat, self.broad_phase)
+        everything = ipctk.Candidates()
+        everything.build(self.surface.mesh, x0, x1, self.dhat, self.broad_phase)
+        candidates = self.partition.share(everything)
         near, far = np.inf, candidates
         if self.surface.dim == 2 and not len(candidates.vv_candidates):
             near, far = self._near_pairs_2d(candidates, x0, x1, cached)
@@ -114,7 +124,9 @@ class StepBound:
         """
         eta = 1.0 - float(self.ccd.conservative_rescaling)
         # no pair is near if the closest pair at x0 is farther than a near pair can be (the
-        # collision set at x0 is usually cached): skips the per-candidate work in most queries
+        # collision set at x0 is usually cached): skips the per-candidate work in most queries.
+        # Per rank: a candidate's rank depends on its ids only, so this rank's collisions at x0
+        # are those of its share of the path's candidates within dhat
         eps = np.finfo(float).eps
         motion = 4.0 * float(np.linalg.norm(x1 - x0, axis=1).max())
         coord = max(float(np.abs(x0).max()), float(np.abs(x1).max()))

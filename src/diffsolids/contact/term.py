@@ -11,8 +11,16 @@ lagged from x^{i-1} = X + W u^{i-1} once per step. The gradient of the friction 
 -F(v) (the friction force) and its Hessian Hess_v D / (beta dt). Static load steps use
 v = (u - u^{i-1}) / dt with coefficient dt (alpha = -1, beta = 1).
 
-All ranks hold the whole collision surface (gathered once per evaluation), run ipctk on it, and
-add only the rows they own.
+Distributed contact: all ranks hold the whole collision surface (gathered once per evaluation)
+and build the broad-phase candidates on it, but each collision candidate is evaluated on one rank
+only (:class:`~diffsolids.contact.partition.CollisionPartition`: a hash of its ids picks the
+rank). Each rank builds its share of the collision set, the friction collisions lagged from it,
+the barrier and friction derivatives, the CCD and the adjoint products on it; energies are
+summed over the ranks, collision-dof vectors are summed (one allreduce of the surface vector,
+then each rank adds the rows it owns), matrix entries are added by every rank with global
+indices into the rows where they live (PETSc sends them in the assembly; the pattern, the union
+over the ranks, preallocates them), and step bounds are reduced with a min. On one rank this is
+the serial code with the identity for every reduction.
 
 Kinematic obstacles (:class:`~diffsolids.contact.obstacle.Obstacle`) are extra vertices of the
 collision mesh with prescribed displacements O^i = O(t_i) and no dofs: x = X + W u + O^i, their
@@ -69,6 +77,7 @@ from diffsolids.contact.friction_table import (
     tangential_collisions,
 )
 from diffsolids.contact.obstacle import Obstacle
+from diffsolids.contact.partition import CollisionPartition, add_share_to_matrix
 from diffsolids.contact.reach import reach_blocks, step_motion
 from diffsolids.contact.shape import barrier_shape_adjoint
 from diffsolids.contact.step_bound import (  # noqa: F401  (test_soft_barrier imports them here)
@@ -221,6 +230,7 @@ class ContactTerm(NumericTerm):
             self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness)
         self.friction_potential = ipctk.FrictionPotential(self.eps_v)
         self.broad_phase = ipctk.LBVH()
+        self.partition = CollisionPartition(self.comm)
         if narrow_phase == "additive":
             ccd = ipctk.AdditiveCCD()
         elif narrow_phase == "tight_inclusion":
@@ -229,7 +239,9 @@ class ContactTerm(NumericTerm):
             raise ParameterError(
                 f"narrow_phase {narrow_phase!r}: expected 'additive' or 'tight_inclusion'"
             )
-        self.step_bound = StepBound(self.surface, ccd, self.broad_phase, self.dhat, self.comm)
+        self.step_bound = StepBound(
+            self.surface, ccd, self.broad_phase, self.dhat, self.comm, self.partition
+        )
         self.friction_pairs: list[tuple[int, int]]
         self.friction_pairs, self._pair_index = body_pairs(self.body_ids)
         self._mu = np.zeros(len(self.friction_pairs))
@@ -437,7 +449,10 @@ class ContactTerm(NumericTerm):
         return self._free
 
     def _build(self, x: np.ndarray, shape_derivatives: bool = False) -> ipctk.NormalCollisions:
-        """Collision set at positions x (with weight gradients when asked).
+        """This rank's share of the collision set at positions x (weight gradients when asked).
+
+        The broad phase runs on the whole surface (the same candidates on every rank), the
+        narrow phase on this rank's share (:meth:`CollisionPartition.share`).
 
         The sets with weight gradients are kept for the last two positions (same collision mesh
         and static mask): the adjoint of step i builds them at x^i and, for the lagged
@@ -451,7 +466,12 @@ class ContactTerm(NumericTerm):
         C = ipctk.NormalCollisions()
         C.use_area_weighting = self.area_weighting
         C.enable_shape_derivatives = shape_derivatives
-        C.build(surf.mesh, np.asfortranarray(x), self.dhat, 0.0, self.broad_phase)
+        xf = np.asfortranarray(x)
+        candidates = ipctk.Candidates()  # NormalCollisions.build's own inflation, dhat / 2
+        candidates.build(surf.mesh, xf, 0.5 * self.dhat, self.broad_phase)
+        share = self.partition.share(candidates)
+        C.build(share, surf.mesh, xf, self.dhat, 0.0)
+        self.partition.record(share, C)
         if shape_derivatives:
             self._shape_builds = [(surf.mesh, surf.static, np.array(x), C), *self._shape_builds[:1]]
         return C
@@ -461,7 +481,7 @@ class ContactTerm(NumericTerm):
 
         The line search only visits points x0 + t dx, t in [0, 1], of the segment the CCD swept
         (to 2 dx) with boxes inflated by dhat: its candidates contain every pair within dhat
-        there, so only the narrow phase runs.
+        there, so only the narrow phase runs (on this rank's share of them, kept by the CCD).
         """
         seg = self._segment
         if seg is not None:
@@ -474,6 +494,7 @@ class ContactTerm(NumericTerm):
                     C = ipctk.NormalCollisions()
                     C.use_area_weighting = self.area_weighting
                     C.build(candidates, self.surface.mesh, np.asfortranarray(x), self.dhat, 0.0)
+                    self.partition.record(candidates, C)
                     return C
         return self._build(x)
 
@@ -554,7 +575,7 @@ class ContactTerm(NumericTerm):
                 self._friction_velocity(ev),
                 self._step["beta_dt"],
             )
-            ev.energy = float(collective_comm(self.comm).bcast(e, root=0))
+            ev.energy = self.partition.total(e)
 
     def _gradient(self, ev: Evaluation) -> np.ndarray:
         if ev.gradient is None:
@@ -562,14 +583,24 @@ class ContactTerm(NumericTerm):
         return ev.gradient
 
     def _gradient_now(self, ev: Evaluation) -> None:
+        """The gradient summed over the ranks (the same on all); its barrier part kept local."""
         with self._timed("gradient"):
-            ev.gradient, ev.extras["barrier_gradient"] = contact_gradient(
+            g, ev.extras["barrier_gradient_share"] = contact_gradient(
                 self.barrier,
                 self.friction_potential,
                 self.surface.mesh,
                 ev,
                 self._friction_velocity(ev),
             )
+        with self._timed("reduce"):
+            ev.gradient = self.partition.sum(g)
+
+    def _barrier_gradient(self, ev: Evaluation) -> np.ndarray:
+        """The barrier part of the gradient at ev, summed over the ranks (collective)."""
+        if "barrier_gradient" not in ev.extras:
+            self._gradient(ev)
+            ev.extras["barrier_gradient"] = self.partition.sum(ev.extras["barrier_gradient_share"])
+        return ev.extras["barrier_gradient"]
 
     def _hessian(self, ev: Evaluation, project: bool = False) -> sp.csc_matrix:
         method = self.projection if project else ipctk.PSDProjectionMethod.NONE
@@ -594,6 +625,9 @@ class ContactTerm(NumericTerm):
     def _blocks(self, ev: Evaluation) -> np.ndarray:
         """Vertex-block pattern of the Newton matrix at ev (exact Hessian + friction stencils).
 
+        The same on all ranks (collective): the reach pattern and the blocks of every rank's
+        share outside it.
+
         The step's :meth:`_reach_pattern` itself (the same array) while it holds them all, so
         that the matrix pattern stays the same object and the solver's check is free.
         """
@@ -614,8 +648,9 @@ class ContactTerm(NumericTerm):
                 a, b = np.divmod(needed, surf.num_vertices)
                 needed = needed[~(surf.static[a] | surf.static[b])]
             reach = self._reach_pattern()
-            inside = _contains(reach, needed)
-            ev.blocks = reach if inside.all() else sorted_unique(reach, needed[~inside])
+            # other ranks add their Hessians' entries to the rows this rank owns: the union
+            outside = self.partition.union(needed[~_contains(reach, needed)])
+            ev.blocks = reach if len(outside) == 0 else sorted_unique(reach, outside)
         return ev.blocks
 
     def _reach_pattern(self) -> np.ndarray:
@@ -654,14 +689,20 @@ class ContactTerm(NumericTerm):
         return self._energy(self._evaluate(u))
 
     def add_residual(self, u: fem.Function, b: PETSc.Vec) -> None:
-        """Add the gradient of the contact potential to the owned rows of ``b`` (collective)."""
+        """Add the gradient of the contact potential to the owned rows of ``b`` (collective).
+
+        The gradient is summed over the ranks' shares first (:meth:`_gradient`).
+        """
         g = self._gradient(self._evaluate(u))
         self.surface.add_to_owned(b.array_w, g)
 
     def add_jacobian(
         self, u: fem.Function, A: PETSc.Mat, bc_dofs: np.ndarray, project: bool = False
     ) -> None:
-        """Add the contact Hessian to the owned rows of ``A``, skipping Dirichlet rows/columns.
+        """Add this rank's share of the contact Hessian to ``A``, skipping Dirichlet rows/columns.
+
+        All rows of the share are added with global indices; PETSc sends those owned by other
+        ranks in the assembly (collective).
 
         Args:
             u: Current displacement.
@@ -673,8 +714,11 @@ class ContactTerm(NumericTerm):
         free = self._free_mask(bc_dofs)
         H = self._hessian(ev, project)
         keep = self._blocks(ev) if project else None
+        surf = self.surface
         with self._timed("insert"):
-            self.surface.add_matrix(A, H, free, keep=keep)
+            add_share_to_matrix(
+                A, H, free, surf.global_dofs(), surf.num_vertices, self.dim, keep=keep
+            )
 
     def add_adjoint_jacobian(self, u: fem.Function, A: PETSc.Mat, bc_dofs: np.ndarray) -> None:
         """Add the exact (unprojected) Hessian of the contact potential w.r.t. u^i."""
@@ -701,7 +745,7 @@ class ContactTerm(NumericTerm):
         d[free] = 0.0
         if not np.any(d):
             return
-        g = self._hessian(ev) @ d
+        g = self.partition.sum(self._hessian(ev) @ d)
         g[~free] = 0.0
         self.surface.add_to_owned(b.array_w, g)
 
@@ -715,7 +759,11 @@ class ContactTerm(NumericTerm):
         """
         ev = self._evaluate(u)
         d = self.surface.gather(np.asarray(direction)).ravel()
-        self.surface.add_to_owned(y.array_w, self._hessian(ev) @ d)
+        with self._timed("hessian_action"):
+            Hd = self._hessian(ev) @ d
+        with self._timed("reduce"):
+            Hd = self.partition.sum(Hd)
+        self.surface.add_to_owned(y.array_w, Hd)
 
     def matrix_pattern(self, u: fem.Function, bc_dofs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Global (rows, cols) of the entries :meth:`add_jacobian` may add at ``u`` (owned rows)."""
@@ -817,8 +865,7 @@ class ContactTerm(NumericTerm):
                 " (separate the bodies or fix the mesh)"
             )
         C = self._build(x)
-        d2 = C.compute_minimum_distance(mesh, np.asfortranarray(x)) if len(C) else np.inf
-        dist = float(np.sqrt(d2))
+        dist = self.partition.minimum_distance(C, mesh, x)
         if dist <= self.min_gap * self.dhat:
             gap = self.min_gap * self.dhat
             pairs = [
@@ -852,12 +899,12 @@ class ContactTerm(NumericTerm):
         """Record and log contact forces and the minimum distance of the converged step ``i``."""
         ev = self._evaluate(traj.u[i])
         g = self._gradient(ev)
-        gb = ev.extras["barrier_gradient"]
+        gb = self._barrier_gradient(ev)
         normal, friction = body_forces(self.surface.body_index, len(self.body_ids), g, gb)
-        mesh = self.surface.mesh
         C = ev.collisions
-        d2 = C.compute_minimum_distance(mesh, np.asfortranarray(ev.x)) if len(C) else np.inf
-        rec = ContactRecord(i, len(C), float(np.sqrt(d2)), normal, friction)
+        count = self.partition.unique_count(C)
+        dist = self.partition.minimum_distance(C, self.surface.mesh, ev.x)
+        rec = ContactRecord(i, count, dist, normal, friction)
         self.records.append(rec)
         f = self.force_function
         f.x.array[:] = 0.0
@@ -930,12 +977,13 @@ class ContactTerm(NumericTerm):
         # g_f = -F(X, U^{i-1}, v):  dg/dU^{i-j} = -dF/dv alpha_j / (beta dt)  (- dF/dU_lag, j = 1)
         Jv = self._friction_jacobian(ev, T, DW.VELOCITIES)
         Jl = self._lagged_jacobian(ev)
-        tv = -(Jv.T @ lam_c) / beta_dt
+        # this rank's collisions: summed over the ranks in one allreduce
+        tv, jl = self.partition.sum(np.stack([-(Jv.T @ lam_c) / beta_dt, Jl.T @ lam_c]))
         out = {}
         for j, a in enumerate(alpha, start=1):
             g = a * tv
             if j == 1:
-                g = g - Jl.T @ lam_c
+                g = g - jl
             out[j] = self._local(g)
         return out
 
@@ -956,6 +1004,7 @@ class ContactTerm(NumericTerm):
         g = barrier_shape_adjoint(C, mesh, x, self.barrier, self.stiffness, lam_c)
         if np.any(self._mu > 0):
             g = g - self._friction_rest_adjoint(ev, lam_c)
+        g = self.partition.sum(g)  # this rank's collisions: summed over the ranks
         Sspace = self.model.shape_space
         smap = self.surface.shape_map(Sspace)
         bs = Sspace.dofmap.index_map_bs
@@ -968,6 +1017,8 @@ class ContactTerm(NumericTerm):
 
     def _friction_rest_adjoint(self, ev: Evaluation, lam_c: np.ndarray) -> np.ndarray:
         """(dF/dX)^T lam: the friction force's rest-position Jacobian at fixed U^{i-1}, transposed.
+
+        This rank's collisions only (the caller sums over the ranks).
 
         dF/dX = dF/dU^{i-1} + sum_c (F_c / w_c) grad w_c^T (area weights w_c; the force of
         collision c is proportional to w_c). ipctk's REST_POSITIONS Jacobian adds these outer
@@ -1005,12 +1056,17 @@ class ContactTerm(NumericTerm):
     def failure_report(self) -> str | None:
         """The contact state at the last evaluated iterate (for NewtonConvergenceError)."""
         ev = self._eval
-        if ev is None or len(ev.collisions) == 0:
+        if ev is None:
             return failure_report(self.stiffness, self.dhat)
-        d = float(np.sqrt(ev.collisions.compute_minimum_distance(self.surface.mesh, ev.x)))
+        count = self.partition.unique_count(ev.collisions)  # collective, like the solve
+        if count == 0:
+            return failure_report(self.stiffness, self.dhat)
+        d = self.partition.minimum_distance(ev.collisions, self.surface.mesh, ev.x)
         force = float(np.linalg.norm(self._gradient(ev).reshape(-1, self.dim), axis=1).max())
+        floor = self.step_bound.floor_held
+        floor = self.partition.minimum(np.inf if floor is None else floor)
         return failure_report(
-            self.stiffness, self.dhat, len(ev.collisions), d, force, self.step_bound.floor_held
+            self.stiffness, self.dhat, count, d, force, None if np.isinf(floor) else floor
         )
 
     @timed_kernel("adjoint_friction")
@@ -1018,6 +1074,8 @@ class ContactTerm(NumericTerm):
         self, u: fem.Function | np.ndarray, lam: fem.Function | np.ndarray
     ) -> np.ndarray:
         """(d g / d mu_p)^T lam for each pair p of :attr:`friction_pairs` (global, all ranks).
+
+        Each rank's collisions give their part, summed over the ranks.
 
         The friction gradient is linear in each collision's mu (static = kinetic): per pair, its
         gradient with mu = 1 on that pair and 0 elsewhere (one ipctk call per pair, measured
@@ -1034,4 +1092,4 @@ class ContactTerm(NumericTerm):
             T = self._tangential_collisions(self._mu_table(unit))
             if len(T):
                 out[p] = self.friction_potential.gradient(T, self.surface.mesh, V) @ lam_c
-        return collective_comm(self.comm).bcast(out, root=0)
+        return self.partition.sum(out)
