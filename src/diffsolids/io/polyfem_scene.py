@@ -35,8 +35,22 @@ is never read with part of its meaning dropped.
 
 Obstacles (``is_obstacle: true``) become kinematic :class:`~diffsolids.contact.Obstacle` s of
 the contact term (``obstacles="kinematic"``, the default): the boundary of their mesh, placed
-by its ``transformation``, with no dofs in the FE system; their Dirichlet entries (zero, as
-PolyFEM's fixed obstacles) are not applied to the model. ``obstacles="clamp"`` makes them
+by its ``transformation``, with no dofs in the FE system. An obstacle moves as PolyFEM moves
+it (``polyfem/mesh/GeometryReader.cpp``, ``read_obstacle_geometry``): its displacement is the
+``value`` of the first ``boundary_conditions.dirichlet_boundary`` entry whose ``id`` is the
+obstacle's ``surface_selection`` (an integer), replaced by the first matching
+``boundary_conditions.obstacle_displacements`` entry (``id``: that integer, a list holding it,
+or ``"all"``); without one (or without a ``surface_selection``) it is fixed. ``value`` has one
+component per axis, each a number or an expression string of x, y, z, t in PolyFEM's (TinyExpr)
+grammar (``diffsolids.io.expressions``: parsed, never ``eval``-ed), evaluated at the
+obstacle's placed rest vertices (z = 0 in 2D) and at the step's time, from t = 0 on (a
+constant moves the obstacle before the first step). PolyFEM applies the whole value to an
+obstacle (its ``dimension`` is ignored there, and so here). An optional ``interpolation``
+({"type": "none" | "linear" | "linear_ramp", "to", "from"}, or one per component) multiplies
+the value by 1, t or the ramp min(max(t - from, 0), to - from), as PolyFEM's
+``TensorBCValue::eval``. Refused by name (file and entry): per-vertex or per-time value
+arrays, file and Python values, units, ``time_reference``, other interpolations, a 2D value
+with a non-zero third component. ``obstacles="clamp"`` makes them
 bodies whose boundary is clamped (a warning says so; their dofs stay in the system),
 ``obstacles="error"`` refuses them. ``fixed_bodies="obstacles"`` also turns every body whose
 whole boundary is clamped to zero (the paper's grounds and pool, which are volume meshes
@@ -115,7 +129,7 @@ _TIME = {"t0", "tend", "dt", "time_steps", "integrator"}
 _CONTACT = {"enabled", "dhat", "epsv", "friction_coefficient", "use_convergent_formulation"}
 _SOLVER_IGNORED = {"linear", "nonlinear", "max_threads", "advanced"}
 _SOLVER_CONTACT = {"barrier_stiffness", "CCD", "friction_iterations"}
-_BCS = {"rhs", "dirichlet_boundary", "neumann_boundary"}
+_BCS = {"rhs", "dirichlet_boundary", "neumann_boundary", "obstacle_displacements"}
 _ICS = {"velocity", "solution", "acceleration"}
 _MATERIAL = {"id", "type", "E", "nu", "rho", "phi", "psi"}
 _LAWS = {"NeoHookean": "neo_hookean", "LinearElasticity": "linear"}
@@ -157,6 +171,12 @@ class PolyFEMGeometry:
         translation: Translation or None.
         is_obstacle: PolyFEM's ``is_obstacle``.
         kinematic: Simulated as a kinematic obstacle (no dofs), see the module docstring.
+        displacement: An obstacle's displacement as written: one number or expression string
+            per component (None: fixed).
+        interpolation: The time factors of the displacement, ``("none",)``, ``("linear",)``
+            or ``("linear_ramp", from, to)``: one for all components or one per component.
+        displacement_entry: Where the displacement was read (e.g.
+            ``"boundary_conditions.obstacle_displacements[0]"``), for messages.
     """
 
     mesh: Path
@@ -167,6 +187,9 @@ class PolyFEMGeometry:
     translation: tuple[float, ...] | None = None
     is_obstacle: bool = False
     kinematic: bool = False
+    displacement: tuple[float | str, ...] | None = None
+    interpolation: tuple[tuple[str | float, ...], ...] = ()
+    displacement_entry: str | None = None
 
 
 @dataclass(frozen=True)
@@ -408,18 +431,27 @@ class PolyFEMScene:
         return BDF(self.bdf_order, self.dt, self.num_steps)
 
     def obstacles(self, dim: int) -> list["Obstacle"]:
-        """The kinematic obstacles: each obstacle entry's mesh boundary, placed, fixed.
+        """The kinematic obstacles: each obstacle entry's mesh boundary, placed, and its motion.
+
+        An obstacle with a displacement (module docstring) gets a ``motion`` that evaluates
+        it at its rest vertices, vectorised: a translation when no component depends on x,
+        y, z, else one displacement per vertex.
 
         Args:
             dim: The scene's geometric dimension (its bodies' domain).
 
         Returns:
             A list of :class:`~diffsolids.contact.Obstacle`, named ``"obstacle<volume id>"``.
+
+        Raises:
+            ParameterError: A displacement with the wrong number of components for ``dim``
+                (naming the file and the entry).
         """
         from diffsolids.contact import Obstacle
 
-        return [
-            Obstacle.from_file(
+        out = []
+        for g in self.obstacle_geometry:
+            obstacle = Obstacle.from_file(
                 g.mesh,
                 dim=dim,
                 scale=g.scale,
@@ -427,8 +459,16 @@ class PolyFEMScene:
                 translation=g.translation,
                 name=f"obstacle{g.body_id}",
             )
-            for g in self.obstacle_geometry
-        ]
+            if g.displacement is not None:
+                motion = _ObstacleMotion(self.path, g, dim, obstacle.rest_positions)
+                if motion.moves:
+                    prims = {"edges": obstacle.edges} if dim == 2 else {"faces": obstacle.faces}
+                    obstacle = Obstacle(
+                        obstacle.rest_positions, motion=motion, name=obstacle.name, **prims
+                    )
+                    motion.rest_positions = obstacle.rest_positions  # the same array (broadcast)
+            out.append(obstacle)
+        return out
 
     def contact_term(
         self,
@@ -600,6 +640,9 @@ def read_polyfem_scene(
                 "initial_conditions.acceleration: a non-zero initial acceleration is not "
                 "supported (BDF does not use one)"
             )
+    dirichlet, geometry = _obstacle_displacements(
+        geometry, bcs, path, obstacles == "kinematic", path.parent
+    )
     rhs = bcs.get("rhs")
     scene = PolyFEMScene(
         path=path,
@@ -611,7 +654,7 @@ def read_polyfem_scene(
         num_steps=num_steps,
         bdf_order=order,
         rhs=None if rhs is None else tuple(_numbers(rhs, "boundary_conditions.rhs").tolist()),
-        dirichlet=_values(bcs.get("dirichlet_boundary", []), "dirichlet_boundary", True),
+        dirichlet=_values(dirichlet, "dirichlet_boundary", True),
         neumann=_values(bcs.get("neumann_boundary", []), "neumann_boundary"),
         initial_velocity=_values(ics.get("velocity", []), "initial_conditions.velocity"),
         initial_displacement=_values(ics.get("solution", []), "initial_conditions.solution"),
@@ -673,10 +716,225 @@ def _check_obstacle_entry(scene: PolyFEMScene, k: int, g: PolyFEMGeometry, alone
     ):
         if any(any(e.value) for e in entries):
             raise ParameterError(
-                f"{where} has a non-zero {what} entry: a moving obstacle needs a motion "
-                "(build a diffsolids.contact.Obstacle with motion=...), or read the scene "
-                "with obstacles='clamp'"
+                f"{where} has a non-zero {what} entry: a kinematic obstacle moves by its "
+                "displacement only (a dirichlet_boundary or obstacle_displacements entry on "
+                "its surface_selection, numbers or expressions of x, y, z, t), or read the "
+                "scene with obstacles='clamp'"
             )
+
+
+def _matches(entry: Mapping, surface: int) -> bool:
+    """PolyFEM's id rule for obstacle displacements: the id, a list holding it, or "all"."""
+    ids = entry.get("id")
+    if isinstance(ids, list):
+        return surface in ids
+    return ids == "all" or (isinstance(ids, int) and not isinstance(ids, bool) and ids == surface)
+
+
+def _obstacle_displacements(
+    geometry: list[PolyFEMGeometry],
+    bcs: Mapping,
+    path: Path,
+    kinematic: bool,
+    folder: Path,
+) -> tuple[list, list[PolyFEMGeometry]]:
+    """Split off the obstacles' displacements (module docstring, PolyFEM's lookup rule).
+
+    Returns the ``dirichlet_boundary`` entries left for the bodies and the geometry with each
+    kinematic obstacle's displacement set.
+    """
+    dirichlet = bcs.get("dirichlet_boundary", [])
+    moves = bcs.get("obstacle_displacements", [])
+    for what, entries in (("dirichlet_boundary", dirichlet), ("obstacle_displacements", moves)):
+        if not isinstance(entries, list):
+            raise ParameterError(
+                f"{path}: boundary_conditions.{what} must be a list of {{'id', 'value'}} entries"
+            )
+    surfaces = {
+        g.surface
+        for g in geometry
+        if kinematic and g.is_obstacle and isinstance(g.surface, int) and g.surface > 0
+    }
+    for k, e in enumerate(moves):
+        where = f"{path}: boundary_conditions.obstacle_displacements[{k}]"
+        if not isinstance(e, Mapping):
+            raise ParameterError(f"{where} = {e!r}: an object with 'id' and 'value'")
+        if not kinematic:
+            raise ParameterError(
+                f"{where}: obstacle displacements need kinematic obstacles (read the scene "
+                "with obstacles='kinematic')"
+            )
+        if not any(_matches(e, s) for s in surfaces):
+            raise ParameterError(
+                f"{where}: id {e.get('id')!r} is not the surface_selection of an obstacle "
+                f"(obstacle surfaces: {sorted(surfaces)})"
+            )
+    body_entries, out = [], []
+    for e in dirichlet:
+        id_ = e.get("id") if isinstance(e, Mapping) else None
+        if not (isinstance(id_, int) and id_ in surfaces):
+            body_entries.append(e)
+    for g in geometry:
+        if g.surface not in surfaces or not g.is_obstacle:
+            out.append(g)
+            continue
+        found = None
+        for what, entries in (("dirichlet_boundary", dirichlet), ("obstacle_displacements", moves)):
+            for k, e in enumerate(entries):
+                if isinstance(e, Mapping) and _matches(e, g.surface):
+                    found = (f"boundary_conditions.{what}[{k}]", e, what == "dirichlet_boundary")
+                    break
+        if found is None:
+            out.append(g)
+            continue
+        where, entry, is_dirichlet = found
+        value, interpolation = _displacement_entry(entry, f"{path}: {where}", is_dirichlet, folder)
+        out.append(
+            dataclasses.replace(
+                g, displacement=value, interpolation=interpolation, displacement_entry=where
+            )
+        )
+    return body_entries, out
+
+
+_INTERPOLATIONS = {"none": set(), "linear": set(), "linear_ramp": {"to", "from"}}
+
+
+def _displacement_entry(
+    entry: Mapping, where: str, is_dirichlet: bool, folder: Path
+) -> tuple[tuple[float | str, ...], tuple[tuple[str | float, ...], ...]]:
+    """An obstacle's ``value`` components (numbers, checked expression strings) and factors."""
+    from diffsolids.io.expressions import parse_expression
+
+    known = {"id", "value", "interpolation"} | ({"dimension"} if is_dirichlet else set())
+    if isinstance(entry, Mapping) and "time_reference" in entry:
+        raise ParameterError(
+            f"{where}.time_reference: per-time obstacle displacements are not supported"
+        )
+    unknown = sorted(set(entry) - known)
+    if unknown:
+        raise ParameterError(f"{where}: unsupported key(s) {unknown} (supported: {sorted(known)})")
+    value = entry.get("value")
+    if not isinstance(value, list) or not value:
+        raise ParameterError(f"{where}.value = {value!r}: a list with one value per axis")
+    components: list[float | str] = []
+    for d, c in enumerate(value):
+        w = f"{where}.value[{d}]"
+        if isinstance(c, bool) or not isinstance(c, int | float | str):
+            kind = "a per-vertex or per-time array" if isinstance(c, list) else "an object"
+            raise ParameterError(
+                f"{w} = {c!r}: {kind} is not supported (units, files and Python functions "
+                "neither): give a number or an expression of x, y, z, t"
+            )
+        if isinstance(c, str):
+            candidate = Path(c) if Path(c).is_absolute() else folder / c
+            if c.strip() and candidate.is_file():
+                raise ParameterError(f"{w} = {c!r}: values read from a file are not supported")
+            try:
+                parse_expression(c)
+            except ParameterError as error:
+                raise ParameterError(f"{w}: {error}") from None
+            components.append(c)
+        else:
+            if not math.isfinite(c):
+                raise ParameterError(f"{w} = {c!r} is not finite")
+            components.append(float(c))
+    raw = entry.get("interpolation", [])
+    raw = [raw] if isinstance(raw, Mapping) else raw
+    if not isinstance(raw, list):
+        raise ParameterError(f"{where}.interpolation = {raw!r}: an object or a list of objects")
+    factors = []
+    for k, item in enumerate(raw):
+        w = f"{where}.interpolation" + (f"[{k}]" if len(raw) > 1 else "")
+        kind = item.get("type") if isinstance(item, Mapping) else None
+        if kind not in _INTERPOLATIONS:
+            raise ParameterError(
+                f"{w} = {item!r}: supported interpolation types {sorted(_INTERPOLATIONS)}"
+            )
+        extra = sorted(set(item) - {"type"} - _INTERPOLATIONS[kind])
+        if extra:
+            raise ParameterError(f"{w}: unsupported key(s) {extra} for type {kind!r}")
+        if kind == "linear_ramp":
+            if "to" not in item:
+                raise ParameterError(f"{w}: a linear_ramp needs 'to'")
+            factors.append((kind, float(item.get("from", 0.0)), float(item["to"])))
+        else:
+            factors.append((kind,))
+    return tuple(components), tuple(factors)
+
+
+def _is_zero(component: float | str) -> bool:
+    """A component that is the number 0 or a constant expression equal to 0."""
+    from diffsolids.io.expressions import parse_expression
+
+    if not isinstance(component, str):
+        return component == 0.0
+    expr = parse_expression(component)
+    return not expr.variables and float(expr()) == 0.0
+
+
+class _ObstacleMotion:
+    """``motion(t)`` of a scene's obstacle: its displacement expressions at its rest vertices.
+
+    Component d at vertex X is value_d(X, t) * factor_d(t) (PolyFEM's ``TensorBCValue::eval``
+    with the obstacle's placed rest vertex, z = 0 in 2D). Returns a (dim,) translation when no
+    component depends on the position, else (n, dim) displacements.
+    """
+
+    def __init__(
+        self, path: Path, g: PolyFEMGeometry, dim: int, rest_positions: np.ndarray
+    ) -> None:
+        from diffsolids.io.expressions import parse_expression
+
+        where = f"{path}: {g.displacement_entry} (obstacle geometry {g.mesh.name})"
+        value = list(g.displacement)
+        if len(value) == 3 and dim == 2 and _is_zero(value[2]):
+            value = value[:2]  # PolyFEM reads dim components (its default is [0, 0, 0])
+        if len(value) != dim:
+            raise ParameterError(
+                f"{where}: value has {len(g.displacement)} components for a {dim}D scene"
+            )
+        self.where = where
+        self.rest_positions = rest_positions
+        self.components = [parse_expression(c) if isinstance(c, str) else float(c) for c in value]
+        factors = list(g.interpolation)
+        if 1 < len(factors) < dim:
+            raise ParameterError(
+                f"{where}: {len(factors)} interpolations for a {dim}D scene (give one, or one "
+                "per component)"
+            )
+        self.factors = factors * dim if len(factors) == 1 else factors[:dim]
+        self.moves = not all(_is_zero(c) for c in value)
+        self.uniform = not any(
+            not isinstance(c, float) and c.depends_on_position for c in self.components
+        )
+
+    @staticmethod
+    def _factor(spec: tuple, t: float) -> float:
+        if spec[0] == "linear":
+            return t
+        if spec[0] == "linear_ramp":
+            lo, hi = spec[1], spec[2]
+            return hi - lo if t >= hi else (0.0 if t <= lo else t - lo)
+        return 1.0
+
+    def __call__(self, t: float) -> np.ndarray:
+        X = self.rest_positions
+        n, dim = X.shape
+        if self.uniform:
+            point = {"x": 0.0, "y": 0.0, "z": 0.0}
+        else:
+            point = {"x": X[:, 0], "y": X[:, 1], "z": X[:, 2] if dim == 3 else np.zeros(n)}
+        out = []
+        for d, c in enumerate(self.components):
+            v = np.asarray(c(t=t, **point) if not isinstance(c, float) else c, dtype=float)
+            if self.factors:
+                v = v * self._factor(self.factors[d], t)
+            out.append(np.broadcast_to(v, () if self.uniform else (n,)))
+        U = np.stack(out, axis=-1).astype(float)
+        if not np.all(np.isfinite(U)):
+            raise ParameterError(f"{self.where}: the displacement at t = {t:g} is not finite")
+        return U
 
 
 def _geometry(entries: object, folder: Path, obstacles: str) -> list[PolyFEMGeometry]:
