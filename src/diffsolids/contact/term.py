@@ -471,6 +471,7 @@ class ContactTerm(NumericTerm):
         candidates.build(surf.mesh, xf, 0.5 * self.dhat, self.broad_phase)
         share = self.partition.share(candidates)
         C.build(share, surf.mesh, xf, self.dhat, 0.0)
+        self.partition.merge_split(C, self.dim)
         self.partition.record(share, C)
         if shape_derivatives:
             self._shape_builds = [(surf.mesh, surf.static, np.array(x), C), *self._shape_builds[:1]]
@@ -494,6 +495,7 @@ class ContactTerm(NumericTerm):
                     C = ipctk.NormalCollisions()
                     C.use_area_weighting = self.area_weighting
                     C.build(candidates, self.surface.mesh, np.asfortranarray(x), self.dhat, 0.0)
+                    self.partition.merge_split(C, self.dim)
                     self.partition.record(candidates, C)
                     return C
         return self._build(x)
@@ -902,7 +904,7 @@ class ContactTerm(NumericTerm):
         gb = self._barrier_gradient(ev)
         normal, friction = body_forces(self.surface.body_index, len(self.body_ids), g, gb)
         C = ev.collisions
-        count = self.partition.unique_count(C)
+        count = self.partition.count(C)
         dist = self.partition.minimum_distance(C, self.surface.mesh, ev.x)
         rec = ContactRecord(i, count, dist, normal, friction)
         self.records.append(rec)
@@ -1058,7 +1060,7 @@ class ContactTerm(NumericTerm):
         ev = self._eval
         if ev is None:
             return failure_report(self.stiffness, self.dhat)
-        count = self.partition.unique_count(ev.collisions)  # collective, like the solve
+        count = self.partition.count(ev.collisions)  # collective, like the solve
         if count == 0:
             return failure_report(self.stiffness, self.dhat)
         d = self.partition.minimum_distance(ev.collisions, self.surface.mesh, ev.x)

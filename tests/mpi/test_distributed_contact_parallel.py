@@ -1,0 +1,248 @@
+"""Run under ``mpiexec -n 2`` (and 3): distributed contact equals serial contact.
+
+Each rank evaluates its share of the collision candidates
+(:class:`~diffsolids.contact.partition.CollisionPartition`). Scenes are built on COMM_WORLD and
+on COMM_SELF in the same process and compared: (a) contact energy, gradient, Hessian action and
+the assembled Hessian (entries added by other ranks into the owner's preallocated rows) of a
+three-body 2D scene with friction and a two-body 3D scene with friction; (b) the gradient of a
+short optimisation objective (friction, shape, initial velocity controls); (c) the work is
+split, not replicated: the per-rank candidate counts sum to the serial count, and each
+collision is on exactly one rank with its serial weight (per-rank collision counts sum to the
+serial count).
+"""
+
+import dolfinx.fem.petsc as fem_petsc
+import numpy as np
+import pytest
+import ufl
+from dolfinx import fem
+from mpi4py import MPI
+
+import diffsolids as ds
+from diffsolids.contact import ContactTerm
+from diffsolids.contact.partition import collision_keys
+from diffsolids.controls import FrictionControl, InitialCondition, ShapeControl
+from diffsolids.mesh.scene import combine_meshes, simplex_box
+from diffsolids.objectives import Integral, final_value, time_integral
+from diffsolids.reduced_functional import ReducedFunctional
+from diffsolids.solvers.sparsity import matrix_with_pattern, sorted_unique
+
+RTOL = 1e-10
+
+
+def _scene_2d(comm, steps: int = 4):
+    """A slab, a crate sliding on it and a lid on the crate (friction on both contacts)."""
+    dhat = 1e-3
+    theta = np.deg2rad(30.0)
+    slab = simplex_box([[0, 0], [2, 0.1]], [16, 1])
+    crate = simplex_box([[0.2, 0.1 + 0.5 * dhat], [0.4, 0.2 + 0.5 * dhat]], [6, 3])
+    lid = simplex_box([[0.25, 0.2 + 1.2 * dhat], [0.35, 0.25 + 1.2 * dhat]], [3, 2])
+    dom = combine_meshes(comm, [slab, crate, lid])
+    model = ds.Model(dom, ds.NeoHookean(E=1e7, nu=0.3, density=1000.0))
+    model.add_body_force(9.81 * np.array([np.sin(theta), -np.cos(theta)]), name="gravity")
+    model.add_dirichlet(lambda x: x[1] < 0.1 + 1e-9, 0.0)
+    contact = ContactTerm(
+        model, dhat=dhat, stiffness=1e13, friction={(1, 2): 0.3, (2, 3): 0.5}, eps_v=1e-3
+    )
+    model.add_numeric_term(contact)
+    integ = ds.BDF(2, 0.01, steps)
+    sim = ds.Simulation(model, integ, ds.SolverOptions(rtol=1e-10), progress=False)
+    return model, contact, sim
+
+
+def _scene_3d(comm, steps: int = 3):
+    """A free box falling flat (slightly turned) onto a clamped box, friction 0.3."""
+    dhat = 1e-3
+    lower = simplex_box([[0, 0, 0], [1, 1, 0.25]], [4, 4, 1])
+    upper = simplex_box(
+        [[0.25, 0.25, 0.25 + 0.5 * dhat], [0.75, 0.75, 0.5 + 0.5 * dhat]], [3, 3, 1]
+    )
+    th = np.deg2rad(2.0)
+    rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    upper.geometry.x[:, :2] = (upper.geometry.x[:, :2] - 0.5) @ rot.T + 0.5
+    dom = combine_meshes(comm, [lower, upper])
+    model = ds.Model(dom, ds.NeoHookean(E=1e6, nu=0.3, density=1000.0))
+    model.add_gravity(9.81)
+    model.add_dirichlet(lambda x: x[2] < 1e-9, 0.0)
+    contact = ContactTerm(model, dhat=dhat, stiffness=1e11, friction=0.3, eps_v=1e-3)
+    model.add_numeric_term(contact)
+    X = model.V.tabulate_dof_coordinates()
+    v0 = np.zeros((len(X), 3))
+    v0[X[:, 2] > 0.25 + 1e-9] = [0.05, 0.0, -0.3]
+    integ = ds.BDF(2, 0.004, steps)
+    sim = ds.Simulation(model, integ, ds.SolverOptions(rtol=1e-10), v0=v0.ravel(), progress=False)
+    return model, contact, sim
+
+
+SCENES = {"2d": _scene_2d, "3d": _scene_3d}
+
+
+def _sorted_nodal(V, arr: np.ndarray, d: int) -> np.ndarray:
+    """Owned nodal values of all ranks, ordered by node coordinates (partition independent)."""
+    comm = V.mesh.comm
+    n = V.dofmap.index_map.size_local
+    x = np.round(V.tabulate_dof_coordinates()[:n, :d], 12)
+    xs = np.concatenate(comm.allgather(x))
+    vs = np.concatenate(comm.allgather(np.asarray(arr).reshape(-1, d)[:n]))
+    return vs[np.lexsort(xs.T[::-1])]
+
+
+def _field(V, d: int, seed: int) -> fem.Function:
+    """A smooth partition-independent field on V."""
+    f = fem.Function(V)
+    a = np.random.default_rng(seed).uniform(1.0, 3.0, size=(d, d))
+
+    def values(x):
+        return np.vstack([np.sin(a[i] @ x[:d] + i) for i in range(d)])
+
+    f.interpolate(values)
+    return f
+
+
+def _kernels(build, comm) -> dict:
+    """Contact kernels at the last state of a short run (lagged from the state before)."""
+    model, contact, sim = build(comm)
+    traj = sim.run()
+    d = model.dim
+    V = model.V
+    i = sim.integrator.num_steps
+    contact.begin_step(i, traj, sim.integrator.coefficients(i))
+    u = fem.Function(V)
+    u.x.array[:] = traj.u[i]
+    bc = model.dirichlet_dofs()
+    out = {"records": [r.num_collisions for r in contact.records]}
+    out["energy"] = contact.energy(u)
+    b = fem_petsc.create_vector(V)
+    b.set(0.0)
+    contact.add_residual(u, b)
+    out["gradient"] = _sorted_nodal(V, b.array_r, d)
+    direction = _field(V, d, 1)
+    direction.x.array[bc] = 0.0
+    y = fem_petsc.create_vector(V)
+    y.set(0.0)
+    contact.add_hessian_action(u, direction.x.array, y)
+    out["hessian_action"] = _sorted_nodal(V, y.array_r, d)
+    # the assembled exact Hessian: other ranks' entries land in the owner's preallocated rows
+    A = sim.solver.A
+    N = A.getSize()[1]
+    rows, cols = contact.matrix_pattern(u, bc)
+    r0, r1 = A.getOwnershipRange()
+    diag = np.arange(r0, r1, dtype=np.int64)
+    keys = sorted_unique(np.asarray(rows, dtype=np.int64) * N + cols, diag * N + diag)
+    B = matrix_with_pattern(A, keys)
+    contact.add_jacobian(u, B, bc)
+    B.assemble()
+    x = B.createVecRight()
+    x.array[:] = direction.x.array[: len(x.array)]
+    z = B.createVecLeft()
+    B.mult(x, z)
+    out["matrix_action"] = _sorted_nodal(V, z.array_r, d)
+    B.destroy()
+    # adjoint products at the same state
+    lam = _field(V, d, 2)
+    lam.x.array[bc] = 0.0
+    out["history"] = [_sorted_nodal(V, g, d) for g in contact.adjoint_history(u, lam).values()]
+    out["friction"] = contact.adjoint_friction(u, lam)
+    out["shape"] = _sorted_nodal(model.shape_space, contact.adjoint_shape(u, lam), d)
+    # one fresh build at the state: this rank's share of candidates and collisions
+    ev = contact._evaluate(u)
+    before = dict(contact.partition.counts)
+    C = contact._build(ev.x)
+    after = contact.partition.counts
+    out["share"] = {
+        "candidates": after["candidates"] - before["candidates"],
+        "collisions": len(C),
+        "keys": collision_keys(C),
+        "weights": _weights(C),
+    }
+    return out
+
+
+def _weights(C) -> np.ndarray:
+    groups = (C.vv_collisions, C.ev_collisions, C.ee_collisions, C.fv_collisions)
+    return np.array([c.weight for g in groups for c in g], dtype=float)
+
+
+def _close(a, b, rtol=RTOL) -> bool:
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    scale = max(np.abs(b).max(initial=0.0), 1e-300)
+    if a.shape != b.shape:
+        return False
+    err = np.abs(a - b).max(initial=0.0) / scale
+    if err > rtol:
+        print(f"relative difference {err:.2e} > {rtol:.0e}")
+    return err <= rtol
+
+
+@pytest.mark.parametrize("scene", sorted(SCENES))
+def test_kernels_equal_serial(scene):
+    comm = MPI.COMM_WORLD
+    assert comm.size > 1, "run with mpiexec -n 2 (or 3)"
+    par = _kernels(SCENES[scene], comm)
+    ser = _kernels(SCENES[scene], MPI.COMM_SELF)
+    assert par["records"] == ser["records"] and max(ser["records"]) > 0
+    assert abs(par["energy"] - ser["energy"]) <= RTOL * abs(ser["energy"])
+    for name in ("gradient", "hessian_action", "matrix_action", "shape"):
+        assert np.abs(ser[name]).max() > 0, name
+        assert _close(par[name], ser[name]), name
+    assert np.abs(ser["friction"]).max() > 0
+    assert _close(par["friction"], ser["friction"])
+    # d g / d u^{i-j} on the scale of all j (the velocity part alone can be round-off)
+    assert _close(np.stack(par["history"]), np.stack(ser["history"]))
+    # (c) the work is split: each candidate narrow-phased on one rank, every rank has a share
+    shares = comm.allgather(par["share"])
+    counts = [s["candidates"] for s in shares]
+    assert sum(counts) == ser["share"]["candidates"]
+    assert min(counts) > 0 and max(counts) < ser["share"]["candidates"]
+    # each collision on exactly one rank, whole: the ranks' sets are the serial set
+    keys = np.concatenate([s["keys"] for s in shares])
+    weights = np.concatenate([s["weights"] for s in shares])
+    pieces = [s["collisions"] for s in shares]
+    if comm.rank == 0:
+        print(
+            f"{scene}: candidates per rank {counts}, collisions per rank {pieces} "
+            f"(serial {ser['share']['candidates']}, {ser['share']['collisions']})"
+        )
+    assert sum(pieces) == ser["share"]["collisions"] == len(np.unique(keys))
+    order, serial_order = np.argsort(keys), np.argsort(ser["share"]["keys"])
+    assert np.array_equal(keys[order], ser["share"]["keys"][serial_order])
+    assert _close(weights[order], ser["share"]["weights"][serial_order], 1e-14)
+
+
+def _rf(build, comm):
+    model, contact, sim = build(comm, steps=3)
+    d = model.dim
+    on_top = 3 if d == 2 else 2
+    density = model.coefficients["density"]
+    objective = final_value(
+        Integral(lambda f: (f.X[0] + f.u[0]) * f.dx(on_top), "x")
+    ) + time_integral(
+        Integral(lambda f: 0.5 * density * ufl.dot(f.v, f.v) * f.dx(on_top), "kinetic")
+    )
+    controls = [
+        FrictionControl(contact),
+        ShapeControl(model, "all"),
+        InitialCondition(sim, "velocity"),
+    ]
+    return ReducedFunctional(sim, objective, controls)
+
+
+@pytest.mark.parametrize("scene", sorted(SCENES))
+def test_gradient_equals_serial(scene):
+    comm = MPI.COMM_WORLD
+    assert comm.size > 1, "run with mpiexec -n 2 (or 3)"
+    results = []
+    for c in (comm, MPI.COMM_SELF):
+        rf = _rf(SCENES[scene], c)
+        q = rf.initial_parameters()
+        results.append((q, *rf.value_and_gradient(q)))
+    (q_par, J_par, g_par), (q_ser, J_ser, g_ser) = results
+    assert np.array_equal(q_par, q_ser)
+    assert abs(J_par - J_ser) <= RTOL * abs(J_ser)
+    assert np.abs(g_ser).max() > 0
+    diff = np.abs(g_par - g_ser).max() / np.abs(g_ser).max()
+    if comm.rank == 0:
+        print(f"{scene}: value {abs(J_par / J_ser - 1):.1e}, gradient {diff:.1e}")
+    assert diff <= RTOL
+    for gradient in comm.allgather(g_par):
+        assert np.array_equal(gradient, g_par)
