@@ -9,8 +9,8 @@ time weights (``time_integral(series, "uniform")``, a list of steps, ``final_val
   ``int ||X + u^i - (X^trg + u^trg,i)||^2`` over a surface or the volume).
 * :func:`center_target`: the centre of mass matched to that of a stored run (PolyFEM's
   ``center-target``, the sliding bunny of fig21).
-* :func:`node_target`: the displacement or position of selected mesh vertices (PolyFEM's
-  ``node-target``), an exact sum over the vertices.
+* :func:`node_target`: the displacement or position of selected nodes of the displacement
+  (PolyFEM's ``node-target``; any Lagrange node, P2 edge nodes included), an exact sum.
 * :func:`sdf_target`: ``int sdf(X + u)^2`` of a user signed-distance function written in UFL
   (PolyFEM's ``sdf-target``); its gradient is UFL's.
 * :func:`compliance`: the work ``f . u`` of the model's tractions and body forces per step.
@@ -256,43 +256,75 @@ def center_target(simulation: "Simulation", target: "Trajectory", bodies: Tags =
 
 
 # -- node targets ------------------------------------------------------------------------------
-def _vertex_nodes(
-    model: "Model", nodes: Callable | npt.ArrayLike
-) -> tuple[fem.FunctionSpace, np.ndarray, np.ndarray | None]:
-    """The P1 space and the local dofs (owned and ghost) of the selected vertices.
+_NUMBERINGS = ("input", "canonical")
 
-    For a list of indices also the position of each selected dof in that list (else None).
-    """
+
+def _node_spaces(model: "Model") -> tuple[fem.FunctionSpace, fem.FunctionSpace]:
+    """The scalar and the vector space of the displacement's element (the nodes of u)."""
     mesh = model.domain.mesh
-    Q = fem.functionspace(mesh, ("Lagrange", 1))
-    collective = collective_comm(mesh.comm)
+    element = model.V.ufl_element()
+    return fem.functionspace(mesh, element.sub_elements[0]), fem.functionspace(mesh, element)
+
+
+def _vertex_of_dof(Q: fem.FunctionSpace) -> np.ndarray:
+    """Per local dof of Q: the geometry node of its vertex, or -1 (an edge, face or cell node)."""
+    mesh = Q.mesh
+    layout = Q.dofmap.dof_layout
+    corners = dolfinx.cpp.mesh.cell_num_vertices(mesh.topology.cell_type)
+    local = [layout.entity_dofs(0, v)[0] for v in range(corners)]
     imap = Q.dofmap.index_map
-    owned = imap.size_local
+    out = np.full(imap.size_local + imap.num_ghosts, -1, dtype=np.int64)
+    # the vertex nodes come first in the (affine) geometry dofmap
+    out[Q.dofmap.list[:, local].ravel()] = mesh.geometry.dofmaps[0][:, :corners].ravel()
+    return out
+
+
+def _selected_nodes(
+    Q: fem.FunctionSpace, nodes: Callable | npt.ArrayLike, numbering: str
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The owned local dofs of Q selected, and for indices each one's position in the list."""
+    mesh = Q.mesh
+    collective = collective_comm(mesh.comm)
+    owned = Q.dofmap.index_map.size_local
     if callable(nodes):
         dofs = fem.locate_dofs_geometrical(Q, nodes)
-        order = None
-        if collective.allreduce(int(np.sum(dofs < owned)), op=MPI.SUM) == 0:
-            raise ParameterError("node target: the locator selects no mesh vertex")
-        return Q, dofs, order
+        dofs = dofs[dofs < owned]
+        if collective.allreduce(len(dofs), op=MPI.SUM) == 0:
+            raise ParameterError(
+                "node target: the locator selects no mesh vertex (nor any other node of the "
+                "displacement)"
+            )
+        return dofs, None
     wanted = np.asarray(nodes, dtype=np.int64).ravel()
     if wanted.size == 0 or len(np.unique(wanted)) != wanted.size:
-        raise ParameterError("node target: give distinct vertex indices (at least one)")
-    q_to_node = np.empty(owned + imap.num_ghosts, dtype=np.int64)
-    corners = Q.dofmap.list.shape[1]  # the vertex nodes come first in the geometry dofmap
-    q_to_node[Q.dofmap.list.ravel()] = mesh.geometry.dofmaps[0][:, :corners].ravel()
-    ids = mesh.geometry.input_global_indices[q_to_node].astype(np.int64)
-    hit = np.isin(ids, wanted)
-    dofs = np.flatnonzero(hit).astype(np.int32)
-    found = collective.allgather(ids[:owned][hit[:owned]])
-    missing = np.setdiff1d(wanted, np.concatenate(found))
-    if missing.size:
-        raise ParameterError(
-            f"node target: no mesh vertex has the input index {missing[:5].tolist()} (vertex "
-            f"indices count 0..{mesh.geometry.index_map().size_global - 1} in the mesh file)"
+        raise ParameterError("node target: give distinct node indices (at least one)")
+    if numbering == "input":
+        vertex = _vertex_of_dof(Q)[:owned]
+        ids = np.where(
+            vertex >= 0, mesh.geometry.input_global_indices[np.maximum(vertex, 0)], -1
+        ).astype(np.int64)
+        total = mesh.geometry.index_map().size_global
+        what = (
+            f"mesh vertex has the input index {{}} (vertex indices count 0..{total - 1} in "
+            "the mesh file; numbering='canonical' selects any node)"
         )
-    order = np.searchsorted(np.sort(wanted), ids[dofs])
-    order = np.argsort(wanted)[order]
-    return Q, dofs, order
+    else:
+        from diffsolids.controls.ordering import CanonicalLayout
+
+        ids = CanonicalLayout(Q).positions.astype(np.int64)
+        total = Q.dofmap.index_map.size_global
+        what = (
+            f"node has the canonical index {{}} (the displacement's {total} nodes count "
+            f"0..{total - 1}: P1 in input vertex order, else by node coordinates)"
+        )
+    hit = np.isin(ids, wanted) & (ids >= 0)
+    dofs = np.flatnonzero(hit).astype(np.int32)
+    found = np.concatenate(collective.allgather(ids[dofs]))
+    missing = np.setdiff1d(wanted, found)
+    if missing.size:
+        raise ParameterError("node target: no " + what.format(missing[:5].tolist()))
+    order = np.argsort(wanted)[np.searchsorted(np.sort(wanted), ids[dofs])]
+    return dofs, order
 
 
 def node_target(
@@ -301,49 +333,68 @@ def node_target(
     target: npt.ArrayLike | Callable,
     match: str = "positions",
     weight: float = 1.0,
+    numbering: str = "input",
 ) -> Series:
-    """Per-step squared distance of selected mesh vertices from their targets.
+    """Per-step squared distance of selected nodes of the displacement from their targets.
 
-    s_i = w sum_n ||x_n^i - x_n^trg||^2 over the selected vertices n, with x_n = X_n + u_n
+    s_i = w sum_n ||x_n^i - x_n^trg||^2 over the selected nodes n of the displacement space
+    (any Lagrange degree: for P2 the vertices and the edge nodes), with x_n = X_n + u_n
     (``match="positions"``, PolyFEM's ``node-target``) or x_n = u_n (``"displacement"``). The
-    sum is exact: the integral int w chi |d|^2 / (c |det J|) dx with the vertex quadrature
-    rule, where chi selects the vertices and c counts the cells around each vertex (so neither
-    depends on the shape and the shape derivative is that of the sum). Vertices only: the edge
-    nodes of P2 are not selectable.
+    sum is exact: the integral int w chi |d|^2 / (c |det J|) dx with the quadrature rule whose
+    points are the element's own nodes (unit weights), where chi selects the nodes and c
+    counts the cells around each node (so neither depends on the shape and the shape
+    derivative is that of the sum).
 
     Args:
         model: The Model.
-        nodes: A locator ``x -> bool mask`` of rest vertex coordinates (shape (3, n)), or input
-            (mesh file) vertex indices.
+        nodes: A locator ``x -> bool mask`` of rest node coordinates (shape (3, n); every node
+            of the displacement space it holds for is selected, vertices and, for P2 and up,
+            edge, face and cell nodes), or node indices (see ``numbering``).
         target: A vector (the same target for every node), a callable of rest positions (shape
-            (dim, n) -> (dim, n)), or for indices an array (number of indices, dim) in their
-            order.
+            (dim, n) -> (dim, n), interpolated into the displacement space), or for indices an
+            array (number of indices, dim) in their order.
         match: "positions" or "displacement".
         weight: The factor w > 0.
+        numbering: What indices count: "input" (default: mesh-file vertex indices; vertices
+            only) or "canonical" (the canonical node order of the displacement space, that of
+            :class:`~diffsolids.simulation.CanonicalValues` and the controls: P1 nodes in the
+            input vertex order, higher degrees in the lexicographic order of the node
+            coordinates; any node). For P1 the two are the same.
 
     Raises:
-        ParameterError: No vertex selected, unknown indices, a malformed target.
+        ParameterError: No node selected, unknown indices, a malformed target, an unknown
+            match or numbering.
     """
     if match not in _MATCHES:
         raise ParameterError(f"unknown match {match!r}; choose from {_MATCHES}")
+    if numbering not in _NUMBERINGS:
+        raise ParameterError(f"unknown numbering {numbering!r}; choose from {_NUMBERINGS}")
     if not (np.isfinite(weight) and weight > 0):
         raise ParameterError(f"node target weight must be positive, got {weight}")
     mesh = model.domain.mesh
     dim = model.dim
-    Q, dofs, order = _vertex_nodes(model, nodes)
-    vertex_dx = ufl.Measure(
-        "dx", domain=mesh, metadata={"quadrature_rule": "vertex", "quadrature_degree": 1}
+    Q, QV = _node_spaces(model)
+    dofs, order = _selected_nodes(Q, nodes, numbering)
+    points = np.asarray(Q.element.basix_element.points, dtype=float)
+    node_dx = ufl.Measure(
+        "dx",
+        domain=mesh,
+        metadata={
+            "quadrature_rule": "custom",
+            "quadrature_points": points,
+            "quadrature_weights": np.ones(len(points)),
+        },
     )
     detJ = abs(ufl.JacobianDeterminant(mesh))
-    # c_n: the reference-cell vertex weights summed over the cells around n (topological)
+    # c_n: the number of cells around node n (each basis function is 1 at its own node)
     count = fem.Function(Q)
-    vec = fem.assemble_vector(fem.form(ufl.TestFunction(Q) / detJ * vertex_dx))
+    vec = fem.assemble_vector(fem.form(ufl.TestFunction(Q) / detJ * node_dx))
     vec.scatter_reverse(dolfinx.la.InsertMode.add)
     count.x.array[:] = vec.array
     count.x.scatter_forward()
     chi = fem.Function(Q, name="node target weights")
     chi.x.array[dofs] = weight / count.x.array[dofs]
-    T = fem.Function(fem.functionspace(mesh, ("Lagrange", 1, (dim,))), name="node targets")
+    T = fem.Function(QV, name="node targets")  # the same node numbering as Q
     values = T.x.array.reshape(-1, dim)
     if callable(target):
         T.interpolate(target)
@@ -356,18 +407,18 @@ def node_target(
         else:
             raise ParameterError(
                 f"node target has shape {arr.shape}; expected ({dim},), a callable, or "
-                f"(number of indices, {dim}) with vertex indices"
+                f"(number of indices, {dim}) with node indices"
             )
     if not np.all(np.isfinite(values[dofs])):
         raise ParameterError("node target has non-finite values")
-    # the owners' values on the ghosts (a locator may see a ghost vertex differently)
+    # the owners' values on the ghosts (a locator may see a ghost node differently)
     chi.x.scatter_forward()
     T.x.scatter_forward()
     positions = match == "positions"
 
     def form(f: "StepFields") -> ufl.Form:
         x = forms.deformed_position(f.X, f.u) if positions else f.u
-        return forms.weighted_squared_distance(x, T, chi) / detJ * vertex_dx
+        return forms.weighted_squared_distance(x, T, chi) / detJ * node_dx
 
     return Integral(form, "node target")
 
