@@ -5,7 +5,7 @@ physical term of an incremental potential and every objective integrand lives he
 shape, state and parameter derivatives all come from ``ufl.derivative``.
 """
 
-from diffsolids.forms.damping import damping_potential, green_strain_rate
+from diffsolids.forms.damping import damping_density, damping_potential, green_strain_rate
 from diffsolids.forms.elasticity import (
     STRAIN_ENERGIES,
     LinearElasticEnergy,
@@ -37,6 +37,13 @@ from diffsolids.forms.objectives import (
     stress_penalty,
     weighted_squared_distance,
 )
+from diffsolids.forms.shape_partials import (
+    energy_momentum_tensor,
+    form_shape_partial,
+    is_transformable,
+    residual_shape_partial,
+    surface_residual_shape_partial,
+)
 
 __all__ = [
     "STRAIN_ENERGIES",
@@ -46,20 +53,25 @@ __all__ = [
     "StrainEnergy",
     "body_force_potential",
     "cauchy_stress",
+    "damping_density",
     "damping_potential",
     "deformation_gradient",
     "deformed_position",
+    "energy_momentum_tensor",
     "first_piola_kirchhoff",
+    "form_shape_partial",
     "graph_misfit",
     "green_strain",
     "green_strain_rate",
     "inertia_energy",
+    "is_transformable",
     "lame_parameters",
     "linear_energy",
     "log_barrier",
     "neo_hookean_energy",
     "penalty",
     "plane_strain_normal_stress",
+    "residual_shape_partial",
     "small_strain",
     "st_venant_kirchhoff_energy",
     "strain_energy",
@@ -67,6 +79,7 @@ __all__ = [
     "stress_norm",
     "stress_norm_power",
     "stress_penalty",
+    "surface_residual_shape_partial",
     "traction_potential",
     "von_mises",
     "von_mises_tensor",

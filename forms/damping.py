@@ -10,7 +10,7 @@ import ufl
 from diffsolids.forms.kinematics import deformation_gradient, green_strain
 from ufl.core.expr import Expr
 
-__all__ = ["damping_potential", "green_strain_rate"]
+__all__ = ["damping_density", "damping_potential", "green_strain_rate"]
 
 
 def green_strain_rate(u: Expr, u_prev: Expr, dt: Expr | float) -> Expr:
@@ -18,9 +18,16 @@ def green_strain_rate(u: Expr, u_prev: Expr, dt: Expr | float) -> Expr:
     return (green_strain(deformation_gradient(u)) - green_strain(deformation_gradient(u_prev))) / dt
 
 
+def damping_density(
+    F: Expr, F_prev: Expr, dt: Expr | float, psi: Expr | float, phi: Expr | float
+) -> Expr:
+    """The damping potential dt * (psi Edot:Edot + phi/2 tr(Edot)^2) of F^i and F^{i-1}."""
+    Edot = (green_strain(F) - green_strain(F_prev)) / dt
+    return dt * (psi * ufl.inner(Edot, Edot) + 0.5 * phi * ufl.tr(Edot) ** 2)
+
+
 def damping_potential(
     u: Expr, u_prev: Expr, dt: Expr | float, psi: Expr | float, phi: Expr | float
 ) -> Expr:
     """Incremental damping potential dt * (psi Edot:Edot + phi/2 tr(Edot)^2)."""
-    Edot = green_strain_rate(u, u_prev, dt)
-    return dt * (psi * ufl.inner(Edot, Edot) + 0.5 * phi * ufl.tr(Edot) ** 2)
+    return damping_density(deformation_gradient(u), deformation_gradient(u_prev), dt, psi, phi)

@@ -12,6 +12,14 @@ differences for a few parameters (those with the largest gradient entries, and a
 direction), with a tighter Newton tolerance and a sweep of steps (the dynamic check on a
 shorter run, --fd-bdf-steps).
 
+The shape partials of the adjoint have two paths (``diffsolids.adjoint.forms.SHAPE_PARTIALS``):
+the explicit energy-momentum forms of the built-in terms and objectives ("auto", the default)
+and UFL's coordinate derivative ("ufl", the reference). ``--shape-partials both`` (the default)
+times the shape gradient of each path after the same forward runs (one sweep object each, the
+same trajectory and factorisations) and the per-step cost of their shape-partial forms (CPU
+seconds of packing the coefficients and of the kernels, best of ``--kernel-repeat``), and
+reports their largest gradient difference; the shape ratio is that of "auto".
+
 The first gradient of each control (a new ReducedFunctional: its forward run, kernel compilation
 and adjoint sweep) is timed too. ``--cold`` points the kernel cache at an empty temporary
 directory: the model set-up and each control's first gradient then compile their kernels, and
@@ -67,6 +75,22 @@ def _parse(argv):
     p.add_argument(
         "--only", choices=["static", "dynamic"], default=None, help="run one scenario only"
     )
+    p.add_argument(
+        "--controls",
+        nargs="+",
+        choices=["E-field", "shape"],
+        default=["E-field", "shape"],
+        help="controls timed",
+    )
+    p.add_argument(
+        "--shape-partials",
+        choices=["auto", "ufl", "both"],
+        default="both",
+        help="adjoint shape-partial path(s) timed (both: 'auto' and the 'ufl' reference)",
+    )
+    p.add_argument(
+        "--kernel-repeat", type=int, default=7, help="repetitions of the shape-form timings"
+    )
     p.add_argument("--profile", action="store_true", help="cProfile one gradient per case")
     p.add_argument("--skip-fd", action="store_true", help="timings only")
     p.add_argument("--skip-timing", action="store_true", help="finite differences only")
@@ -79,6 +103,7 @@ import diffsolids as ds  # noqa: E402  (first: it loads the MPI library DOLFINx'
 
 # isort: split
 import cProfile  # noqa: E402
+import functools  # noqa: E402
 import io  # noqa: E402
 import pstats  # noqa: E402
 import shutil  # noqa: E402
@@ -87,8 +112,12 @@ from pathlib import Path  # noqa: E402
 
 import dolfinx.jit  # noqa: E402
 import numpy as np  # noqa: E402
+from dolfinx import fem  # noqa: E402
 from mpi4py import MPI  # noqa: E402
 
+from diffsolids.adjoint import sweep as adjoint_sweep  # noqa: E402
+from diffsolids.adjoint.forms import AdjointForms  # noqa: E402
+from diffsolids.adjoint.sensitivities import Targets  # noqa: E402
 from diffsolids.controls import ParameterControl, ShapeControl  # noqa: E402
 from diffsolids.mesh import create_box  # noqa: E402
 from diffsolids.objectives import (  # noqa: E402
@@ -175,29 +204,120 @@ def first_gradient(sim: ds.Simulation, objective, control) -> tuple:
     return rf, q, {k: _max(v) for k, v in times.items()}
 
 
+def _variants(kind: str) -> tuple[str, ...]:
+    """The shape-partial paths timed for a control ("auto" first: it is the one reported)."""
+    if kind != "shape" or ARGS.shape_partials == "auto":
+        return ("auto",)
+    return ("ufl",) if ARGS.shape_partials == "ufl" else ("auto", "ufl")
+
+
+def _sweeps(rf: ReducedFunctional, variants: tuple[str, ...]) -> dict:
+    """A BackwardSweep per shape-partial path, its forms compiled (untimed).
+
+    The ReducedFunctional keeps one sweep (its first gradient built the "auto" one); the
+    benchmark swaps in the sweep of the path wanted, so every path reuses the same trajectory
+    and stored factorisations.
+    """
+    sweeps = {"auto": rf._sweep}
+    real = adjoint_sweep.AdjointForms
+    for variant in variants:
+        if variant in sweeps:
+            continue
+        adjoint_sweep.AdjointForms = functools.partial(real, shape_partials=variant)
+        try:
+            sweeps[variant] = adjoint_sweep.BackwardSweep(
+                rf.simulation, rf.leaves, rf.controls.targets(), rf.adjoint_options
+            )
+        finally:
+            adjoint_sweep.AdjointForms = real
+    return sweeps
+
+
+def _derivative(rf: ReducedFunctional, sweeps: dict, variant: str) -> np.ndarray:
+    """rf.derivative() through the sweep of one shape-partial path."""
+    rf._sweep = sweeps[variant]
+    return rf.derivative()
+
+
+def shape_kernel_times(model: ds.Model, objective, dynamic: bool) -> dict:
+    """Per-step CPU milliseconds of the shape-partial forms of each path, at the current state.
+
+    For the residual part (lambda . dG/dX) and the objective part (dJ/dX) of the step
+    Lagrangian: packing the coefficients and running the kernels (best of --kernel-repeat),
+    max over ranks.
+    """
+    leaves = list(dict.fromkeys(objective.leaves()))
+    out = {}
+    for variant in ("auto", "ufl"):
+        forms = AdjointForms(model, dynamic, leaves, Targets(shape=True), shape_partials=variant)
+        forms.lam.x.array[:] = np.random.default_rng(0).standard_normal(forms.lam.x.array.size)
+        for const in forms.weights.values():
+            const.value = 1.0
+        parts = {}
+        for name, form in zip(("residual", "objective"), forms.shape, strict=True):
+            if form is None:
+                continue
+            b = np.zeros_like(fem.Function(model.shape_space).x.array)
+            pack, kernel = [], []
+            for _ in range(ARGS.kernel_repeat):
+                c0 = time.process_time()
+                coefficients = fem.pack_coefficients(form)
+                c1 = time.process_time()
+                fem.assemble_vector(b, form, fem.pack_constants(form), coefficients)
+                c2 = time.process_time()
+                pack.append(c1 - c0)
+                kernel.append(c2 - c1)
+            parts[name] = {"pack_ms": _max(1e3 * min(pack)), "kernel_ms": _max(1e3 * min(kernel))}
+        parts["total_ms"] = sum(p["pack_ms"] + p["kernel_ms"] for p in parts.values())
+        out[variant] = parts
+    return out
+
+
 def time_case(sim: ds.Simulation, objective, model: ds.Model, kind: str) -> dict:
     """First gradient (cold and warm with --cold), then best-of-repeat forward and gradient
-    wall times of one control (warm cache)."""
+    wall times of one control (warm cache); for the shape, of each shape-partial path."""
     rf, q, first = first_gradient(sim, objective, make_control(model, kind))
     if ARGS.cold:  # the same on a new ReducedFunctional, its kernels now in the cache
         del rf  # and its stored factorisations: the new one's factor store has the memory
         collect_garbage()
         rf, q, warm = first_gradient(sim, objective, make_control(model, kind))
         first = {"cold": first, "warm": warm}
-    best = None
+    variants = _variants(kind)
+    sweeps = _sweeps(rf, variants)
+    best = dict.fromkeys(variants)
+    gradients = {}
     for _ in range(ARGS.repeat):
         COMM.barrier()
         t0, c0 = time.perf_counter(), time.process_time()
         rf.forward(q)
         f, fc = _max(time.perf_counter() - t0), _max(time.process_time() - c0)
-        COMM.barrier()
-        t0, c0 = time.perf_counter(), time.process_time()
-        rf.derivative()
-        g, gc = _max(time.perf_counter() - t0), _max(time.process_time() - c0)
-        if best is None or gc / fc < best[3] / best[1]:
-            stats = {k: v for k, v in rf.adjoint_stats.items() if k != "krylov_per_step"}
-            best = (f, fc, g, gc, stats)
-    forward, forward_cpu, gradient, gradient_cpu, stats = best
+        for variant in variants:
+            COMM.barrier()
+            t0, c0 = time.perf_counter(), time.process_time()
+            gradients[variant] = _derivative(rf, sweeps, variant)
+            g, gc = _max(time.perf_counter() - t0), _max(time.process_time() - c0)
+            if best[variant] is None or gc / fc < best[variant][3] / best[variant][1]:
+                stats = {k: v for k, v in rf.adjoint_stats.items() if k != "krylov_per_step"}
+                best[variant] = (f, fc, g, gc, stats)
+    forward, forward_cpu, gradient, gradient_cpu, stats = best[variants[0]]
+    paths = None
+    if len(variants) > 1:
+        paths = {
+            v: {
+                "gradient_s": best[v][2],
+                "ratio": best[v][2] / best[v][0],
+                "gradient_cpu_s": best[v][3],
+                "ratio_cpu": best[v][3] / best[v][1],
+                "phase_seconds": best[v][4].get("phase_seconds"),
+            }
+            for v in variants
+        }
+        ref = gradients["ufl"]
+        diff = COMM.allreduce(float(np.sum((gradients["auto"] - ref) ** 2)), op=MPI.SUM)
+        norm = COMM.allreduce(float(np.sum(ref**2)), op=MPI.SUM)
+        paths["gradient_rel_diff"] = float(np.sqrt(diff / norm))
+        paths["kernels"] = shape_kernel_times(model, objective, sim.integrator.dynamic)
+    rf._sweep = sweeps["auto"]
     profile = None
     if ARGS.profile:
         pr = cProfile.Profile()
@@ -224,6 +344,7 @@ def time_case(sim: ds.Simulation, objective, model: ds.Model, kind: str) -> dict
         "adjoint": stats,
         "profile": profile,
         "num_parameters": rf.size,
+        "shape_partials": paths,
     }
 
 
@@ -241,6 +362,14 @@ def _first(first: dict) -> str:
     if "cold" in first:
         return f"cold {one(first['cold'])}, warm {one(first['warm'])}"
     return one(first)
+
+
+def _kernels(parts: dict) -> str:
+    return ", ".join(
+        f"{name} pack {p['pack_ms']:.1f} + kernel {p['kernel_ms']:.1f}"
+        for name, p in parts.items()
+        if isinstance(p, dict)
+    )
 
 
 def fd_case(sim, objective, control, sweep) -> list[dict]:
@@ -303,7 +432,7 @@ def main() -> dict:
 
     timings, fd_errors = {}, []
     for name, (model, sim, objective, _) in scenarios.items():
-        for kind in () if ARGS.skip_timing else ("E-field", "shape"):
+        for kind in () if ARGS.skip_timing else ARGS.controls:
             r = time_case(sim, objective, model, kind)
             timings[f"{name}/{kind}"] = r
             say(
@@ -313,6 +442,14 @@ def main() -> dict:
                 f" s), ratio {r['ratio']:.4f} (cpu {r['ratio_cpu']:.4f})  first gradient "
                 f"{_first(r['first_gradient'])}  adjoint {r['adjoint']}"
             )
+            paths = r["shape_partials"]
+            if paths:
+                for variant in ("auto", "ufl"):
+                    v, k = paths[variant], paths["kernels"][variant]
+                    say(f"    shape partials {variant:4s}: gradient {v['gradient_s']:6.3f} s, "
+                        f"ratio {v['ratio']:.4f} (cpu {v['ratio_cpu']:.4f}); per step: "
+                        f"{k['total_ms']:.1f} ms cpu ({_kernels(k)})")  # fmt: skip
+                say(f"    gradients of the two paths differ by {paths['gradient_rel_diff']:.1e}")
             if r["profile"]:
                 say(r["profile"])
     if not ARGS.skip_fd:
@@ -381,6 +518,7 @@ def main() -> dict:
                 "num_parameters": v["num_parameters"],
                 "newton_its": v["newton_its"],
                 "adjoint": v["adjoint"],
+                "shape_partials": v["shape_partials"],
             }
             for k, v in timings.items()
         },

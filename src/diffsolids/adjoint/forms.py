@@ -6,6 +6,14 @@ J_i = sum_l c_l^i J_l the objective integrals weighted by their chain-rule weigh
 partial derivative the backward sweep needs is ``ufl.derivative`` of it; shape derivatives are
 coordinate derivatives of its two parts (paper eqs. 20, 25, 28 come out of UFL).
 
+The shape partial of the residual part has a second, explicit form: when every UFL term of the
+step gives one (:meth:`~diffsolids.model.terms.Term.shape_partial`: the built-in laws, damping,
+inertia and loads, in the energy-momentum form of ``forms.shape_partials``) and the mesh
+geometry is of degree 1, lambda . dG/dX is their sum, a kernel several times cheaper than the
+forward-mode coordinate derivative FFCx makes of UFL's. Otherwise (a user-written term, a
+curved mesh) and with ``shape_partials="ufl"`` it is UFL's coordinate derivative, the reference
+the tests compare the explicit form with.
+
 An objective integral may read every state field of :class:`~diffsolids.model.StepFields`:
 u^i, v^i, the previous displacement u^{i-1} (``u_prev``) and the BDF predictor u_tilde^i
 (``u_tilde``, a combination of earlier displacements and velocities). J_i is differentiated
@@ -21,7 +29,9 @@ from typing import TYPE_CHECKING
 import ufl
 from dolfinx import default_scalar_type, fem
 from ufl.algorithms import expand_derivatives, extract_coefficients
+from ufl.domain import extract_unique_domain
 
+from diffsolids import forms
 from diffsolids.adjoint.sensitivities import Targets
 from diffsolids.errors import ParameterError
 from diffsolids.objectives.functional import NumericIntegral
@@ -32,7 +42,19 @@ if TYPE_CHECKING:
     from diffsolids.model.terms import StepFields
     from diffsolids.objectives.functional import Integral, Objective, TimeGrid
 
-__all__ = ["STATE_FIELDS", "AdjointForms", "check_objective_fields", "state_fields_read"]
+__all__ = [
+    "SHAPE_PARTIALS",
+    "STATE_FIELDS",
+    "AdjointForms",
+    "check_objective_fields",
+    "objective_shape_partial",
+    "residual_shape_partial",
+    "state_fields_read",
+]
+
+#: Ways of computing the residual's shape partial: "auto" (the terms' explicit forms where every
+#: term has one, else UFL's coordinate derivative) and "ufl" (always the coordinate derivative).
+SHAPE_PARTIALS = ("auto", "ufl")
 
 #: The state fields of a step (attributes of StepFields) that objectives may read; the adjoint
 #: differentiates J_i with respect to each. u_prev and u_tilde are the history fields: functions
@@ -101,6 +123,64 @@ def check_objective_fields(objective: "Objective", fields: "StepFields", grid: "
             )
 
 
+def residual_shape_partial(
+    model: "Model", dynamic: bool, lam: fem.Function, theta: ufl.Argument, how: str = "auto"
+) -> ufl.Form:
+    """The shape partial lambda . dG/dX along theta of one step's residual (a linear form).
+
+    Args:
+        model: The Model.
+        dynamic: A BDF step (inertia and damping present).
+        lam: The adjoint.
+        theta: Test function of ``model.shape_space``.
+        how: One of :data:`SHAPE_PARTIALS`.
+
+    Returns:
+        The sum of the terms' explicit shape partials when ``how`` is "auto", the mesh geometry
+        has degree 1 and every active term gives one; otherwise UFL's coordinate derivative of
+        ``derivative(potential, u, lam)``.
+
+    Raises:
+        ParameterError: ``how`` is not one of :data:`SHAPE_PARTIALS`.
+    """
+    if how not in SHAPE_PARTIALS:
+        raise ParameterError(f"shape_partials={how!r}: choose one of {SHAPE_PARTIALS}")
+    f = model.fields
+    mesh = model.V.mesh
+    if how == "auto" and mesh.ufl_domain().ufl_coordinate_element().embedded_superdegree == 1:
+        parts = [t.shape_partial(f, lam, theta) for t in model.active_terms(dynamic)]
+        if parts and all(p is not None for p in parts):
+            return sum(parts[1:], parts[0])
+    L = ufl.derivative(model.potential(dynamic), f.u, lam)
+    return ufl.derivative(L, f.X, theta)
+
+
+def objective_shape_partial(
+    J: ufl.Form | None, X: ufl.SpatialCoordinate, theta: ufl.Argument, how: str = "auto"
+) -> ufl.Form | None:
+    """dJ/dX along theta of the weighted objective integrals of a step.
+
+    Args:
+        J: The step's weighted objective form (None: no UFL objective).
+        X: The SpatialCoordinate.
+        theta: Test function of the shape space.
+        how: One of :data:`SHAPE_PARTIALS`.
+
+    Returns:
+        With "auto" and a geometry of degree 1, the energy-momentum form of ``J``
+        (``forms.form_shape_partial``) where it applies to every integral, else UFL's
+        coordinate derivative; None without J.
+    """
+    if J is None:
+        return None
+    degree = extract_unique_domain(X).ufl_coordinate_element().embedded_superdegree
+    if how == "auto" and degree == 1:
+        explicit = forms.form_shape_partial(J, theta)
+        if explicit is not None:
+            return explicit
+    return ufl.derivative(J, X, theta)
+
+
 class AdjointForms:
     """Compiled derivative forms of the step Lagrangian for one model, objective and targets.
 
@@ -109,6 +189,7 @@ class AdjointForms:
         dynamic: BDF steps (inertia and damping present).
         leaves: The objective's Integral leaves.
         targets: Which parameter/shape sensitivities are needed.
+        shape_partials: How the residual's shape partial is computed (:data:`SHAPE_PARTIALS`).
     """
 
     def __init__(
@@ -117,6 +198,7 @@ class AdjointForms:
         dynamic: bool,
         leaves: Sequence["Integral | NumericIntegral"],
         targets: Targets,
+        shape_partials: str = "auto",
     ) -> None:
         f = model.fields
         V = model.V
@@ -159,8 +241,11 @@ class AdjointForms:
         self.shape = None
         if targets.shape:
             theta = ufl.TestFunction(model.shape_space)
-            self.shape = tuple(
-                compile_form(ufl.derivative(part, f.X, theta) if part else None) for part in (L, J)
+            self.shape = (
+                compile_form(
+                    residual_shape_partial(model, dynamic, self.lam, theta, shape_partials)
+                ),
+                compile_form(objective_shape_partial(J, f.X, theta, shape_partials)),
             )
 
     def set_weights(self, weights: dict, step: int) -> bool:
