@@ -1,18 +1,28 @@
 """The collision surface: the boundary of the mesh as one ipctk CollisionMesh on every rank.
 
-Collision vertices are the mesh vertices on the exterior boundary, for every displacement degree:
-with P2/P3 the surface moves with the displacement at the vertices (the piecewise-linear
-interpolant of u on the boundary). We chose this over splitting boundary facets at the higher-order
-nodes because (1) self-contact stays available without a same-body collision filter (split
-surfaces have primitives h/2 apart that "collide" at rest), (2) the collision surface is the P1
-geometry itself, so the shape derivative with respect to the mesh vertices is direct, and (3) the
-displacement map W (collision vertices x FE nodes) is a 0/1 selection, so the gather, the scatter
-and the chain rule are exact copies. The price: mid-edge nodes of P2/P3 do not carry contact
-forces, so the curved FE surface may sag through an obstacle by O(h^2 curvature) between vertices.
+Collision vertices are the mesh vertices on the exterior boundary, then, for P2/P3 bodies with
+``boundary="nodes"``, the edge and face nodes of the boundary facets: every facet is split along
+its nodes (2D: k segments, 3D: k^2 triangles, as PolyFEM does; :mod:`.subdivision`), so the
+collision surface is the piecewise-linear interpolant of the simulated boundary through all its
+nodes and the intersection-free guarantee holds at every node, not only at the vertices. The
+displacement map W (collision vertices x FE nodes) stays a 0/1 selection of displacement blocks
+(every collision vertex is one FE node); the rest positions of the nodes are fixed convex
+combinations of the mesh vertices (affine geometry), X_nodes = P X_vertices, so the map from
+the shape space (mesh vertex positions) to the collision rest positions is sparse linear, and
+shape gradients are pulled back through P^T (:meth:`_OwnedMap.pull_back` of
+:meth:`CollisionSurface.shape_map`). Split facets put primitives of one body about h/(2k)
+apart at rest, closer than a typical dhat: pairs of sub-facets whose parent facets are equal or
+share a vertex never collide (ipctk's rule for primitives sharing a vertex, applied to the
+parent facets; one sparse ipctk filter built once). ``boundary="vertices"`` keeps the facets
+between the mesh vertices only (the P2/P3 boundary then moves with the displacement at the
+vertices and may sag through another body by O(h^2 curvature) between them); for P1 both are
+the same surface.
 
 The surface is numbered by the input (file) index of the vertices, independent of the partition,
-so a run on n ranks builds the same collision mesh as a serial run. Each rank contributes the
-values of the vertices whose displacement block it owns (one allgather per evaluation).
+so a run on n ranks builds the same collision mesh as a serial run; the nodes follow, sorted by
+a key made of their facet vertices' indices and lattice position (partition independent too).
+Each rank contributes the values of the vertices and nodes whose displacement block it owns
+(one allgather per evaluation).
 
 Kinematic obstacles (:class:`~diffsolids.contact.obstacle.Obstacle`) are appended after the
 body vertices (``num_body_vertices`` ... ``num_vertices``): they are part of the CollisionMesh
@@ -35,7 +45,14 @@ from mpi4py.util import dtlib
 from petsc4py import PETSc
 
 from diffsolids.contact.obstacle import Obstacle
-from diffsolids.errors import MeshError
+from diffsolids.contact.subdivision import (
+    local_node_keys,
+    match_rows,
+    neighbour_filter,
+    neighbour_pairs,
+    subdivide,
+)
+from diffsolids.errors import MeshError, ParameterError
 from diffsolids.mesh import Domain
 from diffsolids.parallel import collective_comm
 from diffsolids.portability import ensure_ipctk_runs
@@ -83,6 +100,27 @@ class _OwnedMap:
         global_blocks = imap.local_to_global(blocks.astype(np.int32)) if len(blocks) else []
         self.global_blocks = np.empty(nv, dtype=np.int64)
         self.global_blocks[order] = self.allgather(np.asarray(global_blocks, dtype=np.int64))
+        self.weights: sp.csr_matrix | None = None
+
+    def pull_back(self, G: np.ndarray) -> np.ndarray:
+        """Per-collision-vertex values G (rows) pulled back to the rows this map selects.
+
+        A shape map selects surface (mesh) vertices; the edge and face nodes of a subdivided
+        P2/P3 boundary sit at fixed convex combinations X_nodes = P X_vertices of them, so a
+        gradient with respect to the collision rest positions reaches the mesh vertices as
+        G_vertices + P^T G_nodes. Use as ``out[m.blocks] += m.pull_back(G)[m.cv]``. Without
+        nodes (P1, or the vertex-only surface) G itself is returned.
+
+        Args:
+            G: (num_vertices, width) values at the collision vertices (obstacle rows ignored).
+        """
+        if self.weights is None:
+            return G
+        G = np.asarray(G)
+        nv = self.weights.shape[1]
+        out = np.array(G[:nv], dtype=np.result_type(G.dtype, float))
+        out += self.weights.T @ G[nv : nv + self.weights.shape[0]]
+        return out
 
     def allgather(self, local: np.ndarray) -> np.ndarray:
         """Concatenate per-rank arrays (first axis = owned collision vertices) in rank order."""
@@ -111,20 +149,34 @@ class CollisionSurface:
     Args:
         domain: Mesh with body tags (cell tags).
         V: Displacement space (blocked Lagrange of any degree, block size = gdim).
+        obstacles: Kinematic obstacles appended after the bodies.
+        boundary: "nodes": P2/P3 boundary facets split at their edge and face nodes (the
+            simulated boundary); "vertices": facets between the mesh vertices only. The same
+            surface for P1.
 
     Attributes:
         dim: Geometric dimension.
-        num_vertices: Number of collision vertices.
+        num_vertices: Number of collision vertices (surface vertices, nodes, obstacles).
+        num_surface_vertices: Mesh vertices on the surface (collision vertices 0 ... this - 1;
+            the edge/face nodes of a subdivided surface follow, up to ``num_body_vertices``).
         rest_positions: (num_vertices, dim) rest coordinates.
-        edges: (num_edges, 2) vertex indices (2D: the boundary facets).
-        faces: (num_faces, 3) vertex indices (3D only).
+        edges: (num_edges, 2) vertex indices (2D: the boundary facets or their segments).
+        faces: (num_faces, 3) vertex indices (3D only; facets or their sub-triangles).
         body: Body id (cell tag) of every vertex (the smallest if several bodies meet there).
         body_ids: Sorted body ids of the domain.
         mesh: The ipctk CollisionMesh (area Jacobians initialised).
+
+    Raises:
+        MeshError: No volume mesh, curved geometry, no boundary, an unsupported node layout.
+        ParameterError: An unknown ``boundary``.
     """
 
     def __init__(
-        self, domain: Domain, V: fem.FunctionSpace, obstacles: Sequence[Obstacle] = ()
+        self,
+        domain: Domain,
+        V: fem.FunctionSpace,
+        obstacles: Sequence[Obstacle] = (),
+        boundary: str = "vertices",
     ) -> None:
         mesh = domain.mesh
         self.comm = mesh.comm
@@ -134,17 +186,39 @@ class CollisionSurface:
             raise MeshError(f"contact needs a volume mesh (tdim {tdim} != gdim {self.dim})")
         if mesh.geometry.cmaps[0].degree != 1:
             raise MeshError("contact needs an affine (degree 1) mesh geometry")
+        if boundary not in ("nodes", "vertices"):
+            raise ParameterError(f"boundary {boundary!r}: expected 'nodes' or 'vertices'")
         self.V = V
         self.bs = V.dofmap.index_map_bs
+        self.degree = int(V.ufl_element().embedded_superdegree)
+        self.boundary = boundary
         self.body_ids = list(domain.body_ids)
         self._domain = domain
         ensure_ipctk_runs(self.comm)  # a PortabilityError here instead of a SIGILL below
+        self._subdivision = None
+        self._neighbours = None
         self._facet_data(domain)
+        if self._subdivision is not None:
+            sub = self._subdivision
+            self._neighbours = neighbour_filter(neighbour_pairs(sub.facet_nodes, sub.parents))
         self._add_obstacles(obstacles)
         self._build_ipc_mesh()
         self._node_blocks = _vertex_blocks(mesh, V)
-        self.displacement = self._owned_map(V, self._node_blocks)
+        self._geometry = self._owned_map(V, self._node_blocks)
+        self.displacement = self._geometry
+        if self._subdivision is not None:
+            self.displacement = self._with_nodes(self._geometry)
         self._shape_map: _OwnedMap | None = None
+
+    @property
+    def subdivided(self) -> bool:
+        """Whether the boundary is split at edge/face nodes (``boundary="nodes"``, degree >= 2)."""
+        return self._subdivision is not None
+
+    @property
+    def num_surface_vertices(self) -> int:
+        """Number of mesh vertices on the surface (collision vertices 0 ... this - 1)."""
+        return len(self.vertex_input_ids)
 
     # -- construction --------------------------------------------------------------------------
     def _facet_data(self, domain: Domain) -> None:
@@ -180,6 +254,18 @@ class CollisionSurface:
         prims = np.searchsorted(self.vertex_input_ids, facet_ids).astype(np.int32)
         order = np.lexsort(np.sort(prims, axis=1).T[::-1])
         prims, facet_body = prims[order], facet_body[order]
+        if self.boundary == "nodes" and self.degree >= 2:
+            # split every facet at its nodes (subdivision.py); nodes after the vertices
+            sub, self._reference = subdivide(prims, self.num_vertices, self.V)
+            self._subdivision = sub
+            per_facet = len(sub.prims) // len(prims)
+            prims = sub.prims
+            facet_body = np.repeat(facet_body, per_facet)
+            nodes_x = sub.weights @ self.rest_positions
+            self.rest_positions = np.ascontiguousarray(
+                np.concatenate([self.rest_positions, nodes_x]), dtype=float
+            )
+            self.num_vertices += len(sub.keys)
         self.primitive_body = facet_body
         body = np.full(self.num_vertices, np.iinfo(np.int64).max, dtype=np.int64)
         np.minimum.at(body, prims.ravel(), np.repeat(facet_body, prims.shape[1]))
@@ -257,23 +343,63 @@ class CollisionSurface:
             np.asfortranarray(self.faces),
         )
         self.mesh.init_area_jacobians()
+        if self._neighbours is not None:
+            self.mesh.can_collide = self._neighbours
         self._static = None
 
     def _owned_map(self, space: fem.FunctionSpace, node_blocks: np.ndarray) -> _OwnedMap:
-        mesh = self._domain.mesh
+        """Owned surface (mesh) vertices in ``space`` (geometry node -> block ``node_blocks``)."""
         imap = space.dofmap.index_map
-        input_ids = np.asarray(mesh.geometry.input_global_indices, dtype=np.int64)
+        cv, nodes = self._owned_vertices(node_blocks, imap.size_local)
+        omap = _OwnedMap(self.comm, cv, node_blocks[nodes], imap, self.num_surface_vertices)
+        omap.nodes = nodes
+        return omap
+
+    def _surface_index(self) -> np.ndarray:
+        """Surface-vertex index of every local geometry node (-1: not on the surface)."""
+        input_ids = np.asarray(self._domain.mesh.geometry.input_global_indices, dtype=np.int64)
         pos = np.searchsorted(self.vertex_input_ids, input_ids)
         pos = np.minimum(pos, len(self.vertex_input_ids) - 1)
-        on_surface = self.vertex_input_ids[pos] == input_ids
-        owned = on_surface & (node_blocks >= 0) & (node_blocks < imap.size_local)
+        return np.where(self.vertex_input_ids[pos] == input_ids, pos, -1)
+
+    def _owned_vertices(
+        self, node_blocks: np.ndarray, size_local: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(surface-vertex indices, geometry nodes) of the surface vertices owned here."""
+        pos = self._surface_index()
+        owned = (pos >= 0) & (node_blocks >= 0) & (node_blocks < size_local)
         nodes = np.flatnonzero(owned)
         cv = pos[nodes]
         # a node can be listed once per rank only; several nodes never share a block
         cv, first = np.unique(cv, return_index=True)
-        nodes = nodes[first]
-        omap = _OwnedMap(self.comm, cv, node_blocks[nodes], imap, len(self.vertex_input_ids))
-        omap.nodes = nodes
+        return cv, nodes[first]
+
+    def _with_nodes(self, vertices: _OwnedMap) -> _OwnedMap:
+        """The displacement map of the subdivided surface: owned vertices and edge/face nodes."""
+        mesh = self._domain.mesh
+        V = self.V
+        imap = V.dofmap.index_map
+        sub = self._subdivision
+        keys, blocks, x = local_node_keys(mesh, V, self._surface_index(), self._reference)
+        row = match_rows(sub.keys, keys)
+        on = row >= 0
+        if np.any(on):  # the dof coordinates are the lattice nodes' rest positions
+            rest = self.rest_positions[self.num_surface_vertices + row[on]]
+            scale = np.abs(self.rest_positions).max() + 1.0
+            if np.abs(rest - x[on]).max() > 1e-9 * scale:
+                raise MeshError(
+                    "the boundary nodes of the displacement space are not on the facets"
+                )
+        owned = on & (blocks < imap.size_local)
+        cv, first = np.unique(self.num_surface_vertices + row[owned], return_index=True)
+        node_blocks = blocks[owned][first]
+        omap = _OwnedMap(
+            self.comm,
+            np.concatenate([vertices.cv, cv]),
+            np.concatenate([vertices.blocks, node_blocks]),
+            imap,
+            self.num_body_vertices,
+        )
         return omap
 
     # -- data movement -------------------------------------------------------------------------
@@ -295,9 +421,12 @@ class CollisionSurface:
     def current_rest_positions(self) -> np.ndarray:
         """Rest coordinates of the collision vertices from the current mesh geometry."""
         x = self._domain.mesh.geometry.x[:, : self.dim]
-        omap = self.displacement
+        omap = self._geometry
         full = np.empty((self.num_vertices, self.dim))
         full[omap.order] = omap.allgather(np.ascontiguousarray(x[omap.nodes]))
+        if self._subdivision is not None:  # nodes: fixed convex combinations of the vertices
+            nv, nb = self.num_surface_vertices, self.num_body_vertices
+            full[nv:nb] = self._subdivision.weights @ full[:nv]
         full[self.num_body_vertices :] = self.rest_positions[self.num_body_vertices :]
         return full
 
@@ -323,7 +452,10 @@ class CollisionSurface:
         self._static = np.asarray(static, dtype=bool)
         ids = np.arange(self.num_vertices, dtype=np.int32)
         ids[self._static] = -1
-        self.mesh.can_collide = ipctk.make_vertex_patches_filter(ids)
+        filt = ipctk.make_vertex_patches_filter(ids)
+        if self._neighbours is not None:  # and neighbours on a subdivided surface
+            filt = filt & self._neighbours
+        self.mesh.can_collide = filt
 
     def owned_dof_indices(self) -> tuple[np.ndarray, np.ndarray]:
         """(collision dof indices, local V dof indices) of the dofs this rank owns."""
@@ -363,10 +495,17 @@ class CollisionSurface:
 
     # -- shape (P1 geometry space) -----------------------------------------------------------
     def shape_map(self, S: fem.FunctionSpace) -> _OwnedMap:
-        """Owned collision vertices in the P1 vector space S of the rest coordinates."""
+        """Owned surface vertices in the P1 vector space S of the rest coordinates.
+
+        A gradient G with respect to the collision rest positions becomes the shape gradient
+        ``out[m.blocks] += m.pull_back(G)[m.cv]`` (:meth:`_OwnedMap.pull_back`: the edge and
+        face nodes of a subdivided surface move with the vertices of their facet).
+        """
         if self._shape_map is None or self._shape_map.space is not S:
             omap = self._owned_map(S, _vertex_blocks(self._domain.mesh, S))
             omap.space = S
+            if self._subdivision is not None:
+                omap.weights = self._subdivision.weights
             self._shape_map = omap
         return self._shape_map
 

@@ -1,0 +1,280 @@
+"""P2/P3 contact on the subdivided boundary (issue 13 item 7).
+
+With ``boundary="nodes"`` every boundary facet of a P2/P3 body is split at its edge (and face)
+nodes, so the collision surface passes through every node of the simulated boundary. The scene
+(:func:`bulge_scene`): a block clamped on its sides, one element across, lifted by a body force
+under a clamped lid 0.02 above it (shifted off the block's nodes: no vertex starts exactly above
+a node, where the distance types switch); its top corners cannot move, so with the old vertex-only
+surface the block's top stays a flat segment for the contact term while the P2/P3 edge bulges
+through the lid between the corners. The tests:
+
+- the subdivided surface itself: node counts, rest positions equal to the dof coordinates,
+  sub-facets oriented as their parent, P1 unchanged, no same-body pairs at rest;
+- a prescribed quadratic bulge (an exact P2 field) crosses a vertex of the lid: the subdivided
+  surface sees the intersection, the vertex-only one does not;
+- the lifted block under the lid: every Newton iterate and every state is intersection-free on
+  the subdivided surface; with ``boundary="vertices"`` the final state intersects it (the
+  check fails with the old surface);
+- gradients of the lifted block with respect to the shape (mesh vertices: the nodes' rest
+  positions are convex combinations of them) and Young's modulus: central differences along a
+  random direction and along the gradient, and a Taylor test (test_gradients_contact's
+  ``check_gradient``).
+
+The contact-term tests need ``ContactTerm(boundary=...)`` (and its shape adjoint pulled back
+through ``shape_map(S).pull_back``); they are skipped where ContactTerm has no such argument.
+"""
+
+import inspect
+
+import ipctk
+import numpy as np
+import pytest
+import ufl
+from mpi4py import MPI
+from test_gradients_contact import _direction, check_gradient
+
+import diffsolids as ds
+from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
+from diffsolids.contact.surface import CollisionSurface
+from diffsolids.controls import ParameterControl, ShapeControl
+from diffsolids.errors import ParameterError
+from diffsolids.mesh.scene import combine_meshes, simplex_box
+from diffsolids.objectives import Integral, final_value
+from diffsolids.optimize import check_trajectories
+from diffsolids.reduced_functional import ReducedFunctional
+
+GAP = 0.02
+DHAT = 0.01
+THICKNESS = 0.3
+
+needs_boundary = pytest.mark.skipif(
+    "boundary" not in inspect.signature(ContactTerm.__init__).parameters,
+    reason="ContactTerm(boundary=...) is not there yet (the term.py diff of issue 13 item 7)",
+)
+
+
+def _meshes(dim: int):
+    if dim == 2:
+        block = simplex_box([[0, 0], [1, THICKNESS]], [1, 1])
+        lid = simplex_box([[0.3137, THICKNESS + GAP], [0.7137, 0.5 + GAP]], [2, 1])
+    else:
+        block = simplex_box([[0, 0, 0], [1, 1, THICKNESS]], [1, 1, 1])
+        lid = simplex_box(
+            [[0.3137, 0.2791, THICKNESS + GAP], [0.7137, 0.6791, 0.5 + GAP]], [1, 1, 1]
+        )
+    return block, lid
+
+
+def bulge_model(dim: int, degree: int, comm=MPI.COMM_SELF) -> ds.Model:
+    """The block (body 1, clamped on its sides) and the lid (body 2, clamped on its top)."""
+    block, lid = _meshes(dim)
+    dom = combine_meshes(comm, [block, lid], names={"block": 1, "lid": 2})
+    materials = {1: ds.NeoHookean(E=1e4, nu=0.3), 2: ds.NeoHookean(E=1e5, nu=0.3)}
+    model = ds.Model(dom, materials, degree=degree)
+    lift = np.zeros(dim)
+    lift[-1] = 1500.0 if dim == 2 else 3000.0
+    model.add_body_force(lift, bodies=[1], name="lift")
+
+    def sides(x):
+        on = (x[0] < 1e-9) | (x[0] > 1 - 1e-9)
+        if dim == 3:
+            on |= (x[1] < 1e-9) | (x[1] > 1 - 1e-9)
+        return on & (x[dim - 1] < THICKNESS + 1e-9)
+
+    model.add_dirichlet(sides, 0.0)
+    model.add_dirichlet(lambda x: x[dim - 1] > 0.5 + GAP - 1e-9, 0.0)
+    return model
+
+
+def bulge_scene(dim: int, degree: int, boundary: str = "nodes", comm=MPI.COMM_SELF):
+    """The lifted block under the lid; returns (model, contact, simulation, objective)."""
+    model = bulge_model(dim, degree, comm)
+    probe = ContactTerm(model, dhat=DHAT, stiffness=1.0, boundary=boundary)
+    kappa = suggest_barrier_stiffness(probe, ds.Static())
+    contact = ContactTerm(model, dhat=DHAT, stiffness=kappa, boundary=boundary)
+    model.add_numeric_term(contact)
+    sim = ds.Simulation(model, ds.Static(), ds.SolverOptions(rtol=1e-12), progress=False)
+    objective = final_value(Integral(lambda f: f.u[dim - 1] * f.dx(1), "lift")) + final_value(
+        Integral(lambda f: 10.0 * ufl.dot(f.u, f.u) * f.dx(2), "lid_strain")
+    )
+    return model, contact, sim, objective
+
+
+def _intersects(surface: CollisionSurface, u: np.ndarray) -> bool:
+    x = surface.current_rest_positions() + surface.gather(u)
+    return bool(ipctk.has_intersections(surface.mesh, np.asfortranarray(x), ipctk.LBVH()))
+
+
+# -- the subdivided surface ---------------------------------------------------------------------
+@pytest.mark.parametrize(("dim", "degree"), [(2, 2), (2, 3), (3, 2), (3, 3)])
+def test_subdivided_surface_layout(dim, degree):
+    model = bulge_model(dim, degree)
+    V = model.V
+    old = CollisionSurface(model.domain, V, boundary="vertices")
+    new = CollisionSurface(model.domain, V, boundary="nodes")
+    nv = old.num_vertices
+    assert new.subdivided and not old.subdivided
+    assert new.num_surface_vertices == nv
+    assert np.array_equal(new.rest_positions[:nv], old.rest_positions)
+    parents = old.edges if dim == 2 else old.faces
+    if dim == 2:  # k - 1 nodes per edge, k segments
+        assert new.num_vertices == nv + (degree - 1) * len(parents)
+        assert len(new.edges) == degree * len(parents)
+    else:  # (k - 1) per edge, (k - 1)(k - 2)/2 per face, k^2 triangles
+        extra = (degree - 1) * len(old.edges) + (degree - 1) * (degree - 2) // 2 * len(parents)
+        assert new.num_vertices == nv + extra
+        assert len(new.faces) == degree**2 * len(parents)
+    # every collision vertex is an FE node at its dof coordinates (W is a 0/1 selection)
+    coords = V.tabulate_dof_coordinates()[:, :dim]
+    gathered = new.gather(np.ascontiguousarray(coords).ravel())
+    assert np.abs(gathered - new.rest_positions).max() < 1e-14
+    assert np.array_equal(new.current_rest_positions(), new.rest_positions)
+    # sub-facets keep the orientation of their parent (sub-facets of facet f: rows f*k^(d-1)..)
+    per = degree ** (dim - 1)
+    sub = new.edges if dim == 2 else new.faces
+    X, Xp = new.rest_positions, old.rest_positions
+    if dim == 2:
+        d_sub = X[sub[:, 1]] - X[sub[:, 0]]
+        d_par = np.repeat(Xp[parents[:, 1]] - Xp[parents[:, 0]], per, axis=0)
+    else:
+        d_sub = np.cross(X[sub[:, 1]] - X[sub[:, 0]], X[sub[:, 2]] - X[sub[:, 0]])
+        d_par = np.repeat(
+            np.cross(Xp[parents[:, 1]] - Xp[parents[:, 0]], Xp[parents[:, 2]] - Xp[parents[:, 0]]),
+            per,
+            axis=0,
+        )
+    cosine = np.einsum("ij,ij->i", d_sub, d_par) / (
+        np.linalg.norm(d_sub, axis=1) * np.linalg.norm(d_par, axis=1)
+    )
+    assert np.allclose(cosine, 1.0, atol=1e-12)
+    assert np.array_equal(new.primitive_body, np.repeat(old.primitive_body, per))
+    # split facets put primitives of one body ~h/(2k) apart: none collides at rest with dhat
+    # 1.5 times the shortest sub-facet edge (the parent-facet adjacency filter) ...
+    domain = combine_meshes(MPI.COMM_SELF, _meshes(dim)[:1])
+    Vb = ds.Model(domain, ds.NeoHookean(E=1.0, nu=0.3), degree=degree).V
+    alone = CollisionSurface(domain, Vb, boundary="nodes")
+    Xa = alone.rest_positions
+    dhat = 1.5 * np.linalg.norm(Xa[alone.edges[:, 0]] - Xa[alone.edges[:, 1]], axis=1).min()
+    assert dhat < 0.9 * THICKNESS  # the shortest parent edge
+    x = np.asfortranarray(alone.rest_positions)
+    C = ipctk.NormalCollisions()
+    C.build(alone.mesh, x, dhat, 0.0, ipctk.LBVH())
+    assert len(C) == 0
+    assert not ipctk.has_intersections(alone.mesh, x)
+    # ... while without it the same-body neighbours would
+    alone.mesh.can_collide = ipctk.make_vertex_patches_filter(
+        np.arange(alone.num_vertices, dtype=np.int32)
+    )
+    C.build(alone.mesh, x, dhat, 0.0, ipctk.LBVH())
+    assert len(C) > 0
+
+
+def test_p1_surface_is_unchanged():
+    model = bulge_model(3, 1)
+    old = CollisionSurface(model.domain, model.V, boundary="vertices")
+    new = CollisionSurface(model.domain, model.V, boundary="nodes")
+    assert not new.subdivided
+    for name in ("rest_positions", "edges", "faces", "body", "primitive_body"):
+        assert np.array_equal(getattr(new, name), getattr(old, name)), name
+    G = np.random.default_rng(0).standard_normal((new.num_vertices, 3))
+    S = model.shape_space
+    assert new.shape_map(S).pull_back(G) is G
+    with pytest.raises(ParameterError, match="boundary"):
+        CollisionSurface(model.domain, model.V, boundary="faces")
+
+
+@pytest.mark.parametrize(("dim", "degree"), [(2, 2), (2, 3), (3, 2)])
+def test_shape_pull_back_is_the_transpose_of_the_node_positions(dim, degree):
+    """Node rest positions are P X_vertices; pull_back applies P^T (a dot-product test)."""
+    model = bulge_model(dim, degree)
+    surf = CollisionSurface(model.domain, model.V, boundary="nodes")
+    S = model.shape_space
+    smap = surf.shape_map(S)
+    rng = np.random.default_rng(1)
+    x0 = model.domain.mesh.geometry.x.copy()
+    dX = rng.standard_normal(x0.shape) * 1e-3
+    dX[:, dim:] = 0.0
+    G = rng.standard_normal((surf.num_vertices, dim))
+    try:
+        model.domain.mesh.geometry.x[:] = x0 + dX
+        moved = surf.current_rest_positions() - surf.rest_positions
+    finally:
+        model.domain.mesh.geometry.x[:] = x0
+    lhs = float(np.sum(G[: surf.num_body_vertices] * moved[: surf.num_body_vertices]))
+    pulled = smap.pull_back(G)
+    nodes = smap.nodes  # geometry nodes of the owned surface vertices, in the order of cv
+    rhs = float(np.sum(pulled[smap.cv] * dX[nodes, :dim]))
+    assert rhs == pytest.approx(lhs, rel=1e-12)
+    assert not np.allclose(pulled[: surf.num_surface_vertices], G[: surf.num_surface_vertices])
+
+
+@pytest.mark.parametrize(("dim", "degree"), [(2, 2), (2, 3), (3, 2)])
+def test_a_prescribed_bulge_is_seen_between_vertices(dim, degree):
+    """An exact P2 bulge of the block's top passes a lid vertex; only the split surface sees it."""
+    model = bulge_model(dim, degree)
+    V = model.V
+    X = V.tabulate_dof_coordinates()[:, :dim]
+    u = np.zeros((len(X), dim))
+    block = X[:, dim - 1] < THICKNESS + 1e-9
+    shape = X[block, 0] * (1 - X[block, 0])
+    if dim == 3:
+        shape = shape * X[block, 1] * (1 - X[block, 1]) * 4
+    # the top's midpoint rises by 2.5 gaps; the corners of the block stay put
+    u[block, dim - 1] = 10 * GAP * shape * X[block, dim - 1] / THICKNESS
+    old = CollisionSurface(model.domain, V, boundary="vertices")
+    new = CollisionSurface(model.domain, V, boundary="nodes")
+    assert not _intersects(old, u.ravel())
+    assert _intersects(new, u.ravel())
+    assert not _intersects(new, np.zeros(u.size))
+
+
+# -- contact on the subdivided surface --------------------------------------------------------
+class _NodeMonitor:
+    """Every Newton iterate checked for intersections of the subdivided surface."""
+
+    def __init__(self, sim: ds.Simulation, surface: CollisionSurface) -> None:
+        self.surface, self.checked, self.bad = surface, 0, []
+        sim.solver.snes.setMonitor(self)
+
+    def __call__(self, snes, it: int, fnorm: float) -> None:
+        self.checked += 1
+        if _intersects(self.surface, snes.getSolution().array_r):
+            self.bad.append(it)
+
+
+@needs_boundary
+@pytest.mark.parametrize(("dim", "degree"), [(2, 2), (2, 3), (3, 2), (3, 3)])
+def test_the_curved_boundary_does_not_pass_through(dim, degree):
+    nodes = {}
+    for boundary in ("vertices", "nodes"):
+        model, contact, sim, _ = bulge_scene(dim, degree, boundary)
+        surface = CollisionSurface(model.domain, model.V, boundary="nodes")
+        monitor = _NodeMonitor(sim, surface)
+        traj = sim.run()
+        nodes[boundary] = [_intersects(surface, u) for u in traj.u]
+        if boundary == "nodes":
+            assert monitor.checked > 0 and monitor.bad == []
+            assert contact.surface.subdivided
+            checks = check_trajectories(sim, [traj], contact)
+            assert (checks.states, checks.intersecting) == (len(traj.u), 0)
+            assert contact.records[-1].num_collisions > 0
+            assert 0 < contact.records[-1].min_distance < DHAT
+        else:  # the old surface: no contact at all, the edge bulges through the lid
+            assert contact.records[-1].num_collisions == 0
+    assert nodes["nodes"] == [False] * len(nodes["nodes"])
+    assert nodes["vertices"][-1]
+
+
+# -- gradients ----------------------------------------------------------------------------------
+@needs_boundary
+@pytest.mark.parametrize(("dim", "degree"), [(2, 2), (2, 3), (3, 2)])
+def test_shape_and_material_gradients(dim, degree):
+    model, contact, sim, objective = bulge_scene(dim, degree)
+    controls = [ShapeControl(model, "all"), ParameterControl(model, "E", "bodies", log=True)]
+    rf = ReducedFunctional(sim, objective, controls)
+    n_shape = controls[0].size
+    direction = np.concatenate(
+        [_direction(n_shape, 1e-4), _direction(rf.size - n_shape, 1e-2, seed=1)]
+    )
+    check_gradient(rf, contact, direction, taylor_h0=0.1)
+    assert contact.surface.subdivided
