@@ -7,11 +7,14 @@ input vertex index), errors naming the problem, and gradients (E field, shape, v
 central differences along a random direction per control and along the gradient.
 """
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
-from gradient_scenes import simulation
+from gradient_scenes import SCENES, build_model, model_simulation, simulation
 from test_objectives_library import _fd_check, _run
 
+import diffsolids as ds
 from diffsolids.errors import ParameterError
 from diffsolids.objectives import final_value, node_target, series_values, time_integral
 
@@ -109,3 +112,33 @@ def test_p2_node_target_gradients():
     sim = simulation(SCENE, "bdf2")
     objective = p2_objective(sim.model, top_right_nodes())
     _fd_check(sim, objective, ["young-field-log", "shape-all", "initial-v0"])
+
+
+@pytest.mark.parametrize("scene, degree, count", [("2d-p2-nh", 3, 7), ("3d-p2-nh-lame", 2, 9)])
+def test_p3_and_3d_p2_node_targets_are_exact_sums(scene, degree, count):
+    """P3 (2 nodes per edge, GLL-warped) and 3D P2 (the end face's edge nodes): exact sums."""
+    model = build_model(replace(SCENES[scene], degree=degree))
+    sim = model_simulation(model, ds.BDF(2, 0.05, 3))
+    traj = _run(sim)
+    dim = model.dim
+    X = model.V.tabulate_dof_coordinates()[:, :dim]
+    u = traj.u[-1].reshape(-1, dim)
+    sel = np.isclose(X[:, 0], 2.0)
+    assert sel.sum() == count
+    d = np.full(dim, 0.1)
+    s = node_target(model, _right_end, d, match="displacement")
+    values = series_values(sim, s, traj)
+    assert values[0] == pytest.approx(count * d @ d, rel=1e-12)
+    assert values[-1] == pytest.approx(np.sum((u[sel] - d) ** 2), rel=1e-12)
+
+
+def test_p3_node_target_gradients():
+    sim = model_simulation(build_model(replace(SCENES[SCENE], degree=3)), ds.BDF(2, 0.05, 3))
+    X = sim.model.V.tabulate_dof_coordinates()[:, :2]
+    top = node_target(
+        sim.model,
+        lambda x: np.isclose(x[1], 0.5) & (x[0] > 1.0),
+        lambda x: x[:2] + np.array([[0.01], [-0.02]]),
+    )
+    assert np.sum(np.isclose(X[:, 1], 0.5) & (X[:, 0] > 1.0)) == 6  # 2 vertices, 4 edge nodes
+    _fd_check(sim, time_integral(top, [1, 3]), ["shape-all", "initial-v0"])
