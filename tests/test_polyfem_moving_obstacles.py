@@ -215,6 +215,64 @@ def test_scene_obstacle_moves_as_written_and_is_never_intersected(tmp_path):
     assert friction > 0  # the sliding ground drags the block
 
 
+def test_3d_scene_obstacle_moves_as_written(tmp_path):
+    """3D: a placed .obj plane moved by a dirichlet_boundary entry using x, y, z (PolyFEM: the
+    transformed rest vertices), under a falling tetrahedral cube: intersection-free."""
+    corners = np.array([[i, j, k] for k in (0, 1) for j in (0, 1) for i in (0, 1)], float)
+    tets = np.array([[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7], [0, 2, 6, 7], [0, 4, 5, 7]])
+    tets = np.vstack([tets, [[0, 4, 6, 7]]])
+    meshio.write(tmp_path / "cube.vtu", meshio.Mesh(corners, [("tetra", tets)]))
+    plane = np.array([[-1, -1, 0], [2, -1, 0], [2, 2, 0], [-1, 2, 0], [0.5, 0.5, 0]], float)
+    tris = np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+    meshio.write(tmp_path / "plane.obj", meshio.Mesh(plane, [("triangle", tris)]))
+    value = ["0.2*t", "0", "-0.05*t*(1 + 0.1*x + 0.2*y) + 0.3*t*(z + 0.01)"]
+    raw = {
+        "geometry": [
+            {
+                "mesh": "cube.vtu",
+                "transformation": {"scale": 0.2, "translation": [0.1, 0.1, 0.03]},
+                "volume_selection": 1,
+                "surface_selection": 1,
+            },
+            {
+                "mesh": "plane.obj",
+                "is_obstacle": True,
+                "volume_selection": 2,
+                "surface_selection": 2,
+                "transformation": {"translation": [0, 0, -0.01]},
+            },
+        ],
+        "time": {"tend": 0.05, "dt": 0.01},
+        "contact": {"enabled": True, "dhat": 0.01, "epsv": 0.01, "friction_coefficient": 0.0},
+        "boundary_conditions": {
+            "rhs": [0, 0, 9.81],
+            "dirichlet_boundary": [{"id": 2, "value": value, "dimension": [True, False, True]}],
+        },
+        "initial_conditions": {"velocity": [{"id": 1, "value": [0, 0, -1.0]}]},
+        "materials": {"type": "NeoHookean", "E": 1e5, "nu": 0.3, "rho": 1000},
+    }
+    (tmp_path / "scene.json").write_text(json.dumps(raw))
+    setup = build(tmp_path / "scene.json")
+    contact, sim = setup.contact, setup.simulation
+    (o,) = contact.obstacles
+    X = o.rest_positions
+    assert np.allclose(X, plane + np.array([0, 0, -0.01]))  # placed by its transformation
+    traj = sim.run()
+    for t in traj.times:
+        x, y, z = X.T
+        want = np.column_stack(
+            [
+                np.full(5, 0.2 * t),
+                np.zeros(5),
+                -0.05 * t * (1 + 0.1 * x + 0.2 * y) + 0.3 * t * (z + 0.01),
+            ]
+        )
+        np.testing.assert_allclose(o.displacement(t), want, atol=1e-15)
+    checks = check_trajectories(sim, [traj], contact)
+    assert checks.intersecting == 0 and checks.min_distance > 0
+    assert np.isfinite([r.min_distance for r in contact.records]).sum() >= 2
+
+
 def test_constant_dirichlet_displacement_and_interpolation(tmp_path):
     """A dirichlet_boundary value on the obstacle's id moves it (numbers: a translation)."""
 
