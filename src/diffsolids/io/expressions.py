@@ -300,7 +300,8 @@ def parse_expression(text: str) -> Expression:
         text: The expression, e.g. ``"0.1 * sin(2 * pi * t) * x"``.
 
     Returns:
-        An :class:`Expression`, callable as ``expr(x, y, z, t)`` on numpy arrays.
+        An :class:`~diffsolids.io.expressions.Expression`, callable as ``expr(x, y, z, t)`` on
+        numpy arrays.
 
     Raises:
         ExpressionError: A syntax error or an unknown name (the message says where).
