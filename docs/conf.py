@@ -85,6 +85,7 @@ API_MODULES = {
     "diffsolids.verification": "Gradient checks",
     "diffsolids.optimize": "Optimisation, mesh motion, remeshing",
     "diffsolids.io": "Output, figures, logging",
+    "diffsolids.io.expressions": "PolyFEM value expressions",
     "diffsolids.errors": "Errors",
     "diffsolids.parallel": "MPI helpers",
     "diffsolids.portability": "Portability (the ipctk CPU check)",
