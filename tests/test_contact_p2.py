@@ -11,7 +11,8 @@ through the lid between the corners. The tests:
 - the subdivided surface itself: node counts, rest positions equal to the dof coordinates,
   sub-facets oriented as their parent, P1 unchanged, no same-body pairs at rest;
 - a prescribed quadratic bulge (an exact P2 field) crosses a vertex of the lid: the subdivided
-  surface sees the intersection, the vertex-only one does not;
+  surface sees the intersection, the vertex-only one does not; the deformed collision barrier
+  on the subdivided surface has exact shape and state derivatives;
 - the lifted block under the lid (or under a kinematic obstacle): every Newton iterate and
   every state is intersection-free on the subdivided surface; with ``boundary="vertices"`` the
   final state intersects it (the check fails with the old surface);
@@ -39,8 +40,8 @@ from diffsolids.contact.surface import CollisionSurface
 from diffsolids.controls import ParameterControl, ShapeControl
 from diffsolids.errors import ParameterError
 from diffsolids.mesh.scene import combine_meshes, simplex_box
-from diffsolids.objectives import Integral, final_value
-from diffsolids.optimize import check_trajectories
+from diffsolids.objectives import DeformedCollisionBarrier, Integral, final_value
+from diffsolids.optimize import BoundaryIntersection, check_trajectories
 from diffsolids.reduced_functional import ReducedFunctional
 
 GAP = 0.02
@@ -226,24 +227,74 @@ def test_shape_pull_back_is_the_transpose_of_the_node_positions(dim, degree):
     assert not np.allclose(pulled[: surf.num_surface_vertices], G[: surf.num_surface_vertices])
 
 
+def _bulge(model: ds.Model, height: float) -> np.ndarray:
+    """A displacement lifting the block's top midpoint by ``height`` (corners fixed)."""
+    dim = model.dim
+    X = model.V.tabulate_dof_coordinates()[:, :dim]
+    u = np.zeros((len(X), dim))
+    block = X[:, dim - 1] < THICKNESS + 1e-9
+    shape = 4 * X[block, 0] * (1 - X[block, 0])  # exact in P2
+    if dim == 3:
+        shape = shape * 4 * X[block, 1] * (1 - X[block, 1])
+    u[block, dim - 1] = height * shape * X[block, dim - 1] / THICKNESS
+    return u.ravel()
+
+
 @pytest.mark.parametrize(("dim", "degree"), [(2, 2), (2, 3), (3, 2)])
 def test_a_prescribed_bulge_is_seen_between_vertices(dim, degree):
     """An exact P2 bulge of the block's top passes a lid vertex; only the split surface sees it."""
     model = bulge_model(dim, degree)
     V = model.V
-    X = V.tabulate_dof_coordinates()[:, :dim]
-    u = np.zeros((len(X), dim))
-    block = X[:, dim - 1] < THICKNESS + 1e-9
-    shape = X[block, 0] * (1 - X[block, 0])
-    if dim == 3:
-        shape = shape * X[block, 1] * (1 - X[block, 1]) * 4
-    # the top's midpoint rises by 2.5 gaps; the corners of the block stay put
-    u[block, dim - 1] = 10 * GAP * shape * X[block, dim - 1] / THICKNESS
+    u = _bulge(model, 2.5 * GAP)
     old = CollisionSurface(model.domain, V, boundary="vertices")
     new = CollisionSurface(model.domain, V, boundary="nodes")
-    assert not _intersects(old, u.ravel())
-    assert _intersects(new, u.ravel())
+    assert not _intersects(old, u)
+    assert _intersects(new, u)
     assert not _intersects(new, np.zeros(u.size))
+    boundary = BoundaryIntersection(model)
+    if boundary.surface.subdivided:  # with the invariants.py diff of issue 13 item 7
+        assert boundary.intersects(u) and not boundary.intersects()
+
+
+@pytest.mark.parametrize(("dim", "degree"), [(2, 2), (2, 3), (3, 2)])
+def test_deformed_collision_barrier_derivatives(dim, degree):
+    """The deformed barrier on the split surface: shape and state derivatives (central
+    differences along a random direction and along the gradient)."""
+    model = bulge_model(dim, degree)
+    J = DeformedCollisionBarrier(model, 0.05, stiffness=1.0)
+    if not J.surface.subdivided:
+        pytest.skip("DeformedCollisionBarrier is on the vertex surface (objectives diff not in)")
+    u = _bulge(model, 0.75 * GAP)  # within dhat of the lid, not through it
+    model.fields.u.x.array[:] = u
+    assert J.evaluate(model) > 0
+    gs = J.shape_gradient(model).reshape(-1, dim)
+    gu = J.state_gradient(model)
+    S = model.shape_space
+    node_of = np.empty(len(gs), dtype=np.int64)
+    node_of[S.dofmap.list.ravel()] = model.domain.mesh.geometry.dofmaps[0].ravel()
+    x = model.domain.mesh.geometry.x
+    x0 = x.copy()
+    rng = np.random.default_rng(0)
+    h = 1e-4
+
+    def moved(d):
+        vals = []
+        for t in (h, -h):
+            x[node_of, :dim] = x0[node_of, :dim] + t * d
+            vals.append(J.evaluate(model))
+        x[:] = x0
+        return (vals[0] - vals[1]) / (2 * h)
+
+    for d in (rng.standard_normal(gs.shape) * 1e-2, gs / np.abs(gs).max() * 1e-2):
+        exact = float(np.sum(gs * d))
+        assert moved(d) == pytest.approx(exact, rel=1e-6)
+    for du in (rng.standard_normal(u.size) * 1e-3, gu / np.abs(gu).max() * 1e-3):
+        vals = []
+        for t in (h, -h):
+            model.fields.u.x.array[:] = u + t * du
+            vals.append(J.evaluate(model))
+        model.fields.u.x.array[:] = u
+        assert (vals[0] - vals[1]) / (2 * h) == pytest.approx(float(gu @ du), rel=1e-6)
 
 
 # -- contact on the subdivided surface --------------------------------------------------------
