@@ -205,10 +205,20 @@ def _weights(
     return P
 
 
+def _check_simplices(mesh: dolfinx.mesh.Mesh) -> None:
+    simplex = {2: dolfinx.mesh.CellType.triangle, 3: dolfinx.mesh.CellType.tetrahedron}
+    if mesh.topology.cell_type != simplex.get(mesh.topology.dim):
+        raise MeshError(
+            "a subdivided contact surface needs triangles or tetrahedra, not "
+            f"{mesh.topology.cell_type.name} cells (use boundary='vertices')"
+        )
+
+
 def subdivide(
     prims: np.ndarray, num_vertices: int, V: fem.FunctionSpace
 ) -> tuple[Subdivision, dict[tuple[int, ...], np.ndarray]]:
     """The :class:`Subdivision` of the facets ``prims`` for the degree of ``V`` (and the table)."""
+    _check_simplices(V.mesh)
     table = reference_lambdas(V)
     degree = _lagrange_element(V).degree
     return Subdivision(prims, num_vertices, degree, table), table
@@ -242,6 +252,7 @@ def local_node_keys(
 
     tdim = mesh.topology.dim
     gdim = mesh.geometry.dim
+    _check_simplices(mesh)
     k = int(_lagrange_element(V).degree)
     nv = dolfinx.cpp.mesh.cell_num_vertices(mesh.topology.cell_type)
     cell_type = basix.CellType.triangle if tdim == 2 else basix.CellType.tetrahedron
@@ -312,34 +323,30 @@ def neighbour_pairs(facet_nodes: np.ndarray, facet_vertices: np.ndarray) -> np.n
     The ipctk adjacency rule (primitives sharing a vertex never collide) lifted to the parent
     facets: a sub-facet pair is skipped when all its vertex pairs are listed here, which holds
     when their parent facets are equal or share a vertex v: both lie in the star of v (the
-    nodes of the facets around v), and every pair of nodes of one star is listed.
+    nodes of the facets around v), and every pair of nodes of one star is listed. With M the
+    0/1 incidence (vertex, node in its star), the pairs are the upper triangle of M^T M.
 
     Args:
         facet_nodes: (num_facets, L) collision vertices of each parent facet (its lattice).
         facet_vertices: (num_facets, dim) mesh (surface) vertices of each parent facet.
 
     Returns:
-        (m, 2) int64 array of pairs i < j.
+        (m, 2) int64 array of pairs i < j, sorted.
     """
     if len(facet_vertices) == 0:
         return np.zeros((0, 2), dtype=np.int64)
     n = int(facet_nodes.max()) + 1
-    # the star of every vertex: (vertex, node) incidences, unique
-    v = np.repeat(facet_vertices.astype(np.int64)[:, :, None], facet_nodes.shape[1], axis=2)
-    nodes = np.broadcast_to(facet_nodes.astype(np.int64)[:, None, :], v.shape)
-    star = np.unique(v.ravel() * n + nodes.ravel())
-    centre, member = np.divmod(star, n)
-    start = np.flatnonzero(np.r_[True, centre[1:] != centre[:-1]])
-    size = np.diff(np.r_[start, len(centre)])
-    # all ordered pairs of members of each star
-    reps = np.repeat(size, size)  # for each member: the size of its star
-    a = np.repeat(np.arange(len(member)), reps)
-    first = np.repeat(np.repeat(start, size), reps)
-    offset = np.arange(len(a)) - np.repeat(np.cumsum(reps) - reps, reps)
-    i, j = member[a], member[first + offset]
-    sel = i < j
-    keys = np.unique(i[sel] * n + j[sel])
-    return np.stack(np.divmod(keys, n), axis=1)
+    nv = int(facet_vertices.max()) + 1
+    L = facet_nodes.shape[1]
+    rows = np.repeat(facet_vertices.astype(np.int64)[:, :, None], L, axis=2).ravel()
+    cols = np.broadcast_to(
+        facet_nodes.astype(np.int64)[:, None, :], (len(facet_nodes), facet_vertices.shape[1], L)
+    ).ravel()
+    M = sp.csr_matrix((np.ones(len(rows), dtype=np.int32), (rows, cols)), shape=(nv, n))
+    M.data[:] = 1  # duplicates summed: back to 0/1
+    A = sp.triu(M.T @ M, k=1).tocsr()
+    i = np.repeat(np.arange(n, dtype=np.int64), np.diff(A.indptr))
+    return np.stack([i, A.indices.astype(np.int64)], axis=1)
 
 
 def neighbour_filter(pairs: np.ndarray) -> ipctk.CollisionFilter:
