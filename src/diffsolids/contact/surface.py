@@ -2,15 +2,15 @@
 
 Collision vertices are the mesh vertices on the exterior boundary, then, for P2/P3 bodies with
 ``boundary="nodes"``, the edge and face nodes of the boundary facets: every facet is split along
-its nodes (2D: k segments, 3D: k^2 triangles, as PolyFEM does; :mod:`.subdivision`), so the
+its nodes (2D: k segments, 3D: k^2 triangles, as PolyFEM does; ``subdivision.py``), so the
 collision surface is the piecewise-linear interpolant of the simulated boundary through all its
 nodes and the intersection-free guarantee holds at every node, not only at the vertices. The
 displacement map W (collision vertices x FE nodes) stays a 0/1 selection of displacement blocks
 (every collision vertex is one FE node); the rest positions of the nodes are fixed convex
 combinations of the mesh vertices (affine geometry), X_nodes = P X_vertices, so the map from
 the shape space (mesh vertex positions) to the collision rest positions is sparse linear, and
-shape gradients are pulled back through P^T (:meth:`_OwnedMap.pull_back` of
-:meth:`CollisionSurface.shape_map`). Split facets put primitives of one body about h/(2k)
+shape gradients are pulled back through P^T (``pull_back`` of the map
+:meth:`CollisionSurface.shape_map` returns). Split facets put primitives of one body about h/(2k)
 apart at rest, closer than a typical dhat: pairs of sub-facets whose parent facets are equal or
 share a vertex never collide (ipctk's rule for primitives sharing a vertex, applied to the
 parent facets; one sparse ipctk filter built once). ``boundary="vertices"`` keeps the facets
@@ -156,9 +156,8 @@ class CollisionSurface:
 
     Attributes:
         dim: Geometric dimension.
-        num_vertices: Number of collision vertices (surface vertices, nodes, obstacles).
-        num_surface_vertices: Mesh vertices on the surface (collision vertices 0 ... this - 1;
-            the edge/face nodes of a subdivided surface follow, up to ``num_body_vertices``).
+        num_vertices: Number of collision vertices (surface vertices, then the edge/face nodes
+            of a subdivided surface up to ``num_body_vertices``, then obstacles).
         rest_positions: (num_vertices, dim) rest coordinates.
         edges: (num_edges, 2) vertex indices (2D: the boundary facets or their segments).
         faces: (num_faces, 3) vertex indices (3D only; facets or their sub-triangles).
@@ -498,7 +497,7 @@ class CollisionSurface:
         """Owned surface vertices in the P1 vector space S of the rest coordinates.
 
         A gradient G with respect to the collision rest positions becomes the shape gradient
-        ``out[m.blocks] += m.pull_back(G)[m.cv]`` (:meth:`_OwnedMap.pull_back`: the edge and
+        ``out[m.blocks] += m.pull_back(G)[m.cv]`` (``pull_back`` adds P^T G_nodes: the edge and
         face nodes of a subdivided surface move with the vertices of their facet).
         """
         if self._shape_map is None or self._shape_map.space is not S:
