@@ -28,7 +28,7 @@ from diffsolids.adjoint.forms import (
 from diffsolids.controls import ShapeControl
 from diffsolids.errors import ParameterError
 from diffsolids.mesh import create_box, create_rectangle
-from diffsolids.model import ElasticEnergy, EnergyTerm
+from diffsolids.model import BodyForce, ElasticEnergy, EnergyTerm
 from diffsolids.objectives import (
     Integral,
     stress_lp_norm,
@@ -220,6 +220,12 @@ def test_fall_backs_to_coordinate_derivative():
 
     term = ElasticEnergy(MyLaw(), None, model.lame)
     assert term.shape_partial(f, lam, theta) is None
+
+    class MyForce(BodyForce):  # a subclass may read gradients: not the built-in rule
+        def energy_density(self, g):
+            return super().energy_density(g) + ufl.inner(ufl.grad(g.u), ufl.grad(g.u))
+
+    assert MyForce("gravity").shape_partial(f, lam, theta) is None
     with pytest.raises(ParameterError, match="shape_partials"):
         residual_shape_partial(model, True, lam, theta, "reverse")
 

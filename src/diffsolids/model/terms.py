@@ -143,11 +143,12 @@ class _DensityTerm(Term):
     def shape_partial(
         self, f: StepFields, lam: fem.Function, theta: ufl.Argument
     ) -> ufl.Form | None:
-        written = self.gradient_density(f)
+        # the built-in terms only: a subclass may change the density (UFL's derivative then)
+        written = self.gradient_density(f) if type(self) in _EXPLICIT_SHAPE_TERMS else None
         if written is None:
             return None
         psi, gradients = written
-        if not forms.is_transformable(psi, {f.u, f.u_prev}):
+        if not forms.is_transformable(psi, gradients):  # gradients of the declared fields only
             return None
         return forms.residual_shape_partial(psi, f.u, lam, gradients, theta, self.measure(f))
 
@@ -281,9 +282,13 @@ class Traction(_DensityTerm):
         self, f: StepFields, lam: fem.Function, theta: ufl.Argument
     ) -> ufl.Form | None:
         psi = self.energy_density(f)
-        if not forms.is_transformable(psi, ()):
+        if type(self) is not Traction or not forms.is_transformable(psi, ()):
             return None
         return forms.surface_residual_shape_partial(psi, f.u, lam, theta, self.measure(f))
+
+
+#: The terms whose explicit shape partials are used (exact types, not subclasses).
+_EXPLICIT_SHAPE_TERMS = (ElasticEnergy, Inertia, Damping, BodyForce)
 
 
 class EnergyTerm(Term):
