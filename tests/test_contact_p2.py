@@ -202,7 +202,7 @@ def test_p1_surface_is_unchanged():
         CollisionSurface(model.domain, model.V, boundary="faces")
 
 
-@pytest.mark.parametrize(("dim", "degree"), [(2, 2), (2, 3), (3, 2)])
+@pytest.mark.parametrize(("dim", "degree"), [(2, 2), (2, 3), (3, 2), (3, 3)])
 def test_shape_pull_back_is_the_transpose_of_the_node_positions(dim, degree):
     """Node rest positions are P X_vertices; pull_back applies P^T (a dot-product test)."""
     model = bulge_model(dim, degree)
@@ -342,7 +342,8 @@ def test_the_curved_boundary_does_not_pass_through(dim, degree, obstacle):
 # -- gradients ----------------------------------------------------------------------------------
 @needs_boundary
 @pytest.mark.parametrize(
-    ("dim", "degree", "obstacle"), [(2, 2, False), (2, 3, False), (3, 2, False), (2, 2, True)]
+    ("dim", "degree", "obstacle"),
+    [(2, 2, False), (2, 3, False), (3, 2, False), (3, 3, False), (2, 2, True)],
 )
 def test_shape_and_material_gradients(dim, degree, obstacle):
     model, contact, sim, objective = bulge_scene(dim, degree, obstacle=obstacle)
