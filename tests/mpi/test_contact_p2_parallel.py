@@ -3,7 +3,7 @@
 The surface built on COMM_WORLD equals the serial one (same nodes in the same order, same
 sub-facets, rest positions, bodies), and the lifted block of test_contact_p2.py has on 2 ranks
 the value, the shape and Young's-modulus gradient (canonical order) and the collision counts of
-the serial run.
+the serial run (under the lid and under a kinematic obstacle).
 """
 
 import numpy as np
@@ -39,8 +39,8 @@ def test_subdivided_surface_world_equals_self(dim, degree):
     assert sum(owned) == par.num_body_vertices and min(owned) > 0
 
 
-def _value_and_gradient(dim: int, comm):
-    model, contact, sim, objective = bulge_scene(dim, 2, comm=comm)
+def _value_and_gradient(dim: int, obstacle: bool, comm):
+    model, contact, sim, objective = bulge_scene(dim, 2, comm=comm, obstacle=obstacle)
     controls = [ShapeControl(model, "all"), ParameterControl(model, "E", "bodies", log=True)]
     rf = ReducedFunctional(sim, objective, controls)
     q = rf.initial_parameters()
@@ -49,12 +49,12 @@ def _value_and_gradient(dim: int, comm):
 
 
 @needs_boundary
-@pytest.mark.parametrize("dim", [2, 3])
-def test_p2_contact_gradient_world_equals_self(dim):
+@pytest.mark.parametrize(("dim", "obstacle"), [(2, False), (3, False), (2, True)])
+def test_p2_contact_gradient_world_equals_self(dim, obstacle):
     comm = MPI.COMM_WORLD
     assert comm.size > 1, "run with mpiexec -n 2"
-    q_par, J_par, g_par, counts_par = _value_and_gradient(dim, comm)
-    q_ser, J_ser, g_ser, counts_ser = _value_and_gradient(dim, MPI.COMM_SELF)
+    q_par, J_par, g_par, counts_par = _value_and_gradient(dim, obstacle, comm)
+    q_ser, J_ser, g_ser, counts_ser = _value_and_gradient(dim, obstacle, MPI.COMM_SELF)
     assert counts_par == counts_ser and min(counts_ser) > 0
     assert np.array_equal(q_par, q_ser)  # canonical parameter order
     assert J_par == pytest.approx(J_ser, rel=RTOL)
