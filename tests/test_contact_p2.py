@@ -36,6 +36,7 @@ from test_gradients_contact import _direction, check_gradient
 
 import diffsolids as ds
 from diffsolids.contact import ContactTerm, Obstacle, suggest_barrier_stiffness
+from diffsolids.contact.subdivision import neighbour_pairs
 from diffsolids.contact.surface import CollisionSurface
 from diffsolids.controls import ParameterControl, ShapeControl
 from diffsolids.errors import ParameterError
@@ -186,6 +187,25 @@ def test_subdivided_surface_layout(dim, degree):
     )
     C.build(alone.mesh, x, dhat, 0.0, ipctk.LBVH())
     assert len(C) > 0
+
+
+@pytest.mark.parametrize(("dim", "degree"), [(2, 3), (3, 2), (3, 3)])
+def test_neighbour_filter_refuses_exactly_the_star_pairs(dim, degree):
+    """The per-colour patch filters refuse the node pairs of one vertex star, and only those."""
+    model = bulge_model(dim, degree)
+    surf = CollisionSurface(model.domain, model.V, boundary="nodes")
+    sub = surf._subdivision
+    refused = {tuple(p) for p in neighbour_pairs(sub.facet_nodes, sub.parents).tolist()}
+    n = surf.num_body_vertices
+    i, j = np.triu_indices(n, k=1)
+    filt = surf._neighbours
+    passed = np.array([filt(a, b) for a, b in zip(i.tolist(), j.tolist(), strict=True)])
+    assert {(a, b) for a, b, ok in zip(i.tolist(), j.tolist(), passed, strict=True) if not ok} == (
+        refused
+    )
+    # pairs of different bodies are never in a star
+    body = surf.body
+    assert np.all(body[[a for a, _ in refused]] == body[[b for _, b in refused]])
 
 
 def test_p1_surface_is_unchanged():

@@ -22,8 +22,6 @@ any symmetric Lagrange variant (DOLFINx's default for P3 is GLL-warped: edge nod
 while no node moves by more than 1 / (2k) from k-th points (GLL-warped: up to degree 6).
 """
 
-import gc
-
 import dolfinx
 import ipctk
 import numpy as np
@@ -335,6 +333,15 @@ def neighbour_pairs(facet_nodes: np.ndarray, facet_vertices: np.ndarray) -> np.n
     """
     if len(facet_vertices) == 0:
         return np.zeros((0, 2), dtype=np.int64)
+    M = _star_incidence(facet_nodes, facet_vertices)
+    n = M.shape[1]
+    A = sp.triu(M.T @ M, k=1).tocsr()
+    i = np.repeat(np.arange(n, dtype=np.int64), np.diff(A.indptr))
+    return np.stack([i, A.indices.astype(np.int64)], axis=1)
+
+
+def _star_incidence(facet_nodes: np.ndarray, facet_vertices: np.ndarray) -> sp.csr_matrix:
+    """0/1 matrix M (surface vertex x collision vertex): node j lies in the star of vertex v."""
     n = int(facet_nodes.max()) + 1
     nv = int(facet_vertices.max()) + 1
     L = facet_nodes.shape[1]
@@ -344,20 +351,63 @@ def neighbour_pairs(facet_nodes: np.ndarray, facet_vertices: np.ndarray) -> np.n
     ).ravel()
     M = sp.csr_matrix((np.ones(len(rows), dtype=np.int32), (rows, cols)), shape=(nv, n))
     M.data[:] = 1  # duplicates summed: back to 0/1
-    A = sp.triu(M.T @ M, k=1).tocsr()
-    i = np.repeat(np.arange(n, dtype=np.int64), np.diff(A.indptr))
-    return np.stack([i, A.indices.astype(np.int64)], axis=1)
+    return M
 
 
-def neighbour_filter(pairs: np.ndarray) -> ipctk.CollisionFilter:
-    """An ipctk filter refusing the vertex pairs ``pairs`` (i < j), accepting all others."""
-    gc_was_enabled = gc.isenabled()
-    gc.disable()  # a million small tuples: the collector would rescan them repeatedly
-    try:
-        explicit = dict.fromkeys(
-            zip(pairs[:, 0].tolist(), pairs[:, 1].tolist(), strict=True), False
-        )
-    finally:
-        if gc_was_enabled:
-            gc.enable()
-    return ipctk.make_sparse_filter(explicit, True)
+def _colouring(G: sp.csr_matrix) -> np.ndarray:
+    """A colouring of the graph G (symmetric pattern): adjacent vertices get different colours.
+
+    Jones-Plassmann rounds, vectorised: every uncoloured vertex whose (fixed pseudo-random)
+    weight beats all its uncoloured neighbours takes the smallest colour none of its coloured
+    neighbours has. The weights are seeded, so every rank colours the same graph the same way.
+    """
+    n = G.shape[0]
+    G = sp.csr_matrix(G)
+    rows = np.repeat(np.arange(n), np.diff(G.indptr))
+    cols = G.indices.astype(np.int64)
+    off = rows != cols
+    rows, cols = rows[off], cols[off]
+    weight = np.random.default_rng(0).permutation(n)
+    colour = np.full(n, -1, dtype=np.int64)
+    while np.any(colour < 0):
+        free = colour < 0
+        best = np.full(n, -1, dtype=np.int64)
+        np.maximum.at(best, rows, np.where(free[cols], weight[cols], -1))
+        pick = np.flatnonzero(free & (weight > best))
+        slot = np.full(n, -1, dtype=np.int64)
+        slot[pick] = np.arange(len(pick))
+        used = np.zeros((len(pick), int(colour.max()) + 2), dtype=bool)
+        m = (slot[rows] >= 0) & (colour[cols] >= 0)
+        used[slot[rows[m]], colour[cols[m]]] = True
+        colour[pick] = np.argmin(used, axis=1)  # the first colour not used around
+    return colour
+
+
+def neighbour_filter(
+    facet_nodes: np.ndarray, facet_vertices: np.ndarray, num_vertices: int
+) -> ipctk.CollisionFilter:
+    """An ipctk filter refusing exactly the pairs of :func:`neighbour_pairs` (all others pass).
+
+    The stars of vertices of one colour of a colouring of the star-overlap graph (M M^T) are
+    disjoint, so per colour a patch label (the star's vertex, or a label of its own for a node
+    in no star of that colour) refuses the pairs within those stars; the filter is the AND of
+    one vertex-patch filter per colour (about a dozen on a triangulated surface): no Python per
+    pair, and array lookups instead of a hash map of all pairs.
+
+    Args:
+        facet_nodes: (num_facets, L) collision vertices of each parent facet (its lattice).
+        facet_vertices: (num_facets, dim) mesh (surface) vertices of each parent facet.
+        num_vertices: Number of collision vertices of the mesh (obstacles included).
+    """
+    M = _star_incidence(facet_nodes, facet_vertices)
+    nv = M.shape[0]
+    colour = _colouring((M @ M.T).tocsr())
+    own = np.arange(num_vertices, dtype=np.int64) + nv  # never a vertex id
+    filt = ipctk.CollisionFilter()
+    coo = M.tocoo()
+    for c in range(int(colour.max()) + 1):
+        sel = colour[coo.row] == c
+        label = own.copy()
+        label[coo.col[sel]] = coo.row[sel]
+        filt = filt & ipctk.make_vertex_patches_filter(label.astype(np.int32))
+    return filt

@@ -10,13 +10,14 @@ displacement map W (collision vertices x FE nodes) stays a 0/1 selection of disp
 combinations of the mesh vertices (affine geometry), X_nodes = P X_vertices, so the map from
 the shape space (mesh vertex positions) to the collision rest positions is sparse linear, and
 shape gradients are pulled back through P^T (``pull_back`` of the map
-:meth:`CollisionSurface.shape_map` returns). Split facets put primitives of one body about h/(2k)
-apart at rest, closer than a typical dhat: pairs of sub-facets whose parent facets are equal or
-share a vertex never collide (ipctk's rule for primitives sharing a vertex, applied to the
-parent facets; one sparse ipctk filter built once). ``boundary="vertices"`` keeps the facets
-between the mesh vertices only (the P2/P3 boundary then moves with the displacement at the
-vertices and may sag through another body by O(h^2 curvature) between them); for P1 both are
-the same surface.
+:meth:`CollisionSurface.shape_map` returns). Split facets put primitives of one body about
+h/(2k) apart at rest, closer than a typical dhat: two nodes in the star of one mesh vertex (the
+nodes of the facets around it) never collide, so sub-facets whose parent facets are equal or
+share a vertex never do (ipctk's rule for primitives sharing a vertex, applied to the parent
+facets; one ipctk filter built once: an AND of vertex-patch filters, one per colour of the
+vertex stars). ``boundary="vertices"`` keeps the facets between the mesh vertices only (the
+P2/P3 boundary then moves with the displacement at the vertices and may sag through another
+body by O(h^2 curvature) between them); for P1 both are the same surface.
 
 The surface is numbered by the input (file) index of the vertices, independent of the partition,
 so a run on n ranks builds the same collision mesh as a serial run; the nodes follow, sorted by
@@ -49,7 +50,6 @@ from diffsolids.contact.subdivision import (
     local_node_keys,
     match_rows,
     neighbour_filter,
-    neighbour_pairs,
     subdivide,
 )
 from diffsolids.errors import MeshError, ParameterError
@@ -197,10 +197,10 @@ class CollisionSurface:
         self._subdivision = None
         self._neighbours = None
         self._facet_data(domain)
+        self._add_obstacles(obstacles)
         if self._subdivision is not None:
             sub = self._subdivision
-            self._neighbours = neighbour_filter(neighbour_pairs(sub.facet_nodes, sub.parents))
-        self._add_obstacles(obstacles)
+            self._neighbours = neighbour_filter(sub.facet_nodes, sub.parents, self.num_vertices)
         self._build_ipc_mesh()
         self._node_blocks = _vertex_blocks(mesh, V)
         self._geometry = self._owned_map(V, self._node_blocks)
