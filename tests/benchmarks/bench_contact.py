@@ -22,7 +22,21 @@ and the same bunnies on a fine slab of about the same size: seconds per Newton i
 vertex pairs the contact sparsity pattern holds (``coarse_obstacle_*`` and ``fine_obstacle_*``;
 a coarse obstacle must cost about what the scene's size suggests).
 
-Run ``python tests/benchmarks/bench_contact.py [--cells N]`` (also under ``mpiexec -n 2``).
+Run ``python tests/benchmarks/bench_contact.py [--cells N]``, also under ``mpiexec -n 2``:
+contact is distributed (each collision evaluated on one rank,
+:mod:`diffsolids.contact.partition`), and ``per_rank`` lists each rank's contact timers (wall
+and CPU per Newton iteration), the partition's counts (collision sets built, collisions kept)
+and its own cost (``share``: dropping the other ranks' collisions, inside ``build``).
+
+``--ranks 1,2`` runs the benchmark once per rank count (``mpiexec -n k``, one session, the same
+arguments, the fig1 scenes skipped; a small untimed run first warms the JIT cache) and prints
+the speedups of the forward, the gradient, the Newton iteration and the contact part (wall and
+CPU, the slowest rank), and a projection of the contact part to ``--project`` ranks from the
+measured costs: the distributed contact work per collision, the replicated part (collision
+set build, CCD, gather, reach pattern), the partition's own cost per collision and the
+communication volume per evaluation (the gathered surface vector plus one allreduce of it per
+reduced vector; a link of ``--bandwidth`` GB/s and ``--latency`` us per collective step,
+log2 P steps).
 The last line printed is a JSON object with the numbers.
 """
 
@@ -42,6 +56,10 @@ def _parse(argv):
     p.add_argument("--steps", type=int, default=8, help="BDF2 steps")
     p.add_argument("--dt", type=float, default=0.004, help="time step")
     p.add_argument("--scene-steps", type=int, default=3, help="fig1 BDF1 steps (0: skip)")
+    p.add_argument("--ranks", default=None, help="e.g. 1,2: one mpiexec run per rank count")
+    p.add_argument("--project", type=int, default=64, help="ranks of the projection")
+    p.add_argument("--bandwidth", type=float, default=5.0, help="GB/s of the projection")
+    p.add_argument("--latency", type=float, default=5.0, help="us per collective step")
     return p.parse_args(argv)
 
 
@@ -135,9 +153,138 @@ def newton_cost(comm, obstacle: str, steps: int, stiffness: float | None = None)
     }
 
 
+def _per_rank(comm, contact, its: int) -> list[dict]:
+    """Each rank's contact timers, partition counts and repeated parts (gathered to all)."""
+    from diffsolids.parallel import collective_comm
+
+    ev = contact._eval
+    mine = {
+        "contact_ms_per_newton_iteration": {
+            k: 1e3 * v["seconds"] / its for k, v in contact.timing_summary().items()
+        },
+        "contact_cpu_ms_per_newton_iteration": {
+            k: 1e3 * v["cpu_seconds"] / its for k, v in contact.timing_summary().items()
+        },
+        "counts": dict(contact.partition.counts),
+        "partition_ms_per_newton_iteration": {
+            k: 1e3 * v[0] / its for k, v in contact.partition.timings.items()
+        },
+        "partition_cpu_ms_per_newton_iteration": {
+            k: 1e3 * v[2] / its for k, v in contact.partition.timings.items()
+        },
+        "collisions_last": len(ev.collisions) if ev is not None else 0,
+    }
+    return collective_comm(comm).allgather(mine)
+
+
+def _ranks_driver(args, argv) -> dict:
+    """Run the benchmark under ``mpiexec -n k`` for each k of ``--ranks``; speedups, projection."""
+    import math
+    import subprocess
+
+    counts = [int(k) for k in args.ranks.split(",")]
+    passed, skip = [], False
+    for a in argv:  # the same arguments, without the driver's own
+        if skip:
+            skip = False
+            continue
+        if a in ("--ranks", "--project", "--bandwidth", "--latency", "--scene-steps"):
+            skip = True
+            continue
+        if a.split("=")[0] in ("--ranks", "--project", "--bandwidth", "--latency", "--scene-steps"):
+            continue
+        passed.append(a)
+    mpiexec = Path(sys.executable).with_name("mpiexec")
+    launcher = str(mpiexec) if mpiexec.exists() else "mpiexec"
+    # a small untimed run first: every measured run then finds its kernels in the JIT cache
+    warm = [launcher, "-n", "1", sys.executable, __file__, "--cells", "4", "--steps", "2"]
+    subprocess.run([*warm, "--scene-steps", "0"], capture_output=True, text=True, check=True)
+    runs = {}
+    for k in counts:
+        cmd = [launcher, "-n", str(k), sys.executable]
+        cmd += [__file__, *passed, "--scene-steps", "0"]
+        t0 = time.perf_counter()
+        out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
+        runs[k] = json.loads(out.strip().splitlines()[-1])
+        runs[k]["session_wall_s"] = time.perf_counter() - t0
+        print(
+            f"ranks {k}: forward {runs[k]['forward_seconds']:.2f} s, gradient "
+            f"{runs[k]['gradient_seconds']:.2f} s",
+            flush=True,
+        )
+
+    def contact_ms(r, cpu=False):
+        key = "contact_cpu_ms_per_newton_iteration" if cpu else "contact_ms_per_newton_iteration"
+        return max(sum(p[key].values()) for p in r["per_rank"])  # the slowest rank
+
+    base = runs[counts[0]]
+    summary = {"benchmark": "contact_ranks", "ranks": counts, "runs": runs}
+    for k in counts[1:]:
+        r = runs[k]
+        summary[f"speedup_{k}"] = {
+            "forward": base["forward_seconds"] / r["forward_seconds"],
+            "gradient": base["gradient_seconds"] / r["gradient_seconds"],
+            "newton_iteration": base["ms_per_newton_iteration"] / r["ms_per_newton_iteration"],
+            "contact_wall": contact_ms(base) / contact_ms(r),
+            "contact_cpu": contact_ms(base, True) / contact_ms(r, True),
+        }
+    # projection of the contact part of a Newton iteration to P ranks (CPU times of the serial
+    # run; the share's cost per collision from the run on the most ranks)
+    ser = base["per_rank"][0]
+    evals = max(ser["counts"]["evaluations"], 1)
+    its = base["newton_iterations"]
+    kept = ser["counts"]["collisions"] / its  # collisions evaluated per Newton iteration
+    repeated = {"gather", "reach_pattern", "pattern", "build", "ccd", "ccd_obstacles"}
+    forward = {k: v for k, v in ser["contact_cpu_ms_per_newton_iteration"].items()}
+    forward = {k: v for k, v in forward.items() if not k.startswith("adjoint_")}
+    rep_ms = sum(v for k, v in forward.items() if k in repeated)
+    dist_ms = sum(forward.values()) - rep_ms
+    per_collision_us = 1e3 * dist_ms / max(kept, 1)
+    top = runs[counts[-1]]
+    share_ms = max(
+        p["partition_cpu_ms_per_newton_iteration"].get("share", 0.0) for p in top["per_rank"]
+    )
+    share_us = 1e3 * share_ms / max(kept, 1)  # per collision of the whole set
+    vec_mb = base["surface_vector_bytes"] / 1e6
+    # per Newton iteration: a gather and ~3 reduced vectors (gradient, line-search gradients)
+    vectors = 4.0 * evals / its
+    P = args.project
+
+    def comm_ms(p):
+        if p == 1:
+            return 0.0
+        steps = math.ceil(math.log2(p))
+        return vectors * (steps * args.latency * 1e-3 + 2.0 * vec_mb / args.bandwidth)
+
+    def contact_at(p):
+        return dist_ms / p + rep_ms + (share_us * kept * 1e-3 if p > 1 else 0.0) + comm_ms(p)
+
+    summary["projection"] = {
+        "ranks": P,
+        "per_collision_us": per_collision_us,
+        "share_us_per_collision": share_us,
+        "collisions_per_newton_iteration": kept,
+        "distributed_cpu_ms_serial": dist_ms,
+        "replicated_cpu_ms": rep_ms,
+        "communication_ms": comm_ms(P),
+        "contact_ms_serial": dist_ms + rep_ms,
+        "contact_ms_projected": contact_at(P),
+        "contact_speedup_projected": (dist_ms + rep_ms) / contact_at(P),
+        "contact_speedup_limit": (dist_ms + rep_ms) / (rep_ms + share_us * kept * 1e-3),
+        "strong_scaling_contact_ms": {p: contact_at(p) for p in (1, 2, 4, 8, 16, 32, 64)},
+        "assumptions": f"{args.bandwidth} GB/s, {args.latency} us per collective step, "
+        f"{vectors:.1f} surface vectors per Newton iteration; collision set build, CCD, gather "
+        "and reach pattern replicated on every rank; forward contact timers only",
+    }
+    print(json.dumps(summary))
+    return summary
+
+
 def main(argv=None) -> dict:
     """Run the benchmark and return the numbers."""
     args = _parse(argv)
+    if args.ranks:
+        return _ranks_driver(args, list(sys.argv[1:] if argv is None else argv))
     import ipctk
     import numpy as np
     import ufl
@@ -298,6 +445,10 @@ def main(argv=None) -> dict:
         "adjoint_contact_kernels_share": kernels_s / gradient_s,
         "adjoint_stats": {k: v for k, v in rf.adjoint_stats.items() if k != "krylov_per_step"},
     }
+    result["per_rank"] = _per_rank(comm, contact, its)
+    result["collisions_per_rank_last"] = [r["collisions_last"] for r in result["per_rank"]]
+    result["contact_evaluations"] = result["per_rank"][0]["counts"]["evaluations"]
+    result["surface_vector_bytes"] = surf.num_vertices * 3 * 8
     if args.scene_steps > 0 and FIG1.is_dir():  # fig1: a coarse pool, then a fine slab
         coarse = newton_cost(comm, "pool", args.scene_steps)
         fine = newton_cost(comm, "fine", args.scene_steps, coarse["stiffness"])

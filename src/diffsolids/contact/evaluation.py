@@ -6,6 +6,11 @@ PSD-projected Hessian, the Newton matrix pattern). The potential of step i is
 B(x) + beta dt D(v) (see :mod:`diffsolids.contact.term`): the barrier of the collision set plus
 the lagged friction dissipation at the velocity v; its gradient w.r.t. u is grad B - F(v) and
 its Hessian Hess B + Hess_v D / (beta dt).
+
+Under MPI the collision set of an evaluation is this rank's share
+(:class:`~diffsolids.contact.partition.CollisionPartition`): the functions here return this
+rank's part; the contact term keeps the energy and gradient summed over the ranks (the same on
+all) and the Hessians as this rank's share, whose rows it adds into the global matrix.
 """
 
 from dataclasses import dataclass, field
@@ -19,7 +24,11 @@ __all__ = ["Evaluation", "contact_energy", "contact_gradient", "contact_hessian"
 
 @dataclass
 class Evaluation:
-    """Collision set and derivatives at one surface displacement (cached)."""
+    """Collision set and derivatives at one surface displacement (cached).
+
+    ``collisions``, ``hessian`` and ``projected`` are this rank's share; ``energy`` and
+    ``gradient`` are summed over the ranks.
+    """
 
     U: np.ndarray
     x: np.ndarray

@@ -19,6 +19,9 @@ per collision and s_c is computed for all collisions at once, with ipctk's formu
 distances, closest points, tangent bases and relative velocities of each collision type
 (``distance/``, ``tangent/closest_point.cpp``, ``tangent/tangent_basis.cpp``,
 ``tangent/relative_velocity.cpp``), then scattered with one ``np.add.at``.
+
+Under MPI ``T`` holds this rank's collisions (lagged from its share of the normal collisions)
+and the caller sums the result over the ranks.
 """
 
 import contextlib

@@ -17,6 +17,11 @@ bodies are inflated by the whole motion.
 The broad phase (:func:`box_overlaps`) groups boxes by size (up to twice the median, then by
 powers of two of their largest half-extent) and queries one KD-tree of box centres per size
 class, so that a few large boxes do not widen the search radius of all the small ones.
+
+Under MPI every rank computes the same reach pattern from the gathered surface, once per step
+(it is the part of the matrix pattern that the owners of the rows must preallocate for the
+Hessian entries that other ranks' collisions add; see
+:mod:`diffsolids.contact.partition`).
 """
 
 import itertools

@@ -2,10 +2,11 @@
 
 The Newton line search and the obstacles' moves are capped by the fraction of a straight path
 x0 -> x1 of the collision surface that is collision-free (ipctk's broad phase and narrow-phase
-CCD, AdditiveCCD or Tight Inclusion), reduced with a min over ranks. Every rank builds the
-broad-phase candidates of the whole path and runs the narrow phase on its share of them
-(:class:`~diffsolids.contact.partition.CollisionPartition`); the min over the ranks is the
-fraction of the whole surface. In 2D the vertex-edge pairs
+CCD, AdditiveCCD or Tight Inclusion), reduced with a min over ranks. The CCD is the same
+computation on every rank (the replicated part of distributed contact: handing candidates over
+from ipctk costs more than its narrow phase, see :mod:`diffsolids.contact.partition`); the
+collision sets it reads at x0 are this rank's share, and their minimum distance is taken over
+the ranks. In 2D the vertex-edge pairs
 that rest a tiny gap above an edge while they slide along it get the exact bound of
 :func:`_edge_vertex_bounds` instead of ipctk's narrow phase (see
 :meth:`StepBound._near_pairs_2d`).
@@ -44,8 +45,7 @@ class StepBound:
         broad_phase: ipctk broad phase.
         dhat: Barrier activation distance (the candidates' inflation).
         comm: Communicator of the ranks that must agree.
-        partition: Which candidates this rank checks (default: all of them, the fraction
-            still reduced over ``comm``).
+        partition: Which collisions the cached collision sets hold (default: all of them).
 
     Attributes:
         floor_held: After a query, the smallest gap floor that held a near pair (2D), or None.
@@ -80,18 +80,16 @@ class StepBound:
         Args:
             x0: (num_vertices, dim) start positions (Fortran order), intersection-free.
             x1: (num_vertices, dim) end positions (Fortran order).
-            cached: This rank's collision set at x0 if one is at hand (else None), asked only
-                when needed.
-            with_candidates: Also return this rank's share of the broad-phase candidates of
-                the path.
+            cached: This rank's share of the collision set at x0 if one is at hand (else None),
+                asked only when needed (by all ranks alike).
+            with_candidates: Also return the broad-phase candidates of the path.
 
         Returns:
             The fraction, or (fraction, candidates).
         """
         self.floor_held = None
-        everything = ipctk.Candidates()
-        everything.build(self.surface.mesh, x0, x1, self.dhat, self.broad_phase)
-        candidates = self.partition.share(everything)
+        candidates = ipctk.Candidates()
+        candidates.build(self.surface.mesh, x0, x1, self.dhat, self.broad_phase)
         near, far = np.inf, candidates
         if self.surface.dim == 2 and not len(candidates.vv_candidates):
             near, far = self._near_pairs_2d(candidates, x0, x1, cached)
@@ -124,9 +122,7 @@ class StepBound:
         """
         eta = 1.0 - float(self.ccd.conservative_rescaling)
         # no pair is near if the closest pair at x0 is farther than a near pair can be (the
-        # collision set at x0 is usually cached): skips the per-candidate work in most queries.
-        # Per rank: a candidate's rank depends on its ids only, so this rank's collisions at x0
-        # are those of its share of the path's candidates within dhat
+        # collision set at x0 is usually cached): skips the per-candidate work in most queries
         eps = np.finfo(float).eps
         motion = 4.0 * float(np.linalg.norm(x1 - x0, axis=1).max())
         coord = max(float(np.abs(x0).max()), float(np.abs(x1).max()))
@@ -137,10 +133,13 @@ class StepBound:
         )
         if reach < self.dhat:
             mesh, C = self.surface.mesh, cached()
-            if C is None:
+            if C is None:  # the whole set, the same on every rank
                 C = ipctk.NormalCollisions()
                 C.build(candidates, mesh, x0, self.dhat, 0.0)
-            if not len(C) or np.sqrt(C.compute_minimum_distance(mesh, x0)) > reach:
+                d2 = C.compute_minimum_distance(mesh, x0) if len(C) else np.inf
+            else:  # this rank's share (the same decision on all ranks: collective)
+                d2 = self.partition.minimum_distance(C, mesh, x0) ** 2
+            if not np.isfinite(d2) or np.sqrt(d2) > reach:
                 return np.inf, candidates
         ev = candidates.ev_candidates
         if not len(ev):

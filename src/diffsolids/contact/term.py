@@ -12,15 +12,16 @@ lagged from x^{i-1} = X + W u^{i-1} once per step. The gradient of the friction 
 v = (u - u^{i-1}) / dt with coefficient dt (alpha = -1, beta = 1).
 
 Distributed contact: all ranks hold the whole collision surface (gathered once per evaluation)
-and build the broad-phase candidates on it, but each collision candidate is evaluated on one rank
-only (:class:`~diffsolids.contact.partition.CollisionPartition`: a hash of its ids picks the
-rank). Each rank builds its share of the collision set, the friction collisions lagged from it,
-the barrier and friction derivatives, the CCD and the adjoint products on it; energies are
+and build the collision set on it, but each collision is evaluated on one rank only
+(:class:`~diffsolids.contact.partition.CollisionPartition`: a hash of its ids picks the rank).
+Each rank keeps its share of the collision set and evaluates the friction collisions lagged
+from it, the barrier and friction derivatives and the adjoint products on it; energies are
 summed over the ranks, collision-dof vectors are summed (one allreduce of the surface vector,
 then each rank adds the rows it owns), matrix entries are added by every rank with global
 indices into the rows where they live (PETSc sends them in the assembly; the pattern, the union
-over the ranks, preallocates them), and step bounds are reduced with a min. On one rank this is
-the serial code with the identity for every reduction.
+over the ranks, preallocates them). The broad and narrow phase of the collision set, the CCD
+step bound and the reach pattern are the same computation on every rank (see the partition
+module for why). On one rank this is the serial code with the identity for every reduction.
 
 Kinematic obstacles (:class:`~diffsolids.contact.obstacle.Obstacle`) are extra vertices of the
 collision mesh with prescribed displacements O^i = O(t_i) and no dofs: x = X + W u + O^i, their
@@ -451,8 +452,8 @@ class ContactTerm(NumericTerm):
     def _build(self, x: np.ndarray, shape_derivatives: bool = False) -> ipctk.NormalCollisions:
         """This rank's share of the collision set at positions x (weight gradients when asked).
 
-        The broad phase runs on the whole surface (the same candidates on every rank), the
-        narrow phase on this rank's share (:meth:`CollisionPartition.share`).
+        The whole set is built on every rank (the same on all), then only this rank's
+        collisions are kept (:meth:`CollisionPartition.keep_share`).
 
         The sets with weight gradients are kept for the last two positions (same collision mesh
         and static mask): the adjoint of step i builds them at x^i and, for the lagged
@@ -466,13 +467,8 @@ class ContactTerm(NumericTerm):
         C = ipctk.NormalCollisions()
         C.use_area_weighting = self.area_weighting
         C.enable_shape_derivatives = shape_derivatives
-        xf = np.asfortranarray(x)
-        candidates = ipctk.Candidates()  # NormalCollisions.build's own inflation, dhat / 2
-        candidates.build(surf.mesh, xf, 0.5 * self.dhat, self.broad_phase)
-        share = self.partition.share(candidates)
-        C.build(share, surf.mesh, xf, self.dhat, 0.0)
-        self.partition.merge_split(C, self.dim)
-        self.partition.record(share, C)
+        C.build(surf.mesh, np.asfortranarray(x), self.dhat, 0.0, self.broad_phase)
+        self.partition.keep_share(C)
         if shape_derivatives:
             self._shape_builds = [(surf.mesh, surf.static, np.array(x), C), *self._shape_builds[:1]]
         return C
@@ -482,7 +478,7 @@ class ContactTerm(NumericTerm):
 
         The line search only visits points x0 + t dx, t in [0, 1], of the segment the CCD swept
         (to 2 dx) with boxes inflated by dhat: its candidates contain every pair within dhat
-        there, so only the narrow phase runs (on this rank's share of them, kept by the CCD).
+        there, so only the narrow phase runs.
         """
         seg = self._segment
         if seg is not None:
@@ -495,9 +491,7 @@ class ContactTerm(NumericTerm):
                     C = ipctk.NormalCollisions()
                     C.use_area_weighting = self.area_weighting
                     C.build(candidates, self.surface.mesh, np.asfortranarray(x), self.dhat, 0.0)
-                    self.partition.merge_split(C, self.dim)
-                    self.partition.record(candidates, C)
-                    return C
+                    return self.partition.keep_share(C)
         return self._build(x)
 
     def _lagged_state(
