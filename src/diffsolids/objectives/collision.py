@@ -111,8 +111,8 @@ class DeformedCollisionBarrier(NumericIntegral):
     ObjectiveError naming its time.
 
     Args:
-        model: The Model (a volume mesh with affine geometry; P1, P2 or P3 displacements, the
-            surface moving with the displacement of its vertices as the contact term's).
+        model: The Model (a volume mesh with affine geometry; P1, P2 or P3 displacements; the
+            P2/P3 boundary split at its edge and face nodes, as the contact term's).
         dhat: Activation distance d_hat > 0.
         stiffness: kappa > 0.
     """
@@ -121,7 +121,7 @@ class DeformedCollisionBarrier(NumericIntegral):
         _check_barrier(dhat, stiffness)
         self.model, self.dhat, self.stiffness = model, float(dhat), float(stiffness)
         self.name = "deformed collision barrier"
-        self.surface = CollisionSurface(model.domain, model.V)
+        self.surface = CollisionSurface(model.domain, model.V, boundary="nodes")
         self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness)
         self.broad_phase = ipctk.LBVH()
 
@@ -159,5 +159,5 @@ class DeformedCollisionBarrier(NumericIntegral):
         S = model.shape_space
         omap = self.surface.shape_map(S)
         out = np.zeros((S.dofmap.index_map.size_local, dim))
-        out[omap.blocks] = G[omap.cv]
+        out[omap.blocks] = omap.pull_back(G)[omap.cv]  # nodes move with their facet's vertices
         return out.ravel()

@@ -140,7 +140,7 @@ class BoundaryIntersection:
 
     def __init__(self, model: "Model") -> None:
         self.model = model
-        self.surface = CollisionSurface(model.domain, model.V)
+        self.surface = CollisionSurface(model.domain, model.V, boundary="nodes")
         # kinematic obstacles are seen through their contact terms' own check
         self.contacts = [
             t for t in model.numeric_terms if isinstance(t, ContactTerm) and t.obstacles
