@@ -5,7 +5,12 @@ physical term of an incremental potential and every objective integrand lives he
 shape, state and parameter derivatives all come from ``ufl.derivative``.
 """
 
-from diffsolids.forms.damping import damping_density, damping_potential, green_strain_rate
+from diffsolids.forms.damping import (
+    damping_density,
+    damping_potential,
+    damping_stresses,
+    green_strain_rate,
+)
 from diffsolids.forms.elasticity import (
     STRAIN_ENERGIES,
     LinearElasticEnergy,
@@ -55,6 +60,7 @@ __all__ = [
     "cauchy_stress",
     "damping_density",
     "damping_potential",
+    "damping_stresses",
     "deformation_gradient",
     "deformed_position",
     "energy_momentum_tensor",

@@ -10,7 +10,7 @@ import ufl
 from diffsolids.forms.kinematics import deformation_gradient, green_strain
 from ufl.core.expr import Expr
 
-__all__ = ["damping_density", "damping_potential", "green_strain_rate"]
+__all__ = ["damping_density", "damping_potential", "damping_stresses", "green_strain_rate"]
 
 
 def green_strain_rate(u: Expr, u_prev: Expr, dt: Expr | float) -> Expr:
@@ -31,3 +31,16 @@ def damping_potential(
 ) -> Expr:
     """Incremental damping potential dt * (psi Edot:Edot + phi/2 tr(Edot)^2)."""
     return damping_density(deformation_gradient(u), deformation_gradient(u_prev), dt, psi, phi)
+
+
+def damping_stresses(
+    F: Expr, F_prev: Expr, dt: Expr | float, psi: Expr | float, phi: Expr | float
+) -> tuple[Expr, Expr]:
+    """The stresses of :func:`damping_density`: its derivatives by F^i and F^{i-1}.
+
+    With S = 2 psi Edot + phi tr(Edot) I (the viscous second Piola-Kirchhoff stress) and
+    dEdot = sym(F^T dF) / dt: d/dF^i = F^i S and d/dF^{i-1} = -F^{i-1} S.
+    """
+    Edot = (green_strain(F) - green_strain(F_prev)) / dt
+    S = 2 * psi * Edot + phi * ufl.tr(Edot) * ufl.Identity(F.ufl_shape[0])
+    return F * S, -F_prev * S

@@ -99,7 +99,12 @@ def is_transformable(
 
 
 def energy_momentum_tensor(
-    psi: Expr, u: Expr, lam: Expr, gradients: Mapping[Expr, Expr]
+    psi: Expr,
+    u: Expr,
+    lam: Expr,
+    gradients: Mapping[Expr, Expr],
+    stresses: Mapping[Expr, Expr] | None = None,
+    residual: Expr | None = None,
 ) -> tuple[Expr, Expr]:
     """T = r I - Grad lambda^T P_u - sum_w Grad w^T dP_w/du[lambda] of a potential density.
 
@@ -110,15 +115,19 @@ def energy_momentum_tensor(
         lam: The adjoint (the direction of the residual, a Coefficient).
         gradients: Field -> the variable psi reads its gradient through; must contain ``u``
             when psi depends on Grad u.
+        stresses: Field -> P_w = dpsi/dGrad w written out (fewer operations than
+            ``ufl.diff``); the fields not given are differentiated.
+        residual: r = dpsi/du[lambda] written out (default ``ufl.derivative``).
 
     Returns:
         The residual integrand r = dpsi/du [lambda] and the tensor T (d x d).
     """
     d = u.ufl_shape[0]
-    r = ufl.derivative(psi, u, lam)
+    stresses = stresses or {}
+    r = ufl.derivative(psi, u, lam) if residual is None else residual
     T = r * ufl.Identity(d)
     for w, G in gradients.items():
-        P = ufl.diff(psi, G)  # dpsi/dGrad w
+        P = stresses[w] if w in stresses else ufl.diff(psi, G)  # dpsi/dGrad w
         if w == u:
             T = T - ufl.grad(lam).T * P  # dr/dGrad lambda = P_u
         T = T - ufl.grad(w).T * ufl.derivative(P, u, lam)  # dr/dGrad w = dP_w/du[lambda]
@@ -132,6 +141,8 @@ def residual_shape_partial(
     gradients: Mapping[Expr, Expr],
     theta: Expr,
     measure: ufl.Measure,
+    stresses: Mapping[Expr, Expr] | None = None,
+    residual: Expr | None = None,
 ) -> ufl.Form:
     """The shape derivative int T : Grad theta dX of int dpsi/du[lambda] dX along theta.
 
@@ -145,11 +156,13 @@ def residual_shape_partial(
         gradients: Field -> variable of its gradient in psi.
         theta: Shape direction (an Argument of the coordinate element's vector space).
         measure: A cell measure (``dx``, with its subdomains and quadrature metadata).
+        stresses: Optional stresses written out (see :func:`energy_momentum_tensor`).
+        residual: Optional residual integrand written out.
 
     Returns:
         The linear form in theta.
     """
-    _, T = energy_momentum_tensor(psi, u, lam, gradients)
+    _, T = energy_momentum_tensor(psi, u, lam, gradients, stresses, residual)
     return ufl.inner(T, ufl.grad(theta)) * measure
 
 

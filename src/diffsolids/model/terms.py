@@ -139,6 +139,14 @@ class _DensityTerm(Term):
         """
         return None
 
+    def stresses(self, f: StepFields) -> dict:
+        """dpsi/dGrad w written out for some fields w (the others come from ``ufl.diff``).
+
+        A term that gives P_u declares that its density depends on u only through Grad u: the
+        residual integrand is then P_u : Grad lambda.
+        """
+        return {}
+
     @override
     def shape_partial(
         self, f: StepFields, lam: fem.Function, theta: ufl.Argument
@@ -150,7 +158,11 @@ class _DensityTerm(Term):
         psi, gradients = written
         if not forms.is_transformable(psi, gradients):  # gradients of the declared fields only
             return None
-        return forms.residual_shape_partial(psi, f.u, lam, gradients, theta, self.measure(f))
+        stresses = self.stresses(f)
+        residual = ufl.inner(stresses[f.u], ufl.grad(lam)) if f.u in stresses else None
+        return forms.residual_shape_partial(
+            psi, f.u, lam, gradients, theta, self.measure(f), stresses, residual
+        )
 
 
 class ElasticEnergy(_DensityTerm):
@@ -237,6 +249,16 @@ class Damping(_DensityTerm):
         F_prev = ufl.variable(forms.deformation_gradient(f.u_prev))
         psi = forms.damping_density(F, F_prev, f.dt, c["damping_psi"], c["damping_phi"])
         return psi, {f.u: F, f.u_prev: F_prev}
+
+    @override
+    def stresses(self, f: StepFields) -> dict:
+        # the density depends on u only through Grad u: r = P_u : Grad lambda (written out, a
+        # third fewer kernel operations than ufl.diff gives)
+        c = f.coefficients
+        F = forms.deformation_gradient(f.u)
+        F_prev = forms.deformation_gradient(f.u_prev)
+        P, P_prev = forms.damping_stresses(F, F_prev, f.dt, c["damping_psi"], c["damping_phi"])
+        return {f.u: P, f.u_prev: P_prev}
 
 
 class BodyForce(_DensityTerm):
