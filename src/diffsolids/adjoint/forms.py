@@ -189,7 +189,9 @@ class AdjointForms:
         dynamic: BDF steps (inertia and damping present).
         leaves: The objective's Integral leaves.
         targets: Which parameter/shape sensitivities are needed.
-        shape_partials: How the residual's shape partial is computed (:data:`SHAPE_PARTIALS`).
+        shape_partials: How the shape partials are computed: "auto" (the explicit
+            energy-momentum forms where they apply, else UFL's coordinate derivative) or "ufl"
+            (always the coordinate derivative, the reference).
     """
 
     def __init__(
