@@ -90,10 +90,13 @@ class SolverOptions:
             its iterations count both attempts. Default 1e-3: on the Fig. 21 bunny (suggested
             kappa, 8 steps, mu in 0.5 +- {1e-5, 1e-4, 1e-3}) every run converges, the two at
             mu = 0.5 +- 1e-3 through the retry at step 7 (81 and 80 iterations there). Its
-            J(mu) is still not smooth there: the runs fall on two branches (J = 104.433 at
-            mu = 0.5 and 0.49999, 104.26 at 0.4999, 0.50001 and 0.5001; step 5 takes 24-25
-            Newton iterations on one, 15-17 on the other), so central differences there
-            compare two branches.
+            J(mu) still has two branches: the impact step 3 has two strict local minima
+            (78 and 79 contact pairs, energies 7.4e-3 apart, positive definite exact Hessians),
+            and no choice of Hessian here (CLAMP, ABS, exact from the start) or of tolerance
+            decides deterministically which one Newton from u^2 reaches: the paths part in
+            the projected phase, whose first 14 iterations are all cut by the collision
+            bound. Starting from the solution at nearby parameters (a warm start) keeps J on
+            one branch (``demos/paper_common.ContinuationSimulation``).
             ``inf``: the exact Hessian from the start (the default before); ``0``: always
             projected (with the same retry).
         initial_guess: Where a dynamic step's Newton iteration starts (read by the Simulation;
