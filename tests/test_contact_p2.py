@@ -20,12 +20,7 @@ through the lid between the corners. The tests:
   positions are convex combinations of them) and Young's modulus: central differences along a
   random direction and along the gradient, and a Taylor test (test_gradients_contact's
   ``check_gradient``).
-
-The contact-term tests need ``ContactTerm(boundary=...)`` (and its shape adjoint pulled back
-through ``shape_map(S).pull_back``); they are skipped where ContactTerm has no such argument.
 """
-
-import inspect
 
 import ipctk
 import numpy as np
@@ -48,11 +43,6 @@ from diffsolids.reduced_functional import ReducedFunctional
 GAP = 0.02
 DHAT = 0.01
 THICKNESS = 0.3
-
-needs_boundary = pytest.mark.skipif(
-    "boundary" not in inspect.signature(ContactTerm.__init__).parameters,
-    reason="ContactTerm(boundary=...) is not there yet (the term.py diff of issue 13 item 7)",
-)
 
 
 def _meshes(dim: int):
@@ -282,8 +272,7 @@ def test_deformed_collision_barrier_derivatives(dim, degree):
     differences along a random direction and along the gradient)."""
     model = bulge_model(dim, degree)
     J = DeformedCollisionBarrier(model, 0.05, stiffness=1.0)
-    if not J.surface.subdivided:
-        pytest.skip("DeformedCollisionBarrier is on the vertex surface (objectives diff not in)")
+    assert J.surface.subdivided
     u = _bulge(model, 0.75 * GAP)  # within dhat of the lid, not through it
     model.fields.u.x.array[:] = u
     assert J.evaluate(model) > 0
@@ -331,7 +320,6 @@ class _NodeMonitor:
             self.bad.append(it)
 
 
-@needs_boundary
 @pytest.mark.parametrize(
     ("dim", "degree", "obstacle"),
     [(2, 2, False), (2, 3, False), (3, 2, False), (3, 3, False), (2, 2, True), (3, 2, True)],
@@ -360,7 +348,6 @@ def test_the_curved_boundary_does_not_pass_through(dim, degree, obstacle):
 
 
 # -- gradients ----------------------------------------------------------------------------------
-@needs_boundary
 @pytest.mark.parametrize(
     ("dim", "degree", "obstacle"),
     [(2, 2, False), (2, 3, False), (3, 2, False), (3, 3, False), (2, 2, True)],

@@ -9,7 +9,7 @@ the serial run (under the lid and under a kinematic obstacle).
 import numpy as np
 import pytest
 from mpi4py import MPI
-from test_contact_p2 import bulge_model, bulge_scene, needs_boundary
+from test_contact_p2 import bulge_model, bulge_scene
 
 from diffsolids.contact.surface import CollisionSurface
 from diffsolids.controls import ParameterControl, ShapeControl
@@ -48,7 +48,6 @@ def _value_and_gradient(dim: int, obstacle: bool, comm):
     return q, value, gradient, [r.num_collisions for r in contact.records]
 
 
-@needs_boundary
 @pytest.mark.parametrize(("dim", "obstacle"), [(2, False), (3, False), (2, True)])
 def test_p2_contact_gradient_world_equals_self(dim, obstacle):
     comm = MPI.COMM_WORLD

@@ -146,7 +146,8 @@ class _Primitives:
         label = body[prims].min(axis=1)
         order = np.argsort(label, kind="stable")
         labels, starts = np.unique(label[order], return_index=True)
-        self.of_label = dict(zip(labels.tolist(), np.split(order, starts[1:]), strict=True))
+        groups = np.split(order, starts[1:]) if len(order) else []  # no primitive: no group
+        self.of_label = dict(zip(labels.tolist(), groups, strict=True))
         self.boxes = _grown_boxes(x, prims, grow)
         self.rest = _grown_boxes(X, prims, {"rest": rest_grow})["rest"]
 

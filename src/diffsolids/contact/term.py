@@ -168,6 +168,10 @@ class ContactTerm(NumericTerm):
             semi-definite: "clamp" (negative eigenvalues set to zero) or "abs" (replaced by their
             absolute values), ipctk's ``PSDProjectionMethod``. Adjoints always use the exact
             Hessian.
+        boundary: The collision surface of P2/P3 bodies: "nodes" (each boundary facet split at
+            its edge and face nodes, so the simulated boundary never intersects) or "vertices"
+            (the facets between the mesh vertices only; a curved boundary may pass through
+            another body between vertices). Both are the same for P1.
 
     Raises:
         ParameterError: Non-positive dhat, stiffness or eps_v, negative friction, unknown body,
@@ -194,6 +198,7 @@ class ContactTerm(NumericTerm):
         num_threads: int | None = None,
         obstacles: Sequence[Obstacle] = (),
         hessian_projection: str = "clamp",
+        boundary: str = "nodes",
     ) -> None:
         checked = (("dhat", dhat), ("stiffness", stiffness), ("eps_v", eps_v))
         for label, value in checked:
@@ -215,7 +220,7 @@ class ContactTerm(NumericTerm):
         if num_threads is not None:
             ipctk.set_num_threads(int(num_threads))
         self.obstacles = self._check_obstacles(obstacles)
-        self.surface = CollisionSurface(model.domain, model.V, self.obstacles)
+        self.surface = CollisionSurface(model.domain, model.V, self.obstacles, boundary)
         self.surface.obstacle_displacement(0.0)  # a bad motion fails here, not in a step
         if self.obstacles:  # obstacles never collide with each other
             static = np.zeros(self.surface.num_vertices, dtype=bool)
@@ -1007,7 +1012,7 @@ class ContactTerm(NumericTerm):
         imap = Sspace.dofmap.index_map
         out = np.zeros((imap.size_local + imap.num_ghosts) * bs)
         d = self.dim
-        gv = g.reshape(-1, d)
+        gv = smap.pull_back(g.reshape(-1, d))  # edge/face nodes move with their vertices
         out.reshape(-1, bs)[smap.blocks, :d] += gv[smap.cv]
         return out
 
