@@ -22,12 +22,14 @@ from pathlib import Path
 import numpy as np
 from common import ROOT
 from dynamic_common import TargetSimulation, check_invariants, finish_transient
+from mpi4py import MPI
 
 import diffsolids as ds
 from diffsolids.errors import IntersectionError
 from diffsolids.io.polyfem_scene import PolyFEMScene, read_polyfem_scene
 from diffsolids.objectives import target_displacement, time_integral
 from diffsolids.optimize import LBFGSOptions, check_trajectories
+from diffsolids.parallel import collective_comm
 from diffsolids.simulation import Trajectory
 
 __all__ = [
@@ -90,7 +92,9 @@ class ContinuationSimulation(TargetSimulation):
             and warm.u[i].shape == arr.shape
             and np.array_equal(warm.u[i], arr)
         )
-        if not is_warm:
+        # one decision for all ranks (both branches below are collective)
+        comm = collective_comm(self.model.domain.comm)
+        if not comm.allreduce(bool(is_warm), op=MPI.LAND):
             return super()._guess_inverts(arr)
         solver = self.solver
         numeric = [b for b in solver.step_bounds if b in self.model.numeric_terms]
