@@ -206,6 +206,7 @@ class AdjointForms:
         V = model.V
         mesh = V.mesh
         w = ufl.TestFunction(V)
+        self.shape_partials = shape_partials
         self.lam = fem.Function(V, name="adjoint")
         # numeric leaves (NumericIntegral) give their partials themselves; the others are UFL
         self.numeric = {leaf: 0.0 for leaf in leaves if isinstance(leaf, NumericIntegral)}

@@ -35,11 +35,16 @@ class AdjointSolverOptions:
         rtol: Relative residual tolerance of the Krylov solves.
         max_krylov: GMRES iterations before the matrix is refactorised.
         refactor_above: Refactorise for the next steps when a solve needed more iterations.
+        shape_partials: How the shape partials of the residual and the objective are formed:
+            "auto" (the explicit energy-momentum forms of the built-in terms where they apply,
+            UFL's coordinate derivative elsewhere) or "ufl" (UFL's coordinate derivative
+            everywhere, the reference); see :class:`~diffsolids.adjoint.forms.AdjointForms`.
     """
 
     rtol: float = 1e-12
     max_krylov: int = 30
     refactor_above: int = 12
+    shape_partials: str = "auto"
 
 
 class _FrozenPC:

@@ -88,7 +88,14 @@ class BackwardSweep:
         self.sim = simulation
         self.model = simulation.model
         self.targets = targets
-        self.forms = AdjointForms(self.model, simulation.integrator.dynamic, leaves, targets)
+        options = options or AdjointSolverOptions()
+        self.forms = AdjointForms(
+            self.model,
+            simulation.integrator.dynamic,
+            leaves,
+            targets,
+            shape_partials=options.shape_partials,
+        )
         self.linear = AdjointLinearSolver(simulation.solver, options)
         V = self.model.V
         imap = V.dofmap.index_map
