@@ -32,7 +32,8 @@ mu = 0.4999, 3.440 at 0.5 and 0.5001 over 8 steps). The simulation is therefore 
 finite-difference check) is admitted as Newton's first iterate when it is an admissible
 configuration, and Newton stays on its branch. Central differences then agree with the adjoint
 (5 steps: 1.7e-9 at h = 1e-6, 6.7e-7 at 1e-5, 6.7e-5 at 1e-4, 1.2e-2 at 1e-3 in mu: the O(h^2)
-truncation; 8 steps: 7.0e-9 at h = 1e-6 and 1e-5, 7.0e-7 at 1e-4, 8.4e-5 at 1e-3;
+truncation; 8 steps: 7.0e-9 at h = 1e-6 and 1e-5, 7.0e-7 at 1e-4, 8.4e-5 at 1e-3; all 40 steps
+with ``LONG_RUN_SOLVER``: 1.1e-7 at h = 1e-6, 6.0e-6 at 1e-5, 6.0e-4 at 1e-4;
 ``tests/test_paper_sliding_gradient.py``).
 
 Sizes: ``--tiny`` (3 steps, 1 iteration: a smoke test), default (10 steps of the paper's 40: the
