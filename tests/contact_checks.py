@@ -5,8 +5,32 @@ import numpy as np
 
 import diffsolids as ds
 from diffsolids.contact import ContactTerm
+from diffsolids.mesh.scene import combine_meshes, simplex_box
 
-__all__ = ["IntersectionMonitor"]
+__all__ = ["IntersectionMonitor", "crate_on_incline"]
+
+
+def crate_on_incline(
+    comm, dhat: float, crate_cells: list[int], lid_cells: list[int], steps: int
+) -> tuple[ds.Model, ContactTerm, ds.Simulation]:
+    """A clamped slab under 30-degree gravity, a crate sliding on it and a lid on the crate.
+
+    Friction 0.3 between slab and crate, 0.5 between crate and lid; kappa 1e13; BDF2, dt 0.01.
+    """
+    theta = np.deg2rad(30.0)
+    slab = simplex_box([[0, 0], [2, 0.1]], [16, 1])
+    crate = simplex_box([[0.2, 0.1 + 0.5 * dhat], [0.4, 0.2 + 0.5 * dhat]], crate_cells)
+    lid = simplex_box([[0.25, 0.2 + 1.2 * dhat], [0.35, 0.25 + 1.2 * dhat]], lid_cells)
+    dom = combine_meshes(comm, [slab, crate, lid])
+    model = ds.Model(dom, ds.NeoHookean(E=1e7, nu=0.3, density=1000.0))
+    model.add_body_force(9.81 * np.array([np.sin(theta), -np.cos(theta)]), name="gravity")
+    model.add_dirichlet(lambda x: x[1] < 0.1 + 1e-9, 0.0)
+    contact = ContactTerm(
+        model, dhat=dhat, stiffness=1e13, friction={(1, 2): 0.3, (2, 3): 0.5}, eps_v=1e-3
+    )
+    model.add_numeric_term(contact)
+    sim = ds.Simulation(model, ds.BDF(2, 0.01, steps), ds.SolverOptions(rtol=1e-10), progress=False)
+    return model, contact, sim
 
 
 class IntersectionMonitor:

@@ -6,12 +6,9 @@ the same problem as in serial; each rank adds its owned rows.
 
 import dolfinx.fem.petsc as fem_petsc
 import numpy as np
+from contact_checks import crate_on_incline
 from dolfinx import fem
 from mpi4py import MPI
-
-import diffsolids as ds
-from diffsolids.contact import ContactTerm
-from diffsolids.mesh.scene import combine_meshes, simplex_box
 
 DHAT = 1e-3
 
@@ -29,20 +26,8 @@ def _sorted_nodal(model, arr: np.ndarray) -> np.ndarray:
 
 
 def _run(comm):
-    theta = np.deg2rad(30.0)
-    slab = simplex_box([[0, 0], [2, 0.1]], [16, 1])
-    crate = simplex_box([[0.2, 0.1 + 0.5 * DHAT], [0.4, 0.2 + 0.5 * DHAT]], [4, 2])
-    lid = simplex_box([[0.25, 0.2 + 1.2 * DHAT], [0.35, 0.25 + 1.2 * DHAT]], [2, 1])
-    dom = combine_meshes(comm, [slab, crate, lid])
-    model = ds.Model(dom, ds.NeoHookean(E=1e7, nu=0.3, density=1000.0))
-    model.add_body_force(9.81 * np.array([np.sin(theta), -np.cos(theta)]), name="gravity")
-    model.add_dirichlet(lambda x: x[1] < 0.1 + 1e-9, 0.0)
-    contact = ContactTerm(
-        model, dhat=DHAT, stiffness=1e13, friction={(1, 2): 0.3, (2, 3): 0.5}, eps_v=1e-3
-    )
-    model.add_numeric_term(contact)
-    integ = ds.BDF(2, 0.01, 8)
-    sim = ds.Simulation(model, integ, ds.SolverOptions(rtol=1e-10))
+    model, contact, sim = crate_on_incline(comm, DHAT, [4, 2], [2, 1], 8)
+    integ = sim.integrator
     traj = sim.run()
     out = {
         "energies": np.array([r.energy for r in traj.records]),

@@ -14,6 +14,7 @@ import dolfinx.fem.petsc as fem_petsc
 import numpy as np
 import pytest
 import ufl
+from contact_checks import crate_on_incline
 from dolfinx import fem
 from mpi4py import MPI
 
@@ -31,22 +32,7 @@ RTOL = 1e-10
 
 def _scene_2d(comm, steps: int = 4):
     """A slab, a crate sliding on it and a lid on the crate (friction on both contacts)."""
-    dhat = 1e-3
-    theta = np.deg2rad(30.0)
-    slab = simplex_box([[0, 0], [2, 0.1]], [16, 1])
-    crate = simplex_box([[0.2, 0.1 + 0.5 * dhat], [0.4, 0.2 + 0.5 * dhat]], [6, 3])
-    lid = simplex_box([[0.25, 0.2 + 1.2 * dhat], [0.35, 0.25 + 1.2 * dhat]], [3, 2])
-    dom = combine_meshes(comm, [slab, crate, lid])
-    model = ds.Model(dom, ds.NeoHookean(E=1e7, nu=0.3, density=1000.0))
-    model.add_body_force(9.81 * np.array([np.sin(theta), -np.cos(theta)]), name="gravity")
-    model.add_dirichlet(lambda x: x[1] < 0.1 + 1e-9, 0.0)
-    contact = ContactTerm(
-        model, dhat=dhat, stiffness=1e13, friction={(1, 2): 0.3, (2, 3): 0.5}, eps_v=1e-3
-    )
-    model.add_numeric_term(contact)
-    integ = ds.BDF(2, 0.01, steps)
-    sim = ds.Simulation(model, integ, ds.SolverOptions(rtol=1e-10), progress=False)
-    return model, contact, sim
+    return crate_on_incline(comm, 1e-3, [6, 3], [3, 2], steps)
 
 
 def _scene_3d(comm, steps: int = 3):
