@@ -106,7 +106,7 @@ def test_failed_projected_phase_is_retried_with_the_exact_hessian():
 
 
 def test_contact_hessian_projection_names():
-    """"abs" and "clamp" map to ipctk's methods; any other name is refused by name."""
+    """The names "abs" and "clamp" map to ipctk's methods; any other name is refused by name."""
     import ipctk
 
     from diffsolids.contact.term import _projection_method
