@@ -93,8 +93,8 @@ class ContinuationSimulation(TargetSimulation):
             and np.array_equal(warm.u[i], arr)
         )
         # one decision for all ranks (both branches below are collective)
-        comm = collective_comm(self.model.domain.comm)
-        if not comm.allreduce(bool(is_warm), op=MPI.LAND):
+        all_warm = collective_comm(self.model.domain.comm).allreduce(bool(is_warm), op=MPI.LAND)
+        if not all_warm:
             return super()._guess_inverts(arr)
         solver = self.solver
         numeric = [b for b in solver.step_bounds if b in self.model.numeric_terms]
