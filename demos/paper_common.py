@@ -25,6 +25,7 @@ from dynamic_common import TargetSimulation, check_invariants, finish_transient
 from mpi4py import MPI
 
 import diffsolids as ds
+from diffsolids.contact import ContactTerm
 from diffsolids.errors import IntersectionError
 from diffsolids.io.polyfem_scene import PolyFEMScene, read_polyfem_scene
 from diffsolids.objectives import target_displacement, time_integral
@@ -78,13 +79,15 @@ class ContinuationSimulation(TargetSimulation):
     iterations per step instead of 12-41) and J is smooth along it.
     """
 
+    _guess_step: int | None = None  # the step whose initial guess is being checked
+
     def _initial_guess(self, i, traj, step) -> None:
         self._guess_step = i
         super()._initial_guess(i, traj, step)
 
     def _guess_inverts(self, arr) -> bool:
         warm = self.warm_start
-        i = getattr(self, "_guess_step", None)
+        i = self._guess_step
         is_warm = (
             isinstance(warm, Trajectory)
             and i is not None
@@ -105,7 +108,7 @@ class ContinuationSimulation(TargetSimulation):
         if any(g.max_step(x, dx) <= 0.0 for g in guards):
             return True
         for term in numeric:
-            if hasattr(term, "check_configuration"):
+            if isinstance(term, ContactTerm):
                 try:
                     term.check_configuration(term.surface.gather(arr), i)
                 except IntersectionError:
