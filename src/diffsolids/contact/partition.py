@@ -22,7 +22,7 @@ summed:
   each rank adds the rows it owns, as before (the vector is the size of the gather that every
   evaluation makes);
 - matrices: each rank adds all rows of its share's Hessian with global indices
-  (:func:`add_share_to_matrix`, PETSc ``ADD_VALUES``); PETSc sends the off-process rows to
+  (``CollisionSurface.add_matrix``, PETSc ``ADD_VALUES``); PETSc sends the off-process rows to
   their owners in the matrix assembly. The owner's preallocated pattern must hold them: the
   contact term's vertex-block pattern is the step's reach pattern (computed from the gathered
   surface, the same on every rank) plus the blocks of any rank's Hessian outside it, united
@@ -48,15 +48,13 @@ from operator import attrgetter
 
 import ipctk
 import numpy as np
-import scipy.sparse as sp
 from mpi4py import MPI
-from petsc4py import PETSc
 
 from diffsolids.contact.timing import timed
 from diffsolids.parallel import collective_comm
 from diffsolids.solvers.sparsity import sorted_unique
 
-__all__ = ["CollisionPartition", "add_share_to_matrix"]
+__all__ = ["CollisionPartition"]
 
 # the splitmix64 finaliser (every bit of the key moves every bit of the hash)
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
@@ -204,58 +202,3 @@ def collision_keys(collisions: ipctk.NormalCollisions) -> np.ndarray:
         if listed:
             parts.append(_pack(kind, listed, names))
     return np.concatenate(parts)
-
-
-def add_share_to_matrix(
-    A: PETSc.Mat,
-    H: sp.spmatrix,
-    free: np.ndarray,
-    global_dofs: np.ndarray,
-    num_vertices: int,
-    dim: int,
-    keep: np.ndarray | None = None,
-) -> None:
-    """Add all free rows of this rank's collision-dof matrix H into A (global indices).
-
-    Rows owned by other ranks are sent by PETSc in the matrix assembly (``ADD_VALUES``); the
-    owners' patterns must hold them (see the module docstring). Collective (a flush assembly
-    first: DOLFINx inserts the Dirichlet diagonal last).
-
-    Args:
-        A: PETSc matrix (not yet finally assembled).
-        H: (num_vertices*dim)^2 sparse matrix in collision dofs (this rank's share).
-        free: Boolean mask of collision dofs that are not Dirichlet (rows and columns kept).
-        global_dofs: Global (PETSc) index of every collision dof.
-        num_vertices: Number of collision vertices.
-        dim: Geometric dimension.
-        keep: Optional sorted vertex-block keys (row_vertex * num_vertices + col_vertex);
-            entries outside them are dropped.
-    """
-    A.assemblyBegin(PETSc.Mat.AssemblyType.FLUSH)
-    A.assemblyEnd(PETSc.Mat.AssemblyType.FLUSH)
-    if H.nnz == 0:
-        return
-    rows_c = np.flatnonzero(free)
-    Hr = sp.csr_matrix(H)[rows_c].tocoo()
-    mask = free[Hr.col]
-    if keep is not None and len(Hr.row):
-        keys = (rows_c[Hr.row] // dim).astype(np.int64) * num_vertices + Hr.col // dim
-        if len(keep) == 0:
-            mask &= False
-        else:
-            pos = np.minimum(np.searchsorted(keep, keys), len(keep) - 1)
-            mask &= keep[pos] == keys
-    r, c, v = Hr.row[mask], Hr.col[mask], Hr.data[mask]
-    csr = sp.csr_matrix((v, (r, c)), shape=(len(rows_c), H.shape[1]))
-    csr.sum_duplicates()
-    nonempty = np.flatnonzero(np.diff(csr.indptr))
-    if len(nonempty) == 0:
-        return
-    csr = csr[nonempty]
-    A.setValuesIJV(
-        csr.indptr.astype(PETSc.IntType),
-        global_dofs[csr.indices].astype(PETSc.IntType),
-        csr.data,
-        addv=PETSc.InsertMode.ADD_VALUES,
-        rowmap=global_dofs[rows_c[nonempty]].astype(PETSc.IntType),
-    )

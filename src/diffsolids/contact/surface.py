@@ -515,22 +515,25 @@ class CollisionSurface:
         free: np.ndarray,
         keep: np.ndarray | None = None,
     ) -> None:
-        """Add the owned rows of a collision-dof matrix H into the global matrix A.
+        """Add every free row of a collision-dof matrix H (this rank's share) into A.
+
+        Rows are added with global indices wherever they live: PETSc sends those owned by other
+        ranks in the assembly (``ADD_VALUES``), and the owners' patterns must hold them
+        (:mod:`diffsolids.contact.partition`). Collective (a flush assembly first: DOLFINx
+        inserts the Dirichlet diagonal last).
 
         Args:
-            A: PETSc matrix (not yet finally assembled); global rows and columns. Collective.
+            A: PETSc matrix (not yet finally assembled); global rows and columns.
             H: (num_vertices*dim)^2 sparse matrix in collision dofs.
             free: Boolean mask of collision dofs that are not Dirichlet (rows and columns kept).
             keep: Optional sorted vertex-block keys (row_vertex * num_vertices + col_vertex);
                 entries outside them are dropped.
         """
-        # DOLFINx inserts the Dirichlet diagonal last: flush before adding (collective)
         A.assemblyBegin(PETSc.Mat.AssemblyType.FLUSH)
         A.assemblyEnd(PETSc.Mat.AssemblyType.FLUSH)
-        rows_c, _ = self.owned_dof_indices()
-        rows_c = rows_c[free[rows_c]]
-        if len(rows_c) == 0 or H.nnz == 0:
+        if H.nnz == 0:
             return
+        rows_c = np.flatnonzero(free)
         Hr = sp.csr_matrix(H)[rows_c].tocoo()
         mask = free[Hr.col]
         if keep is not None:
@@ -540,13 +543,17 @@ class CollisionSurface:
         r, c, v = Hr.row[mask], Hr.col[mask], Hr.data[mask]
         csr = sp.csr_matrix((v, (r, c)), shape=(len(rows_c), H.shape[1]))
         csr.sum_duplicates()
+        nonempty = np.flatnonzero(np.diff(csr.indptr))
+        if len(nonempty) == 0:
+            return
+        csr = csr[nonempty]
         gdofs = self.global_dofs()
         A.setValuesIJV(
             csr.indptr.astype(PETSc.IntType),
             gdofs[csr.indices].astype(PETSc.IntType),
             csr.data,
             addv=PETSc.InsertMode.ADD_VALUES,
-            rowmap=gdofs[rows_c].astype(PETSc.IntType),
+            rowmap=gdofs[rows_c[nonempty]].astype(PETSc.IntType),
         )
 
     def matrix_entries(

@@ -78,7 +78,7 @@ from diffsolids.contact.friction_table import (
     tangential_collisions,
 )
 from diffsolids.contact.obstacle import Obstacle
-from diffsolids.contact.partition import CollisionPartition, add_share_to_matrix
+from diffsolids.contact.partition import CollisionPartition
 from diffsolids.contact.reach import reach_blocks, step_motion
 from diffsolids.contact.shape import barrier_shape_adjoint
 from diffsolids.contact.step_bound import (  # noqa: F401  (test_soft_barrier imports them here)
@@ -715,11 +715,8 @@ class ContactTerm(NumericTerm):
         free = self._free_mask(bc_dofs)
         H = self._hessian(ev, project)
         keep = self._blocks(ev) if project else None
-        surf = self.surface
         with self._timed("insert"):
-            add_share_to_matrix(
-                A, H, free, surf.global_dofs(), surf.num_vertices, self.dim, keep=keep
-            )
+            self.surface.add_matrix(A, H, free, keep=keep)
 
     def add_adjoint_jacobian(self, u: fem.Function, A: PETSc.Mat, bc_dofs: np.ndarray) -> None:
         """Add the exact (unprojected) Hessian of the contact potential w.r.t. u^i."""
