@@ -519,7 +519,7 @@ class CollisionSurface:
 
         Rows are added with global indices wherever they live: PETSc sends those owned by other
         ranks in the assembly (``ADD_VALUES``), and the owners' patterns must hold them
-        (:mod:`diffsolids.contact.partition`). Collective (a flush assembly first: DOLFINx
+        (``diffsolids.contact.partition``). Collective (a flush assembly first: DOLFINx
         inserts the Dirichlet diagonal last).
 
         Args:
