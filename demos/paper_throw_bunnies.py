@@ -33,7 +33,9 @@ the first), 1 iteration, objective decreased. The default is the paper's whole r
 the spot is where the second bunny rests at t = 2 s, so there is no shorter version of the
 outcome); ``--steps N`` runs fewer steps against the same spot (no outcome check).
 
-Output in ``output/paper_throw_bunnies/``: ``history.jsonl``, ``result.json``.
+Output in ``output/paper_throw_bunnies/``: ``history.jsonl``, ``result.json`` and
+``paper_throw_bunnies.png`` (top view: the pool, both bunnies at the final time and their
+centre paths for the initial and the optimised throw, the spot; the objective per iteration).
 """
 
 import numpy as np
@@ -50,7 +52,7 @@ from diffsolids.optimize import LBFGSOptions, check_trajectories
 from diffsolids.reduced_functional import ReducedFunctional
 
 FOLDER = "fig1_bunnies"
-THROWN, HIT = 2, 3  # body ids (volume_selection)
+POOL, THROWN, HIT = 1, 2, 3  # body ids (volume_selection)
 SPOT = (3.67854, 0.137261)  # x, z of the second bunny's final centre of mass
 STOP = 0.005  # the paper's stop test: each squared deviation <= 0.005
 RTOL = 1e-8  # Newton tolerance of the demo
@@ -126,6 +128,59 @@ def throw_problem(
     return ReducedFunctional(sim, x_dev + z_dev, control), np.array(v0.value), contact
 
 
+def top_view(model, body: int, u: np.ndarray, comm: MPI.Comm) -> np.ndarray:
+    """The (x, z) positions of a body's nodes displaced by ``u`` (local array), on rank 0."""
+    V = model.V
+    dofs = np.unique(V.dofmap.list[model.domain.cells_of(body)].ravel())
+    dofs = dofs[dofs < V.dofmap.index_map.size_local]
+    x = V.tabulate_dof_coordinates()[dofs] + u.reshape(-1, model.dim)[dofs]
+    parts = comm.gather(x[:, [0, 2]], root=0)
+    return np.concatenate(parts) if comm.rank == 0 else np.empty((0, 2))
+
+
+def plot(path, model, sim, trajectories: dict, result, comm: MPI.Comm) -> None:
+    """Top view of the initial and optimised throws (bodies at T, centre paths); the objective."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from common import plot_history, save_figure
+
+    bodies = {
+        key: [top_view(model, b, traj.u[-1], comm) for b in (THROWN, HIT)]
+        for key, traj in trajectories.items()
+    }
+    paths = {
+        key: [series_values(sim, center_of_mass(model, b), traj) for b in (THROWN, HIT)]
+        for key, traj in trajectories.items()
+    }
+    pool = top_view(model, POOL, trajectories["initial"].u[0], comm)
+    if comm.rank != 0:
+        return
+    fig, (ax, ax_h) = plt.subplots(1, 2, figsize=(12, 4.5), width_ratios=[2.2, 1])
+    ax.plot(pool[:, 0], pool[:, 1], ".", ms=2, color="0.75", label="pool nodes")
+    colors = {"initial": "tab:blue", "final": "tab:red"}
+    for key, color in colors.items():
+        for points, centre, ls in zip(bodies[key], paths[key], ("--", "-"), strict=True):
+            ax.plot(points[:, 0], points[:, 1], ".", ms=1.5, color=color, alpha=0.3)
+            ax.plot(centre[:, 0], centre[:, 2], color=color, ls=ls, lw=1.2)
+        ax.plot([], [], ".", color=color, label=f"{key} throw at T (dashed: thrown, solid: hit)")
+    r = np.sqrt(STOP)
+    ax.add_patch(plt.Rectangle((SPOT[0] - r, SPOT[1] - r), 2 * r, 2 * r, fill=False, ls=":"))
+    ax.plot(*SPOT, "kx", label="spot (box: the paper's stop test)")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("z [m]")
+    near = np.concatenate([p for parts in bodies.values() for p in parts] + [np.array([SPOT])])
+    lo, hi = near.min(axis=0) - 0.4, near.max(axis=0) + 0.4
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal")
+    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title("Fig. 1 throw bunnies, top view", fontsize=9)
+    plot_history(ax_h, result, "J", "objective (x - x*)^2 + (z - z*)^2", fontsize=9)
+    save_figure(fig, path, comm)
+
+
 def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     """Optimise the throw; returns the report (printed on rank 0)."""
     run = parse_args(argv, comm)
@@ -178,7 +233,12 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
         f"second bunny's final centre (x, z) ({c0[0]:.4f}, {c0[2]:.4f}) -> ({c1[0]:.5f}, "
         f"{c1[2]:.5f}), spot {SPOT}"
     )
-    return finish_transient(run, report, model, result, [], figures, headline)
+    trajectories = {"initial": keeper.first, "final": keeper.last}
+
+    def figure(path):
+        plot(path, model, sim, trajectories, result, comm)
+
+    return finish_transient(run, report, model, result, [], figures, headline, figure)
 
 
 if __name__ == "__main__":

@@ -301,9 +301,10 @@ def test_paper_throw_bunnies_demo_tiny(tmp_path):
 
     _scene_file("fig1_bunnies/opt.json")
     report = load_demo("paper_throw_bunnies").main(
-        ["--tiny", "--no-plot", "--out", str(tmp_path), "--data", str(DIFFIPC)]
+        ["--tiny", "--out", str(tmp_path), "--data", str(DIFFIPC)]
     )
     assert report.passed, report.summary()
+    assert (tmp_path / "paper_throw_bunnies.png").stat().st_size > 10_000  # the top view
     assert report.extra["dofs"] == 6183 and report.extra["steps"] == 2
     # the second bunny (rest centre x = 0.875), hit in the first step, moved along +x, the more
     # with the optimised throw
