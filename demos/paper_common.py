@@ -49,7 +49,7 @@ __all__ = [
     "paper_report",
     "paper_setup",
     "plot_paths",
-    "recovery_figures",
+    "recovery_outcome",
     "scenes",
     "target_objective",
 ]
@@ -337,17 +337,40 @@ def contact_figures(contact, final) -> dict:
     }
 
 
-def recovery_figures(name: str, true, initial, final, errors, contact, trajectory) -> dict:
-    """report.extra of a recovery of ``name`` (true, initial, final values, relative errors).
+def recovery_outcome(run, result, sim, trajectories: dict, name: str, values: tuple, rtol: float):
+    """The report and report.extra of the recovery of a parameter ``name`` (true, initial, final).
 
-    The keys: ``<name>_true``, ``_initial``, ``_final``, ``_error_initial``, ``_error_final``
-    (``errors``: the initial and the final relative error) and :func:`contact_figures` of the
-    final run ``trajectory``.
+    The relative errors of the initial and the final value (vector norms), the outcome "relative
+    error of the recovered <name>" below ``rtol`` (:func:`paper_report`), and the figures
+    ``<name>_true``, ``_initial``, ``_final``, ``_error_initial``, ``_error_final`` with
+    :func:`contact_figures` of the final run.
+
+    Args:
+        run: The DemoRun.
+        result: The OptimizationResult.
+        sim: The Simulation of the trajectories.
+        trajectories: ``optimise_paths``'s trajectories (checked; "final" is the last run).
+        name: The parameter's name in the report.
+        values: (true, initial, final, contact): the parameter's values (floats or arrays)
+            and the contact term.
+        rtol: The relative error the recovery must reach.
+
+    Returns:
+        (report, figures, (initial error, final error))
     """
-    values = {"true": true, "initial": initial, "final": final}
-    values.update({"error_initial": errors[0], "error_final": errors[1]})
-    figures = {f"{name}_{key}": value for key, value in values.items()}
-    return {**figures, **contact_figures(contact, trajectory)}
+    contact = values[3]
+    true, initial, final = (np.atleast_1d(np.asarray(v, dtype=float)) for v in values[:3])
+    errors = tuple(float(np.linalg.norm(v - true) / np.linalg.norm(true)) for v in (initial, final))
+    scalar = true.size == 1
+    shown = [f"{v[0]:.7g}" if scalar else str(np.round(v, 6).tolist()) for v in (initial, final)]
+    shown.append(f"{true[0]:g}" if scalar else str(true.tolist()))
+    text = f"({shown[0]} -> {shown[1]}, true {shown[2]})"
+    report = paper_report(run, result, sim, trajectories, contact, (name, errors[1], rtol, text))
+    listed = {"true": true, "initial": initial, "final": final}
+    figures = {f"{name}_{k}": float(v[0]) if scalar else v.tolist() for k, v in listed.items()}
+    figures.update({f"{name}_error_initial": errors[0], f"{name}_error_final": errors[1]})
+    figures.update(contact_figures(contact, trajectories["final"]))
+    return report, figures, errors
 
 
 def finish_paper(run, report, model, result, figures: dict, headline: str, paths, title: str):

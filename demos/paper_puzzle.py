@@ -35,9 +35,8 @@ from paper_common import (
     finish_paper,
     gradient_stop_options,
     optimise_paths,
-    paper_report,
     paper_setup,
-    recovery_figures,
+    recovery_outcome,
     scenes,
     target_objective,
 )
@@ -87,16 +86,13 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     args = run.args
     model, contact, sim, rf, target, true, q0, opt = paper_setup(run, setup)
     options = gradient_stop_options(opt, args.iterations, max_change=2.0)
-    result, keeper, trajs = optimise_paths(run, rf, q0, options, target)
+    result, _, trajs = optimise_paths(run, rf, q0, options, target)
     com = center_of_mass(model, PIECE)
     paths = {k: series_values(sim, com, t) for k, t in trajs.items()}
-    error0 = float(np.linalg.norm(q0 - true) / np.linalg.norm(true))
-    error1 = float(np.linalg.norm(result.q - true) / np.linalg.norm(true))
-
-    text = f"({q0.tolist()} -> {np.round(result.q, 6).tolist()}, true {true.tolist()})"
-    report = paper_report(run, result, sim, trajs, contact, ("v0", error1, RECOVERY_RTOL, text))
-    values = (true.tolist(), q0.tolist(), result.q.tolist(), (error0, error1))
-    figures = recovery_figures("v0", *values, contact, keeper.last)
+    values = (true, q0, result.q, contact)
+    report, figures, (error0, error1) = recovery_outcome(
+        run, result, sim, trajs, "v0", values, RECOVERY_RTOL
+    )
     headline = (
         f"paper_puzzle (Fig. 14): v0 {q0.tolist()} -> {np.round(result.q, 5).tolist()} "
         f"(true {true.tolist()}); relative error {error0:.3f} -> {error1:.2e}; "

@@ -56,9 +56,8 @@ from paper_common import (
     gradient_stop_options,
     optimise_paths,
     paper_functional,
-    paper_report,
     paper_setup,
-    recovery_figures,
+    recovery_outcome,
 )
 
 import diffsolids as ds
@@ -139,18 +138,15 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     args = run.args
     model, contact, sim, rf, target, true, q0, opt = paper_setup(run, setup)
     options = gradient_stop_options(opt, args.iterations, initial_step=0.5, max_change=0.5)
-    result, keeper, trajs = optimise_paths(run, rf, np.log(q0), options, target)
+    result, _, trajs = optimise_paths(run, rf, np.log(q0), options, target)
     com = center_of_mass(model, BUNNY)
     # the slide runs along z, gravity along -y: the paths in the (z, y) plane
     paths = {k: series_values(sim, com, t)[:, [2, 1]] for k, t in trajs.items()}
     mu = float(np.exp(result.q[0]))
-    error0 = float(abs(q0[0] - true[0]) / true[0])
-    error1 = float(abs(mu - true[0]) / true[0])
-
-    text = f"({q0[0]:g} -> {mu:.6f}, true {true[0]:g})"
-    report = paper_report(run, result, sim, trajs, contact, ("mu", error1, RECOVERY_RTOL, text))
-    values = (float(true[0]), float(q0[0]), mu, (error0, error1))
-    figures = recovery_figures("mu", *values, contact, keeper.last)
+    values = (true[0], q0[0], mu, contact)
+    report, figures, (error0, error1) = recovery_outcome(
+        run, result, sim, trajs, "mu", values, RECOVERY_RTOL
+    )
     figures["eps_v"] = contact.eps_v
     headline = (
         f"paper_sliding_bunny (Fig. 21): mu {q0[0]:g} -> {mu:.5f} (true {true[0]:g}); "

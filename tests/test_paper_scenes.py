@@ -309,3 +309,19 @@ def test_paper_throw_bunnies_demo_tiny(tmp_path):
     # the second bunny (rest centre x = 0.875), hit in the first step, moved along +x, the more
     # with the optimised throw
     assert report.extra["centre_final"][0] > report.extra["centre_initial"][0] > 0.876
+
+
+@pytest.mark.slow
+def test_paper_sliding_bunny_demo_tiny(tmp_path):
+    from demo_modules import load_demo
+
+    _scene_file("fig21_friction_bunny/opt.json")
+    report = load_demo("paper_sliding_bunny").main(
+        ["--tiny", "--out", str(tmp_path), "--data", str(DIFFIPC)]
+    )
+    assert report.passed, report.summary()
+    assert report.extra["dofs"] == 2799 and report.extra["steps"] == 3
+    # one L-BFGS iteration moves mu from 0.5 towards the target run's 0.1
+    assert report.extra["mu_initial"] == 0.5 and 0.1 < report.extra["mu_final"] < 0.5
+    assert report.extra["mu_error_final"] < report.extra["mu_error_initial"] == 4.0
+    assert (tmp_path / "paper_sliding_bunny.png").stat().st_size > 10_000
