@@ -132,19 +132,26 @@ def add_data_argument(parser) -> None:
     )
 
 
+# where an experiment's folder may sit under --data: the folder itself, a checkout of the
+# paper's data repository (json_scripts/), the parent of the shared subset (diffipc/)
+DATA_LAYOUTS = (".", "json_scripts", "diffipc")
+
+
 def experiment(data: Path, folder: str) -> tuple[Path, dict]:
-    """The folder of an experiment and its ``opt.json``.
+    """The folder of an experiment (under ``data`` as in :data:`DATA_LAYOUTS`) and its ``opt.json``.
 
     Raises:
         FileNotFoundError: The folder or its opt.json is missing (names ``--data``).
     """
-    path = Path(data) / folder
-    if not (path / "opt.json").is_file():
-        raise FileNotFoundError(
-            f"no {folder}/opt.json under {data}: pass --data DIR, the folder of the paper's "
-            "scene data (json_scripts/ of Huangzizhou/DiffIPC-data), or set DIFFSOLIDS_DATA"
-        )
-    return path, json.loads((path / "opt.json").read_text())
+    for layout in DATA_LAYOUTS:
+        path = Path(data) / layout / folder
+        if (path / "opt.json").is_file():
+            return path.resolve(), json.loads((path / "opt.json").read_text())
+    raise FileNotFoundError(
+        f"no {folder}/opt.json under {data} (nor under its json_scripts/ or diffipc/): pass "
+        "--data DIR, the folder of the paper's scene data (a checkout of "
+        "Huangzizhou/DiffIPC-data, or its json_scripts/), or set DIFFSOLIDS_DATA"
+    )
 
 
 def scenes(path: Path, opt: dict) -> tuple[PolyFEMScene, PolyFEMScene | None]:
@@ -235,6 +242,7 @@ def build(
     area_weighting: bool = False,
     simulation: type = TargetSimulation,
     contact_options: dict | None = None,
+    dt: float | None = None,
     **solver_options: float | str,
 ):
     """The scene's model, contact term and a TargetSimulation of its first ``steps`` steps.
@@ -249,6 +257,7 @@ def build(
             with the suggested kappa only with it, see bench_paper).
         simulation: The Simulation class (TargetSimulation or ContinuationSimulation).
         contact_options: Further ContactTerm arguments (e.g. ``hessian_projection``).
+        dt: Time step (None: the scene's).
         **solver_options: Further :class:`~diffsolids.SolverOptions` (e.g.
             ``exact_hessian_below``).
 
@@ -257,7 +266,7 @@ def build(
     """
     domain = scene.domain(comm)
     model = scene.model(domain)
-    integrator = ds.BDF(scene.bdf_order, scene.dt, steps or scene.num_steps)
+    integrator = ds.BDF(scene.bdf_order, dt or scene.dt, steps or scene.num_steps)
     # the scenes' soft barriers (kappa 1e5) rest pairs ~1e-11 m apart: only closer than
     # 1e-10 dhat counts as touching in the invariant checks (check_trajectories)
     contact = scene.contact_term(

@@ -295,6 +295,21 @@ def test_missing_data_folder_is_named(tmp_path):
         load_demo("paper_puzzle").main(["--tiny", "--no-plot", "--data", str(tmp_path)])
 
 
+@pytest.mark.parametrize("layout", [".", "json_scripts", "diffipc"])
+def test_data_folder_of_each_layout_is_found(tmp_path, layout):
+    """--data may be the experiments' folder, a data-repository checkout or the subset's parent."""
+    from demo_modules import load_demo
+
+    common = load_demo("paper_common")
+    folder = tmp_path / layout / "fig14_puzzle_piece"
+    folder.mkdir(parents=True)
+    (folder / "opt.json").write_text('{"states": [{"path": "run.json"}]}')
+    path, opt = common.experiment(tmp_path, "fig14_puzzle_piece")
+    assert path == folder.resolve() and opt == {"states": [{"path": "run.json"}]}
+    with pytest.raises(FileNotFoundError, match=r"no fig20_kangaroo/opt\.json under"):
+        common.experiment(tmp_path, "fig20_kangaroo")
+
+
 @pytest.mark.slow
 def test_paper_throw_bunnies_demo_tiny(tmp_path):
     from demo_modules import load_demo
