@@ -242,7 +242,6 @@ def build(
     area_weighting: bool = False,
     simulation: type = TargetSimulation,
     contact_options: dict | None = None,
-    dt: float | None = None,
     **solver_options: float | str,
 ):
     """The scene's model, contact term and a TargetSimulation of its first ``steps`` steps.
@@ -257,7 +256,6 @@ def build(
             with the suggested kappa only with it, see bench_paper).
         simulation: The Simulation class (TargetSimulation or ContinuationSimulation).
         contact_options: Further ContactTerm arguments (e.g. ``hessian_projection``).
-        dt: Time step (None: the scene's).
         **solver_options: Further :class:`~diffsolids.SolverOptions` (e.g.
             ``exact_hessian_below``).
 
@@ -266,7 +264,7 @@ def build(
     """
     domain = scene.domain(comm)
     model = scene.model(domain)
-    integrator = ds.BDF(scene.bdf_order, dt or scene.dt, steps or scene.num_steps)
+    integrator = ds.BDF(scene.bdf_order, scene.dt, steps or scene.num_steps)
     # the scenes' soft barriers (kappa 1e5) rest pairs ~1e-11 m apart: only closer than
     # 1e-10 dhat counts as touching in the invariant checks (check_trajectories)
     contact = scene.contact_term(
