@@ -120,7 +120,7 @@ def test_vectorised_contact_adjoint_equals_the_loops(dim, degree, order, eps_v, 
     assert _rel(vectorised - lagged, reference - lagged) <= TOL
 
     # the mollifier correction, pair by pair (3D), and the whole shape adjoint
-    C = contact._build(ev.x, shape_derivatives=True)
+    C = contact.builder.build(ev.x, shape_derivatives=True)
     x = np.asfortranarray(ev.x)
     mesh = contact.surface.mesh
     if dim == 3:

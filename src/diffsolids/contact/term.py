@@ -63,6 +63,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from diffsolids.contact.checks import body_label, close_pairs, intersecting_pairs, pair_label
+from diffsolids.contact.collisions import CollisionBuilder
 from diffsolids.contact.diagnostics import body_forces, failure_report, obstacle_move_error
 from diffsolids.contact.evaluation import (
     Evaluation,
@@ -237,6 +238,9 @@ class ContactTerm(NumericTerm):
         self.friction_potential = ipctk.FrictionPotential(self.eps_v)
         self.broad_phase = ipctk.LBVH()
         self.partition = CollisionPartition(self.comm)
+        self.builder = CollisionBuilder(
+            self.surface, self.broad_phase, self.partition, self.dhat, self.area_weighting
+        )
         if narrow_phase == "additive":
             ccd = ipctk.AdditiveCCD()
         elif narrow_phase == "tight_inclusion":
@@ -265,10 +269,8 @@ class ContactTerm(NumericTerm):
         self._free_key = None
         self._free = np.ones(self.surface.num_vertices * self.dim, dtype=bool)
         self._forward_step: int | None = None
-        self._segment = None
         self._tangential = None
         self._pattern_memo = None
-        self._shape_builds: list[tuple] = []
 
     @property
     def ccd(self) -> ipctk.NarrowPhaseCCD:
@@ -369,7 +371,7 @@ class ContactTerm(NumericTerm):
         self._eval = None
         self._tangential = None
         self._lagged = None
-        self._segment = None
+        self.builder.segment = None
         forward = len(traj.u) == i
         if forward and (self._forward_step is None or i != self._forward_step + 1):
             self.records = []
@@ -454,51 +456,6 @@ class ContactTerm(NumericTerm):
             return False
         return self._free
 
-    def _build(self, x: np.ndarray, shape_derivatives: bool = False) -> ipctk.NormalCollisions:
-        """This rank's share of the collision set at positions x (weight gradients when asked).
-
-        The whole set is built on every rank (the same on all), then only this rank's
-        collisions are kept (:meth:`CollisionPartition.keep_share`).
-
-        The sets with weight gradients are kept for the last two positions (same collision mesh
-        and static mask): the adjoint of step i builds them at x^i and, for the lagged
-        friction, at x^{i-1}, where the adjoint of step i - 1 needs its own again.
-        """
-        surf = self.surface
-        if shape_derivatives:
-            for mesh, static, xc, C in self._shape_builds:
-                if mesh is surf.mesh and static is surf.static and np.array_equal(xc, x):
-                    return C
-        C = ipctk.NormalCollisions()
-        C.use_area_weighting = self.area_weighting
-        C.enable_shape_derivatives = shape_derivatives
-        C.build(surf.mesh, np.asfortranarray(x), self.dhat, 0.0, self.broad_phase)
-        self.partition.keep_share(C)
-        if shape_derivatives:
-            self._shape_builds = [(surf.mesh, surf.static, np.array(x), C), *self._shape_builds[:1]]
-        return C
-
-    def _build_on_segment(self, U: np.ndarray, x: np.ndarray) -> ipctk.NormalCollisions:
-        """Collision set at x, reusing the CCD candidates when x lies on the last checked step.
-
-        The line search only visits points x0 + t dx, t in [0, 1], of the segment the CCD swept
-        (to 2 dx) with boxes inflated by dhat: its candidates contain every pair within dhat
-        there, so only the narrow phase runs.
-        """
-        seg = self._segment
-        if seg is not None:
-            U0, dU, candidates, token = seg
-            if token == self._token:
-                diff = U - U0
-                t = float(np.vdot(diff, dU) / np.vdot(dU, dU))
-                tol = 1e-10 * (np.abs(U0).max() + np.abs(dU).max())
-                if -1e-12 <= t <= _CCD_REACH and np.abs(diff - t * dU).max() <= tol:
-                    C = ipctk.NormalCollisions()
-                    C.use_area_weighting = self.area_weighting
-                    C.build(candidates, self.surface.mesh, np.asfortranarray(x), self.dhat, 0.0)
-                    return self.partition.keep_share(C)
-        return self._build(x)
-
     def _lagged_state(
         self, shape_derivatives: bool = False
     ) -> tuple[np.ndarray, ipctk.NormalCollisions]:
@@ -507,7 +464,7 @@ class ContactTerm(NumericTerm):
         cached = getattr(self, "_lagged", None) or {}
         if key not in cached:
             x = self.surface.rest_positions + self._step["lagged"]
-            cached[key] = (x, self._build(x, shape_derivatives))
+            cached[key] = (x, self.builder.build(x, shape_derivatives))
             self._lagged = cached
         return cached[key]
 
@@ -555,7 +512,7 @@ class ContactTerm(NumericTerm):
             return ev
         x = self.surface.rest_positions + U
         with self._timed("build"):
-            C = self._build_on_segment(U, x)
+            C = self.builder.build_on_segment(U, x, self._token)
         ev = Evaluation(U, x, C, self._token)
         ev.extras["friction"] = T
         self._eval = ev
@@ -811,7 +768,7 @@ class ContactTerm(NumericTerm):
         x1 = np.asfortranarray(x0 + _CCD_REACH * dU)
         with self._timed("ccd"):
             toi, candidates = self._collision_free_fraction(U0, x0, x1, with_candidates=True)
-        self._segment = (U0, dU, candidates, self._token)
+        self.builder.segment = (U0, dU, candidates, self._token)
         return toi * _CCD_REACH
 
     def _collision_free_fraction(
@@ -862,7 +819,7 @@ class ContactTerm(NumericTerm):
                 f"the configuration at step {step} intersects: {'; '.join(pairs) or 'unknown'}"
                 " (separate the bodies or fix the mesh)"
             )
-        C = self._build(x)
+        C = self.builder.build(x)
         dist = self.partition.minimum_distance(C, mesh, x)
         if dist <= self.min_gap * self.dhat:
             gap = self.min_gap * self.dhat
@@ -997,7 +954,7 @@ class ContactTerm(NumericTerm):
         ev = self._evaluate(u)
         lam_c = self._lambda(lam)
         mesh = self.surface.mesh
-        C = self._build(ev.x, shape_derivatives=True)
+        C = self.builder.build(ev.x, shape_derivatives=True)
         x = np.asfortranarray(ev.x)
         g = barrier_shape_adjoint(C, mesh, x, self.barrier, self.stiffness, lam_c)
         if np.any(self._mu > 0):
