@@ -59,7 +59,6 @@ import ipctk
 import numpy as np
 import scipy.sparse as sp
 from dolfinx import fem
-from mpi4py import MPI
 from petsc4py import PETSc
 
 from diffsolids.contact.checks import body_label, close_pairs, intersecting_pairs, pair_label
@@ -71,6 +70,7 @@ from diffsolids.contact.evaluation import (
     contact_gradient,
     contact_hessian,
 )
+from diffsolids.contact.free_dofs import FreeDofs
 from diffsolids.contact.friction_adjoint import friction_weight_adjoint
 from diffsolids.contact.friction_table import (
     body_pairs,
@@ -93,7 +93,6 @@ from diffsolids.contact.surface import CollisionSurface, _contains, block_patter
 from diffsolids.contact.timing import timed, timed_kernel, timing_summary
 from diffsolids.errors import IntersectionError, ParameterError
 from diffsolids.model.numeric import NumericTerm
-from diffsolids.parallel import collective_comm
 from diffsolids.solvers.sparsity import sorted_unique
 
 if TYPE_CHECKING:
@@ -266,8 +265,7 @@ class ContactTerm(NumericTerm):
         self._token = 0
         self._eval: Evaluation | None = None
         self._step = None
-        self._free_key = None
-        self._free = np.ones(self.surface.num_vertices * self.dim, dtype=bool)
+        self.free_dofs = FreeDofs(self.surface, self.comm, self.dim)
         self._forward_step: int | None = None
         self._tangential = None
         self._pattern_memo = None
@@ -433,28 +431,8 @@ class ContactTerm(NumericTerm):
         return step_motion(self.surface, len(self.body_ids), i, traj, coeffs.dt)
 
     def _update_static(self) -> None:
-        if self._free_mask(self.model.dirichlet_dofs(), static=True):
+        if self.free_dofs.update_static(self.model.dirichlet_dofs()):
             self._token += 1
-
-    def _free_mask(self, bc_dofs: np.ndarray, static: bool = False) -> np.ndarray | bool:
-        """Free collision dofs for these (local) Dirichlet dofs; collective.
-
-        With ``static``, also mark fully prescribed vertices as static obstacles and return
-        whether anything changed.
-        """
-        bc = np.asarray(bc_dofs)
-        key = (len(bc), hash(bc.tobytes()))
-        changed = collective_comm(self.comm).allreduce(key != self._free_key, op=MPI.LOR)
-        if changed:
-            self._free = ~self.surface.dof_mask(bc)
-            self._free_key = key
-        if static:
-            if changed or self.surface.static is None:
-                fixed = ~self._free.reshape(-1, self.dim)
-                self.surface.set_static(fixed.all(axis=1))
-                return True
-            return False
-        return self._free
 
     def _lagged_state(
         self, shape_derivatives: bool = False
@@ -669,7 +647,7 @@ class ContactTerm(NumericTerm):
             project: Add the PSD-projected Hessian (Newton fallback) instead of the exact one.
         """
         ev = self._evaluate(u)
-        free = self._free_mask(bc_dofs)
+        free = self.free_dofs.mask(bc_dofs)
         H = self._hessian(ev, project)
         keep = self._blocks(ev) if project else None
         with self._timed("insert"):
@@ -695,7 +673,7 @@ class ContactTerm(NumericTerm):
             bc_dofs: Local indices of Dirichlet dofs.
         """
         ev = self._evaluate(u)
-        free = self._free_mask(bc_dofs)
+        free = self.free_dofs.mask(bc_dofs)
         d = self.surface.gather(np.asarray(increment)).ravel()
         d[free] = 0.0
         if not np.any(d):
@@ -724,15 +702,15 @@ class ContactTerm(NumericTerm):
         """Global (rows, cols) of the entries :meth:`add_jacobian` may add at ``u`` (owned rows)."""
         ev = self._evaluate(u)
         blocks = self._blocks(ev)
-        free = self._free_mask(bc_dofs)
+        free = self.free_dofs.mask(bc_dofs)
         memo = self._pattern_memo
         # the same arrays while the pattern is unchanged: the solver then skips its checks
         same = memo is not None and (memo[0] is blocks or np.array_equal(memo[0], blocks))
-        if same and memo[1] == self._free_key:
+        if same and memo[1] == self.free_dofs.key:
             return memo[2]
         with self._timed("pattern"):
             entries = self.surface.matrix_entries(blocks, free)
-        self._pattern_memo = (blocks, self._free_key, entries)
+        self._pattern_memo = (blocks, self.free_dofs.key, entries)
         return entries
 
     def max_step(self, x: PETSc.Vec, dx: PETSc.Vec) -> float:
