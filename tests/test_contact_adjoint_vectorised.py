@@ -66,7 +66,8 @@ def _reference_ee_correction(collisions, mesh, x: np.ndarray, barrier, stiffness
 
 
 def _reference_friction_rest_adjoint(self: ContactTerm, ev, lam_c: np.ndarray) -> np.ndarray:
-    T = self._tangential_collisions(self._mu_table(self._mu), shape_derivatives=True)
+    lagging = self.lagging
+    T = lagging.tangential_collisions(lagging.mu_table(lagging.mu), self.barrier, True)
     Jl = self._friction_jacobian(ev, T, ipctk.FrictionPotential.DiffWRT.LAGGED_DISPLACEMENTS)
     out = Jl.T @ lam_c
     if not self.area_weighting:
@@ -75,7 +76,7 @@ def _reference_friction_rest_adjoint(self: ContactTerm, ev, lam_c: np.ndarray) -
     E, F = mesh.edges, mesh.faces
     X = self.surface.rest_positions
     U = self._step["lagged"]
-    V = self._velocity(ev.U)
+    V = lagging.velocity(ev.U)
     lam = lam_c.reshape(-1, d)
     potential, barrier = self.friction_potential, self.barrier
     for group in (T.vv_collisions, T.ev_collisions, T.ee_collisions, T.fv_collisions):
@@ -103,7 +104,8 @@ def test_vectorised_contact_adjoint_equals_the_loops(dim, degree, order, eps_v, 
     lam = _Checker(model, contact, u).random()
     ev = contact._evaluate(u)
     lam_c = contact._lambda(lam)
-    T = contact._tangential_collisions(contact._mu_table(contact._mu), shape_derivatives=True)
+    lagging = contact.lagging
+    T = lagging.tangential_collisions(lagging.mu_table(lagging.mu), contact.barrier, True)
     assert len(T) > 0
     ids, kind, _ = _gather(T, contact.surface.mesh)
     E, F = contact.surface.mesh.edges, contact.surface.mesh.faces

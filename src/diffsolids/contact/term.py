@@ -74,10 +74,9 @@ from diffsolids.contact.free_dofs import FreeDofs
 from diffsolids.contact.friction_adjoint import friction_weight_adjoint
 from diffsolids.contact.friction_table import (
     body_pairs,
-    checked_coefficients,
     coefficients_of,
-    tangential_collisions,
 )
+from diffsolids.contact.lagging import LaggedFriction
 from diffsolids.contact.obstacle import Obstacle
 from diffsolids.contact.partition import CollisionPartition
 from diffsolids.contact.reach import reach_blocks, step_motion
@@ -253,21 +252,22 @@ class ContactTerm(NumericTerm):
         )
         self.friction_pairs: list[tuple[int, int]]
         self.friction_pairs, self._pair_index = body_pairs(self.body_ids)
-        self._mu = np.zeros(len(self.friction_pairs))
+        self.timings: dict[str, list] = {}
+        self.lagging = LaggedFriction(
+            self.surface, self.builder, self._pair_index, len(self.friction_pairs), self.timings
+        )
         self.friction_coefficients = coefficients_of(
             friction, len(self.friction_pairs), self.pair_index
         )
         self.records: list[ContactRecord] = []
         # forward steps whose obstacle move was made with the body's initial guess
         self.moved_with_guess: list[int] = []
-        self.timings: dict[str, list] = {}
         self.force_function = fem.Function(model.V, name="contact_force")
         self._token = 0
         self._eval: Evaluation | None = None
         self._step = None
         self.free_dofs = FreeDofs(self.surface, self.comm, self.dim)
         self._forward_step: int | None = None
-        self._tangential = None
         self._pattern_memo = None
 
     @property
@@ -308,18 +308,15 @@ class ContactTerm(NumericTerm):
     @property
     def friction_coefficients(self) -> np.ndarray:
         """Friction coefficient of each pair in :attr:`friction_pairs` (a copy; assign to set)."""
-        return self._mu.copy()
+        return self.lagging.mu.copy()
 
     @friction_coefficients.setter
     def friction_coefficients(self, values: np.ndarray | Sequence[float]) -> None:
-        mu = checked_coefficients(values, len(self.friction_pairs))
-        if not np.array_equal(mu, self._mu):
-            self._mu = mu
-            self._tangential = None  # rebuilt lazily for the current step
+        self.lagging.set_coefficients(values)
 
     def set_friction(self, body_a: int | str, body_b: int | str, mu: float) -> None:
         """Set the friction coefficient between two bodies (the same body for self-contact)."""
-        values = self._mu.copy()
+        values = self.lagging.mu.copy()
         values[self.pair_index(body_a, body_b)] = mu
         self.friction_coefficients = values
 
@@ -367,8 +364,7 @@ class ContactTerm(NumericTerm):
         }
         self._token += 1
         self._eval = None
-        self._tangential = None
-        self._lagged = None
+        self.lagging.begin_step(self._step)
         self.builder.segment = None
         forward = len(traj.u) == i
         if forward and (self._forward_step is None or i != self._forward_step + 1):
@@ -434,41 +430,14 @@ class ContactTerm(NumericTerm):
         if self.free_dofs.update_static(self.model.dirichlet_dofs()):
             self._token += 1
 
-    def _lagged_state(
-        self, shape_derivatives: bool = False
-    ) -> tuple[np.ndarray, ipctk.NormalCollisions]:
-        """(positions, collisions) at x^{i-1}; with weight gradients when asked."""
-        key = "lagged_shape" if shape_derivatives else "lagged"
-        cached = getattr(self, "_lagged", None) or {}
-        if key not in cached:
-            x = self.surface.rest_positions + self._step["lagged"]
-            cached[key] = (x, self.builder.build(x, shape_derivatives))
-            self._lagged = cached
-        return cached[key]
-
-    def _tangential_collisions(
-        self, mu_table: np.ndarray, shape_derivatives: bool = False
-    ) -> ipctk.TangentialCollisions:
-        x, C = self._lagged_state(shape_derivatives)
-        return tangential_collisions(self.surface, x, C, self.barrier, mu_table)
-
-    def _mu_table(self, coefficients: np.ndarray) -> np.ndarray:
-        return coefficients[self._pair_index]
-
     def _friction(self) -> ipctk.TangentialCollisions | None:
         """The step's TangentialCollisions with the current coefficients (None if all mu = 0)."""
         if self._step is None:
             raise ParameterError("ContactTerm.begin_step must be called before evaluations")
-        if not np.any(self._mu > 0):
-            return None
-        if self._tangential is None:
-            with self._timed("lagged_friction"):
-                self._tangential = self._tangential_collisions(self._mu_table(self._mu))
+        T, built = self.lagging.current(self.barrier)
+        if built:
             self._token += 1
-        return self._tangential
-
-    def _velocity(self, U: np.ndarray) -> np.ndarray:
-        return U / self._step["beta_dt"] + self._step["v_offset"]
+        return T
 
     # -- evaluation cache --------------------------------------------------------------------
     def _timed(self, name: str) -> contextlib.AbstractContextManager:
@@ -508,7 +477,7 @@ class ContactTerm(NumericTerm):
                 self.friction_potential,
                 self.surface.mesh,
                 ev,
-                self._friction_velocity(ev),
+                self.lagging.friction_velocity(ev),
                 self._step["beta_dt"],
             )
             ev.energy = self.partition.total(e)
@@ -526,7 +495,7 @@ class ContactTerm(NumericTerm):
                 self.friction_potential,
                 self.surface.mesh,
                 ev,
-                self._friction_velocity(ev),
+                self.lagging.friction_velocity(ev),
             )
         with self._timed("reduce"):
             ev.gradient = self.partition.sum(g)
@@ -547,16 +516,12 @@ class ContactTerm(NumericTerm):
         return getattr(ev, attr)
 
     def _hessian_now(self, ev: Evaluation, attr: str, method: ipctk.PSDProjectionMethod) -> None:
-        V = self._friction_velocity(ev)
+        V = self.lagging.friction_velocity(ev)
         beta_dt = self._step["beta_dt"] if V is not None else 1.0
         H = contact_hessian(
             self.barrier, self.friction_potential, self.surface.mesh, ev, V, beta_dt, method
         )
         setattr(ev, attr, H)
-
-    def _friction_velocity(self, ev: Evaluation) -> np.ndarray | None:
-        """The velocity at ev when the step has friction (None without)."""
-        return None if ev.extras["friction"] is None else self._velocity(ev.U)
 
     def _blocks(self, ev: Evaluation) -> np.ndarray:
         """Vertex-block pattern of the Newton matrix at ev (exact Hessian + friction stencils).
@@ -868,7 +833,7 @@ class ContactTerm(NumericTerm):
         T: ipctk.TangentialCollisions,
         wrt: ipctk.FrictionPotential.DiffWRT,
     ) -> sp.csc_matrix:
-        V = np.asfortranarray(self._velocity(ev.U))
+        V = np.asfortranarray(self.lagging.velocity(ev.U))
         return sp.csc_matrix(
             self.friction_potential.force_jacobian(
                 T,
@@ -935,7 +900,7 @@ class ContactTerm(NumericTerm):
         C = self.builder.build(ev.x, shape_derivatives=True)
         x = np.asfortranarray(ev.x)
         g = barrier_shape_adjoint(C, mesh, x, self.barrier, self.stiffness, lam_c)
-        if np.any(self._mu > 0):
+        if self.lagging.active:
             g = g - self._friction_rest_adjoint(ev, lam_c)
         g = self.partition.sum(g)  # this rank's collisions: summed over the ranks
         Sspace = self.model.shape_space
@@ -963,18 +928,20 @@ class ContactTerm(NumericTerm):
         out = self._lagged_jacobian(ev).T @ lam_c
         if not self.area_weighting:
             return out
-        T = self._tangential_collisions(self._mu_table(self._mu), shape_derivatives=True)
+        T = self.lagging.tangential_collisions(
+            self.lagging.mu_table(self.lagging.mu), self.barrier, shape_derivatives=True
+        )
         x = self.surface.rest_positions + self._step["lagged"]
         return out + friction_weight_adjoint(
             T,
             self.surface.mesh,
             x,
-            self._velocity(ev.U),
+            self.lagging.velocity(ev.U),
             lam_c,
             self.barrier,
             self.stiffness,
             self.eps_v,
-            self._mu_table(self._mu),
+            self.lagging.mu_table(self.lagging.mu),
             self.surface.body_index,
         )
 
@@ -1017,12 +984,12 @@ class ContactTerm(NumericTerm):
         """
         ev = self._evaluate(u)
         lam_c = self._lambda(lam)
-        V = np.asfortranarray(self._velocity(ev.U))
+        V = np.asfortranarray(self.lagging.velocity(ev.U))
         out = np.zeros(len(self.friction_pairs))
         for p in range(len(self.friction_pairs)):
             unit = np.zeros(len(self.friction_pairs))
             unit[p] = 1.0
-            T = self._tangential_collisions(self._mu_table(unit))
+            T = self.lagging.tangential_collisions(self.lagging.mu_table(unit), self.barrier)
             if len(T):
                 out[p] = self.friction_potential.gradient(T, self.surface.mesh, V) @ lam_c
         return self.partition.sum(out)
