@@ -66,9 +66,6 @@ from diffsolids.contact.collisions import CollisionBuilder
 from diffsolids.contact.diagnostics import body_forces, failure_report, obstacle_move_error
 from diffsolids.contact.evaluation import (
     Evaluation,
-    contact_energy,
-    contact_gradient,
-    contact_hessian,
 )
 from diffsolids.contact.free_dofs import FreeDofs
 from diffsolids.contact.friction_adjoint import friction_weight_adjoint
@@ -79,6 +76,7 @@ from diffsolids.contact.friction_table import (
 from diffsolids.contact.lagging import LaggedFriction
 from diffsolids.contact.obstacle import Obstacle
 from diffsolids.contact.partition import CollisionPartition
+from diffsolids.contact.potential import ContactPotential
 from diffsolids.contact.reach import reach_blocks, step_motion
 from diffsolids.contact.shape import barrier_shape_adjoint
 from diffsolids.contact.step_bound import (  # noqa: F401  (test_soft_barrier imports them here)
@@ -209,7 +207,6 @@ class ContactTerm(NumericTerm):
         self.comm = model.domain.comm
         self.dim = model.dim
         self.dhat = float(dhat)
-        self.stiffness = None if stiffness is None else float(stiffness)
         self.eps_v = float(eps_v)
         self.area_weighting = bool(area_weighting)
         self.min_gap = float(min_gap)
@@ -230,9 +227,6 @@ class ContactTerm(NumericTerm):
         self._obstacle_names = {o.name: b for o, b in pairs if o.name}
         self._clock = None
         self._dynamic = True
-        self.barrier = None
-        if self.stiffness is not None:
-            self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness)
         self.friction_potential = ipctk.FrictionPotential(self.eps_v)
         self.broad_phase = ipctk.LBVH()
         self.partition = CollisionPartition(self.comm)
@@ -256,6 +250,16 @@ class ContactTerm(NumericTerm):
         self.lagging = LaggedFriction(
             self.surface, self.builder, self._pair_index, len(self.friction_pairs), self.timings
         )
+        self.potential = ContactPotential(
+            self.surface,
+            self.partition,
+            self.lagging,
+            self.friction_potential,
+            self.dhat,
+            None if stiffness is None else float(stiffness),
+            self.projection,
+            self.timings,
+        )
         self.friction_coefficients = coefficients_of(
             friction, len(self.friction_pairs), self.pair_index
         )
@@ -269,6 +273,16 @@ class ContactTerm(NumericTerm):
         self.free_dofs = FreeDofs(self.surface, self.comm, self.dim)
         self._forward_step: int | None = None
         self._pattern_memo = None
+
+    @property
+    def stiffness(self) -> float | None:
+        """Barrier stiffness kappa (None until chosen at the first step)."""
+        return self.potential.stiffness
+
+    @property
+    def barrier(self) -> ipctk.BarrierPotential | None:
+        """Ipctk BarrierPotential with :attr:`stiffness` (None until chosen)."""
+        return self.potential.barrier
 
     @property
     def ccd(self) -> ipctk.NarrowPhaseCCD:
@@ -325,8 +339,7 @@ class ContactTerm(NumericTerm):
         """Fix kappa from the scene (collective): suggest_barrier_stiffness at ``u``."""
         state = fem.Function(self.model.V)
         state.x.array[:] = u
-        self.stiffness = suggest_barrier_stiffness(self, integrator, state)
-        self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness)
+        self.potential.set_stiffness(suggest_barrier_stiffness(self, integrator, state))
         logger.info("contact: barrier stiffness chosen: kappa = %.4g", self.stiffness)
 
     def begin_step(
@@ -465,64 +478,6 @@ class ContactTerm(NumericTerm):
         self._eval = ev
         return ev
 
-    def _energy(self, ev: Evaluation) -> float:
-        if ev.energy is None:
-            self._energy_now(ev)
-        return ev.energy
-
-    def _energy_now(self, ev: Evaluation) -> None:
-        with self._timed("energy"):
-            e = contact_energy(
-                self.barrier,
-                self.friction_potential,
-                self.surface.mesh,
-                ev,
-                self.lagging.friction_velocity(ev),
-                self._step["beta_dt"],
-            )
-            ev.energy = self.partition.total(e)
-
-    def _gradient(self, ev: Evaluation) -> np.ndarray:
-        if ev.gradient is None:
-            self._gradient_now(ev)
-        return ev.gradient
-
-    def _gradient_now(self, ev: Evaluation) -> None:
-        """The gradient summed over the ranks (the same on all); its barrier part kept local."""
-        with self._timed("gradient"):
-            g, ev.extras["barrier_gradient_share"] = contact_gradient(
-                self.barrier,
-                self.friction_potential,
-                self.surface.mesh,
-                ev,
-                self.lagging.friction_velocity(ev),
-            )
-        with self._timed("reduce"):
-            ev.gradient = self.partition.sum(g)
-
-    def _barrier_gradient(self, ev: Evaluation) -> np.ndarray:
-        """The barrier part of the gradient at ev, summed over the ranks (collective)."""
-        if "barrier_gradient" not in ev.extras:
-            self._gradient(ev)
-            ev.extras["barrier_gradient"] = self.partition.sum(ev.extras["barrier_gradient_share"])
-        return ev.extras["barrier_gradient"]
-
-    def _hessian(self, ev: Evaluation, project: bool = False) -> sp.csc_matrix:
-        method = self.projection if project else ipctk.PSDProjectionMethod.NONE
-        attr = "projected" if project else "hessian"
-        if getattr(ev, attr) is None:
-            with self._timed("hessian_projected" if project else "hessian"):
-                self._hessian_now(ev, attr, method)
-        return getattr(ev, attr)
-
-    def _hessian_now(self, ev: Evaluation, attr: str, method: ipctk.PSDProjectionMethod) -> None:
-        V = self.lagging.friction_velocity(ev)
-        beta_dt = self._step["beta_dt"] if V is not None else 1.0
-        H = contact_hessian(
-            self.barrier, self.friction_potential, self.surface.mesh, ev, V, beta_dt, method
-        )
-        setattr(ev, attr, H)
-
     def _blocks(self, ev: Evaluation) -> np.ndarray:
         """Vertex-block pattern of the Newton matrix at ev (exact Hessian + friction stencils).
 
@@ -533,7 +488,7 @@ class ContactTerm(NumericTerm):
         that the matrix pattern stays the same object and the solver's check is free.
         """
         if ev.blocks is None:
-            parts = [self._hessian(ev)]
+            parts = [self.potential.hessian(ev)]
             T = ev.extras["friction"]
             if T is not None:
                 if "friction_pattern" not in self._step:
@@ -587,14 +542,14 @@ class ContactTerm(NumericTerm):
     # -- numeric-term interface (forward) -----------------------------------------------------
     def energy(self, u: fem.Function) -> float:
         """Contact part of the incremental potential (identical on all ranks; collective)."""
-        return self._energy(self._evaluate(u))
+        return self.potential.energy(self._evaluate(u))
 
     def add_residual(self, u: fem.Function, b: PETSc.Vec) -> None:
         """Add the gradient of the contact potential to the owned rows of ``b`` (collective).
 
         The gradient is summed over the ranks' shares first (:meth:`_gradient`).
         """
-        g = self._gradient(self._evaluate(u))
+        g = self.potential.gradient(self._evaluate(u))
         self.surface.add_to_owned(b.array_w, g)
 
     def add_jacobian(
@@ -613,7 +568,7 @@ class ContactTerm(NumericTerm):
         """
         ev = self._evaluate(u)
         free = self.free_dofs.mask(bc_dofs)
-        H = self._hessian(ev, project)
+        H = self.potential.hessian(ev, project)
         keep = self._blocks(ev) if project else None
         with self._timed("insert"):
             self.surface.add_matrix(A, H, free, keep=keep)
@@ -643,7 +598,7 @@ class ContactTerm(NumericTerm):
         d[free] = 0.0
         if not np.any(d):
             return
-        g = self.partition.sum(self._hessian(ev) @ d)
+        g = self.partition.sum(self.potential.hessian(ev) @ d)
         g[~free] = 0.0
         self.surface.add_to_owned(b.array_w, g)
 
@@ -658,7 +613,7 @@ class ContactTerm(NumericTerm):
         ev = self._evaluate(u)
         d = self.surface.gather(np.asarray(direction)).ravel()
         with self._timed("hessian_action"):
-            Hd = self._hessian(ev) @ d
+            Hd = self.potential.hessian(ev) @ d
         with self._timed("reduce"):
             Hd = self.partition.sum(Hd)
         self.surface.add_to_owned(y.array_w, Hd)
@@ -796,8 +751,8 @@ class ContactTerm(NumericTerm):
     def end_step(self, i: int, traj: "StateHistory") -> ContactRecord:
         """Record and log contact forces and the minimum distance of the converged step ``i``."""
         ev = self._evaluate(traj.u[i])
-        g = self._gradient(ev)
-        gb = self._barrier_gradient(ev)
+        g = self.potential.gradient(ev)
+        gb = self.potential.barrier_gradient(ev)
         normal, friction = body_forces(self.surface.body_index, len(self.body_ids), g, gb)
         C = ev.collisions
         count = self.partition.count(C)
@@ -962,7 +917,9 @@ class ContactTerm(NumericTerm):
         if count == 0:
             return failure_report(self.stiffness, self.dhat)
         d = self.partition.minimum_distance(ev.collisions, self.surface.mesh, ev.x)
-        force = float(np.linalg.norm(self._gradient(ev).reshape(-1, self.dim), axis=1).max())
+        force = float(
+            np.linalg.norm(self.potential.gradient(ev).reshape(-1, self.dim), axis=1).max()
+        )
         floor = self.step_bound.floor_held
         floor = self.partition.minimum(np.inf if floor is None else floor)
         return failure_report(
