@@ -76,8 +76,9 @@ from diffsolids.contact.friction_table import (
 from diffsolids.contact.lagging import LaggedFriction
 from diffsolids.contact.obstacle import Obstacle
 from diffsolids.contact.partition import CollisionPartition
+from diffsolids.contact.pattern import ContactPattern
 from diffsolids.contact.potential import ContactPotential
-from diffsolids.contact.reach import reach_blocks, step_motion
+from diffsolids.contact.reach import step_motion
 from diffsolids.contact.shape import barrier_shape_adjoint
 from diffsolids.contact.step_bound import (  # noqa: F401  (test_soft_barrier imports them here)
     _CCD_REACH,
@@ -86,11 +87,10 @@ from diffsolids.contact.step_bound import (  # noqa: F401  (test_soft_barrier im
     _edge_vertex_bounds,
 )
 from diffsolids.contact.stiffness import suggest_barrier_stiffness
-from diffsolids.contact.surface import CollisionSurface, _contains, block_pattern
+from diffsolids.contact.surface import CollisionSurface
 from diffsolids.contact.timing import timed, timed_kernel, timing_summary
 from diffsolids.errors import IntersectionError, ParameterError
 from diffsolids.model.numeric import NumericTerm
-from diffsolids.solvers.sparsity import sorted_unique
 
 if TYPE_CHECKING:
     from diffsolids.integrators import Integrator, TimeStep
@@ -100,11 +100,6 @@ if TYPE_CHECKING:
 __all__ = ["ContactRecord", "ContactTerm"]
 
 logger = logging.getLogger("diffsolids")
-
-# the matrix pattern of a step covers the pairs within this many dhat at u^{i-1} (plus motion)
-_PATTERN_REACH = 2.0
-# ... when no vertex moves farther than this times the step's estimate (ContactTerm._step_motion)
-_MOTION_FACTOR = 1.0
 
 
 def _projection_method(name: str) -> ipctk.PSDProjectionMethod:
@@ -260,6 +255,15 @@ class ContactTerm(NumericTerm):
             self.projection,
             self.timings,
         )
+        self.pattern = ContactPattern(
+            self.surface,
+            self.partition,
+            self.potential,
+            self.friction_potential,
+            self.dhat,
+            self.dim,
+            self.timings,
+        )
         self.friction_coefficients = coefficients_of(
             friction, len(self.friction_pairs), self.pair_index
         )
@@ -272,7 +276,6 @@ class ContactTerm(NumericTerm):
         self._step = None
         self.free_dofs = FreeDofs(self.surface, self.comm, self.dim)
         self._forward_step: int | None = None
-        self._pattern_memo = None
 
     @property
     def stiffness(self) -> float | None:
@@ -478,67 +481,6 @@ class ContactTerm(NumericTerm):
         self._eval = ev
         return ev
 
-    def _blocks(self, ev: Evaluation) -> np.ndarray:
-        """Vertex-block pattern of the Newton matrix at ev (exact Hessian + friction stencils).
-
-        The same on all ranks (collective): the reach pattern and the blocks of every rank's
-        share outside it.
-
-        The step's :meth:`_reach_pattern` itself (the same array) while it holds them all, so
-        that the matrix pattern stays the same object and the solver's check is free.
-        """
-        if ev.blocks is None:
-            parts = [self.potential.hessian(ev)]
-            T = ev.extras["friction"]
-            if T is not None:
-                if "friction_pattern" not in self._step:
-                    # at zero sliding velocity the friction Hessian covers every stencil
-                    zero = np.asfortranarray(np.zeros_like(ev.U))
-                    self._step["friction_pattern"] = self.friction_potential.hessian(
-                        T, self.surface.mesh, zero
-                    )
-                parts.append(self._step["friction_pattern"])
-            surf = self.surface
-            needed = block_pattern(*parts, dim=self.dim, num_vertices=surf.num_vertices)
-            if surf.static is not None:  # blocks of static vertices have no matrix entries
-                a, b = np.divmod(needed, surf.num_vertices)
-                needed = needed[~(surf.static[a] | surf.static[b])]
-            reach = self._reach_pattern()
-            # other ranks add their Hessians' entries to the rows this rank owns: the union
-            outside = self.partition.union(needed[~_contains(reach, needed)])
-            ev.blocks = reach if len(outside) == 0 else sorted_unique(reach, outside)
-        return ev.blocks
-
-    def _reach_pattern(self) -> np.ndarray:
-        """Vertex blocks of the pairs that can meet in the step: a superset for the whole step.
-
-        The stencils of the pairs of primitives whose boxes at u^{i-1}, each grown by
-        ``_PATTERN_REACH / 2`` dhat plus how far its vertices may move in the step
-        (:meth:`_step_motion`; relative to their body for pairs of one body), overlap
-        (:func:`~diffsolids.contact.reach.reach_blocks`). So a new contact rarely needs a
-        larger matrix (a rebuild and a new symbolic factorisation), and the pattern follows
-        the pairs that are near, not the size of the primitives (a coarse obstacle). Left out:
-        pairs of one body that are neighbours on the surface at rest (not contacts), and blocks
-        of static vertices (no matrix entries; a pair with a static primitive adds none but the
-        other primitive's own, which are always in).
-        """
-        step = self._step
-        if "reach" not in step:
-            with self._timed("reach_pattern"):
-                surf = self.surface
-                step["reach"] = reach_blocks(
-                    surf.rest_positions + step["lagged"],
-                    surf.rest_positions,
-                    surf.edges,
-                    surf.faces,
-                    surf.body,
-                    0.5 * _PATTERN_REACH * self.dhat,
-                    _MOTION_FACTOR * step["motion"],
-                    _MOTION_FACTOR * step["deformation"],
-                    surf.static,
-                )
-        return step["reach"]
-
     # -- numeric-term interface (forward) -----------------------------------------------------
     def energy(self, u: fem.Function) -> float:
         """Contact part of the incremental potential (identical on all ranks; collective)."""
@@ -569,7 +511,7 @@ class ContactTerm(NumericTerm):
         ev = self._evaluate(u)
         free = self.free_dofs.mask(bc_dofs)
         H = self.potential.hessian(ev, project)
-        keep = self._blocks(ev) if project else None
+        keep = self.pattern.blocks(ev, self._step) if project else None
         with self._timed("insert"):
             self.surface.add_matrix(A, H, free, keep=keep)
 
@@ -620,18 +562,7 @@ class ContactTerm(NumericTerm):
 
     def matrix_pattern(self, u: fem.Function, bc_dofs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Global (rows, cols) of the entries :meth:`add_jacobian` may add at ``u`` (owned rows)."""
-        ev = self._evaluate(u)
-        blocks = self._blocks(ev)
-        free = self.free_dofs.mask(bc_dofs)
-        memo = self._pattern_memo
-        # the same arrays while the pattern is unchanged: the solver then skips its checks
-        same = memo is not None and (memo[0] is blocks or np.array_equal(memo[0], blocks))
-        if same and memo[1] == self.free_dofs.key:
-            return memo[2]
-        with self._timed("pattern"):
-            entries = self.surface.matrix_entries(blocks, free)
-        self._pattern_memo = (blocks, self.free_dofs.key, entries)
-        return entries
+        return self.pattern.matrix_pattern(self._evaluate(u), self._step, self.free_dofs, bc_dofs)
 
     def max_step(self, x: PETSc.Vec, dx: PETSc.Vec) -> float:
         """Largest a such that the surface moves collision-free along x + s dx, s in [0, a).
