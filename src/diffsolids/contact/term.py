@@ -57,10 +57,10 @@ from typing import TYPE_CHECKING
 
 import ipctk
 import numpy as np
-import scipy.sparse as sp
 from dolfinx import fem
 from petsc4py import PETSc
 
+from diffsolids.contact.adjoint import ContactAdjoint
 from diffsolids.contact.checks import body_label, close_pairs, intersecting_pairs, pair_label
 from diffsolids.contact.collisions import CollisionBuilder
 from diffsolids.contact.diagnostics import body_forces, failure_report, obstacle_move_error
@@ -68,7 +68,6 @@ from diffsolids.contact.evaluation import (
     Evaluation,
 )
 from diffsolids.contact.free_dofs import FreeDofs
-from diffsolids.contact.friction_adjoint import friction_weight_adjoint
 from diffsolids.contact.friction_table import (
     body_pairs,
     coefficients_of,
@@ -79,7 +78,6 @@ from diffsolids.contact.partition import CollisionPartition
 from diffsolids.contact.pattern import ContactPattern
 from diffsolids.contact.potential import ContactPotential
 from diffsolids.contact.reach import step_motion
-from diffsolids.contact.shape import barrier_shape_adjoint
 from diffsolids.contact.step_bound import (  # noqa: F401  (test_soft_barrier imports them here)
     _CCD_REACH,
     _GAP_FLOOR_ULPS,
@@ -254,6 +252,18 @@ class ContactTerm(NumericTerm):
             None if stiffness is None else float(stiffness),
             self.projection,
             self.timings,
+        )
+        self.adjoint = ContactAdjoint(
+            model,
+            self.surface,
+            self.partition,
+            self.builder,
+            self.lagging,
+            self.potential,
+            self.friction_potential,
+            self.area_weighting,
+            self.eps_v,
+            len(self.friction_pairs),
         )
         self.pattern = ContactPattern(
             self.surface,
@@ -705,140 +715,6 @@ class ContactTerm(NumericTerm):
         )
         return rec
 
-    # -- adjoint kernels ---------------------------------------------------------------------
-    def _lambda(self, lam: fem.Function | np.ndarray) -> np.ndarray:
-        values = lam.x.array if isinstance(lam, fem.Function) else np.asarray(lam)
-        return self.surface.gather(values).ravel()
-
-    def _local(self, g: np.ndarray) -> np.ndarray:
-        return self.surface.to_local(g, len(self.model.fields.u.x.array))
-
-    def _friction_jacobian(
-        self,
-        ev: Evaluation,
-        T: ipctk.TangentialCollisions,
-        wrt: ipctk.FrictionPotential.DiffWRT,
-    ) -> sp.csc_matrix:
-        V = np.asfortranarray(self.lagging.velocity(ev.U))
-        return sp.csc_matrix(
-            self.friction_potential.force_jacobian(
-                T,
-                self.surface.mesh,
-                np.asfortranarray(self.surface.rest_positions),
-                np.asfortranarray(self._step["lagged"]),
-                V,
-                self.barrier,
-                wrt,
-            )
-        )
-
-    def _lagged_jacobian(self, ev: Evaluation) -> sp.csc_matrix:
-        """dF/dU^{i-1} at ev (kept with ev: the history and shape kernels both need it)."""
-        J = ev.extras.get("friction_lagged_jacobian")
-        if J is None:
-            wrt = ipctk.FrictionPotential.DiffWRT.LAGGED_DISPLACEMENTS
-            J = self._friction_jacobian(ev, ev.extras["friction"], wrt)
-            ev.extras["friction_lagged_jacobian"] = J
-        return J
-
-    @timed_kernel("adjoint_history")
-    def adjoint_history(
-        self, u: fem.Function | np.ndarray, lam: fem.Function | np.ndarray
-    ) -> dict[int, np.ndarray]:
-        """(d g / d u^{i-j})^T lam for j = 1..m_i (owned entries of local V arrays).
-
-        g is the contact part of the step residual: friction depends on u^{i-1} through the
-        lagged normal forces and tangent bases and on u^{i-1}..u^{i-m} through the velocity.
-        """
-        ev = self._evaluate(u)
-        T = ev.extras["friction"]
-        alpha, beta_dt = self._step["alpha"], self._step["beta_dt"]
-        if T is None:
-            n = len(self.model.fields.u.x.array)
-            return {j: np.zeros(n) for j in range(1, len(alpha) + 1)}
-        lam_c = self._lambda(lam)
-        DW = ipctk.FrictionPotential.DiffWRT
-        # g_f = -F(X, U^{i-1}, v):  dg/dU^{i-j} = -dF/dv alpha_j / (beta dt)  (- dF/dU_lag, j = 1)
-        Jv = self._friction_jacobian(ev, T, DW.VELOCITIES)
-        Jl = self._lagged_jacobian(ev)
-        # this rank's collisions: summed over the ranks in one allreduce
-        tv, jl = self.partition.sum(np.stack([-(Jv.T @ lam_c) / beta_dt, Jl.T @ lam_c]))
-        out = {}
-        for j, a in enumerate(alpha, start=1):
-            g = a * tv
-            if j == 1:
-                g = g - jl
-            out[j] = self._local(g)
-        return out
-
-    @timed_kernel("adjoint_shape")
-    def adjoint_shape(
-        self, u: fem.Function | np.ndarray, lam: fem.Function | np.ndarray
-    ) -> np.ndarray:
-        """(d g / d X)^T lam over the dofs of the P1 rest-coordinate space (owned entries).
-
-        Includes the barrier shape derivative with area-weight terms and the 3D edge-edge
-        mollifier correction, and the friction force's rest-position Jacobian.
-        """
-        ev = self._evaluate(u)
-        lam_c = self._lambda(lam)
-        mesh = self.surface.mesh
-        C = self.builder.build(ev.x, shape_derivatives=True)
-        x = np.asfortranarray(ev.x)
-        g = barrier_shape_adjoint(C, mesh, x, self.barrier, self.stiffness, lam_c)
-        if self.lagging.active:
-            g = g - self._friction_rest_adjoint(ev, lam_c)
-        g = self.partition.sum(g)  # this rank's collisions: summed over the ranks
-        Sspace = self.model.shape_space
-        smap = self.surface.shape_map(Sspace)
-        bs = Sspace.dofmap.index_map_bs
-        imap = Sspace.dofmap.index_map
-        out = np.zeros((imap.size_local + imap.num_ghosts) * bs)
-        d = self.dim
-        gv = smap.pull_back(g.reshape(-1, d))  # edge/face nodes move with their vertices
-        out.reshape(-1, bs)[smap.blocks, :d] += gv[smap.cv]
-        return out
-
-    def _friction_rest_adjoint(self, ev: Evaluation, lam_c: np.ndarray) -> np.ndarray:
-        """(dF/dX)^T lam: the friction force's rest-position Jacobian at fixed U^{i-1}, transposed.
-
-        This rank's collisions only (the caller sums over the ranks).
-
-        dF/dX = dF/dU^{i-1} + sum_c (F_c / w_c) grad w_c^T (area weights w_c; the force of
-        collision c is proportional to w_c). ipctk's REST_POSITIONS Jacobian adds these outer
-        products to one growing sparse matrix, a cost quadratic in the number of collisions
-        (1 s per step for 2k collisions); applied to lam they are scalars times weight
-        gradients, batched over all collisions by
-        :func:`~diffsolids.contact.friction_adjoint.friction_weight_adjoint`.
-        """
-        out = self._lagged_jacobian(ev).T @ lam_c
-        if not self.area_weighting:
-            return out
-        T = self.lagging.tangential_collisions(
-            self.lagging.mu_table(self.lagging.mu), self.barrier, shape_derivatives=True
-        )
-        x = self.surface.rest_positions + self._step["lagged"]
-        return out + friction_weight_adjoint(
-            T,
-            self.surface.mesh,
-            x,
-            self.lagging.velocity(ev.U),
-            lam_c,
-            self.barrier,
-            self.stiffness,
-            self.eps_v,
-            self.lagging.mu_table(self.lagging.mu),
-            self.surface.body_index,
-        )
-
-    def adjoint_parameter(
-        self, name: str, u: fem.Function | np.ndarray, lam: fem.Function | np.ndarray
-    ) -> np.ndarray:
-        """Lam . dG_i/d(friction coefficient of each pair of :attr:`friction_pairs`)."""
-        if name != "friction":
-            return super().adjoint_parameter(name, u, lam)
-        return self.adjoint_friction(u, lam)
-
     def failure_report(self) -> str | None:
         """The contact state at the last evaluated iterate (for NewtonConvergenceError)."""
         ev = self._eval
@@ -857,6 +733,37 @@ class ContactTerm(NumericTerm):
             self.stiffness, self.dhat, count, d, force, None if np.isinf(floor) else floor
         )
 
+    # -- adjoint kernels ---------------------------------------------------------------------
+    @timed_kernel("adjoint_history")
+    def adjoint_history(
+        self, u: fem.Function | np.ndarray, lam: fem.Function | np.ndarray
+    ) -> dict[int, np.ndarray]:
+        """(d g / d u^{i-j})^T lam for j = 1..m_i (owned entries of local V arrays).
+
+        g is the contact part of the step residual: friction depends on u^{i-1} through the
+        lagged normal forces and tangent bases and on u^{i-1}..u^{i-m} through the velocity.
+        """
+        return self.adjoint.history(self._evaluate(u), lam)
+
+    @timed_kernel("adjoint_shape")
+    def adjoint_shape(
+        self, u: fem.Function | np.ndarray, lam: fem.Function | np.ndarray
+    ) -> np.ndarray:
+        """(d g / d X)^T lam over the dofs of the P1 rest-coordinate space (owned entries).
+
+        Includes the barrier shape derivative with area-weight terms and the 3D edge-edge
+        mollifier correction, and the friction force's rest-position Jacobian.
+        """
+        return self.adjoint.shape(self._evaluate(u), lam)
+
+    def adjoint_parameter(
+        self, name: str, u: fem.Function | np.ndarray, lam: fem.Function | np.ndarray
+    ) -> np.ndarray:
+        """Lam . dG_i/d(friction coefficient of each pair of :attr:`friction_pairs`)."""
+        if name != "friction":
+            return super().adjoint_parameter(name, u, lam)
+        return self.adjoint_friction(u, lam)
+
     @timed_kernel("adjoint_friction")
     def adjoint_friction(
         self, u: fem.Function | np.ndarray, lam: fem.Function | np.ndarray
@@ -870,14 +777,4 @@ class ContactTerm(NumericTerm):
         faster than reading every collision's ids and weights for a batched sum with two or
         three bodies).
         """
-        ev = self._evaluate(u)
-        lam_c = self._lambda(lam)
-        V = np.asfortranarray(self.lagging.velocity(ev.U))
-        out = np.zeros(len(self.friction_pairs))
-        for p in range(len(self.friction_pairs)):
-            unit = np.zeros(len(self.friction_pairs))
-            unit[p] = 1.0
-            T = self.lagging.tangential_collisions(self.lagging.mu_table(unit), self.barrier)
-            if len(T):
-                out[p] = self.friction_potential.gradient(T, self.surface.mesh, V) @ lam_c
-        return self.partition.sum(out)
+        return self.adjoint.friction(self._evaluate(u), lam)
