@@ -63,7 +63,7 @@ from petsc4py import PETSc
 from diffsolids.contact.adjoint import ContactAdjoint
 from diffsolids.contact.checks import body_label, close_pairs, intersecting_pairs, pair_label
 from diffsolids.contact.collisions import CollisionBuilder
-from diffsolids.contact.diagnostics import body_forces, failure_report, obstacle_move_error
+from diffsolids.contact.diagnostics import body_forces, failure_report
 from diffsolids.contact.evaluation import (
     Evaluation,
 )
@@ -74,6 +74,7 @@ from diffsolids.contact.friction_table import (
 )
 from diffsolids.contact.lagging import LaggedFriction
 from diffsolids.contact.obstacle import Obstacle
+from diffsolids.contact.obstacle_moves import ObstacleMoves
 from diffsolids.contact.partition import CollisionPartition
 from diffsolids.contact.pattern import ContactPattern
 from diffsolids.contact.potential import ContactPotential
@@ -218,8 +219,8 @@ class ContactTerm(NumericTerm):
         self.body_ids = self.surface.body_ids
         pairs = zip(self.obstacles, self.surface.obstacle_ids, strict=True)
         self._obstacle_names = {o.name: b for o, b in pairs if o.name}
-        self._clock = None
-        self._dynamic = True
+        self.timings: dict[str, list] = {}
+        self.obstacle_moves = ObstacleMoves(self.surface, self.dim, self.timings)
         self.friction_potential = ipctk.FrictionPotential(self.eps_v)
         self.broad_phase = ipctk.LBVH()
         self.partition = CollisionPartition(self.comm)
@@ -239,7 +240,6 @@ class ContactTerm(NumericTerm):
         )
         self.friction_pairs: list[tuple[int, int]]
         self.friction_pairs, self._pair_index = body_pairs(self.body_ids)
-        self.timings: dict[str, list] = {}
         self.lagging = LaggedFriction(
             self.surface, self.builder, self._pair_index, len(self.friction_pairs), self.timings
         )
@@ -278,8 +278,6 @@ class ContactTerm(NumericTerm):
             friction, len(self.friction_pairs), self.pair_index
         )
         self.records: list[ContactRecord] = []
-        # forward steps whose obstacle move was made with the body's initial guess
-        self.moved_with_guess: list[int] = []
         self.force_function = fem.Function(model.V, name="contact_force")
         self._token = 0
         self._eval: Evaluation | None = None
@@ -296,6 +294,11 @@ class ContactTerm(NumericTerm):
     def barrier(self) -> ipctk.BarrierPotential | None:
         """Ipctk BarrierPotential with :attr:`stiffness` (None until chosen)."""
         return self.potential.barrier
+
+    @property
+    def moved_with_guess(self) -> list[int]:
+        """Forward steps whose obstacle move was made with the body's initial guess."""
+        return self.obstacle_moves.moved_with_guess
 
     @property
     def ccd(self) -> ipctk.NarrowPhaseCCD:
@@ -363,15 +366,11 @@ class ContactTerm(NumericTerm):
         if surf.update_rest_positions():
             self._token += 1
         self._update_static()
-        if sim is not None:
-            self._clock = sim.integrator.time
-            self._dynamic = sim.integrator.dynamic
-        elif self._clock is None:
-            self._clock = lambda k, dt=coeffs.dt: k * dt
+        self.obstacle_moves.follow(sim, coeffs)
         if self.stiffness is None:
             self._choose_stiffness(sim.integrator if sim is not None else None, traj.u[i - 1])
         m = len(coeffs.alpha)
-        obstacle = [self._obstacle_at(i - j) for j in range(m + 1)]
+        obstacle = [self.obstacle_moves.at(i - j) for j in range(m + 1)]
         hist = [surf.gather(traj.u[i - j]) + obstacle[j] for j in range(1, m + 1)]
         beta_dt = coeffs.beta_dt
         v_offset = sum(a * U for a, U in zip(coeffs.alpha, hist, strict=True)) / beta_dt
@@ -395,56 +394,11 @@ class ContactTerm(NumericTerm):
         forward = len(traj.u) == i
         if forward and (self._forward_step is None or i != self._forward_step + 1):
             self.records = []
-            self.moved_with_guess = []
+            self.obstacle_moves.moved_with_guess = []
             self.check_configuration(hist[0], step=i - 1)
         self._forward_step = i if forward else None
         if forward and surf.has_moving_obstacles:
-            self._check_obstacle_move(hist[0], obstacle[1], obstacle[0])
-
-    def _obstacle_at(self, k: int) -> np.ndarray:
-        """(num_vertices, dim): zero body rows, the obstacles' displacements at step ``k``."""
-        surf = self.surface
-        if not surf.has_moving_obstacles:
-            return np.zeros((surf.num_vertices, self.dim))
-        if self._clock is None:
-            if k != 0:
-                raise ParameterError(
-                    f"the time of step {k} is not known yet (moving obstacles): run or begin a "
-                    "step of the simulation first"
-                )
-            return surf.obstacle_displacement(0.0)
-        return surf.obstacle_displacement(float(self._clock(k)))
-
-    def _check_obstacle_move(
-        self, lagged: np.ndarray, O_prev: np.ndarray, O_now: np.ndarray
-    ) -> None:
-        """CCD of the obstacles' move O^{i-1} -> O^i with the bodies held at u^{i-1} (collective).
-
-        Free: the Newton start (u^{i-1}, O^i) is admissible. Not free: the move must be made
-        with the body's initial guess (see :meth:`max_step`); ``blocked`` records that.
-        """
-        if np.array_equal(O_prev, O_now):
-            return
-        X = self.surface.rest_positions
-        x0 = np.asfortranarray(X + lagged)
-        x1 = np.asfortranarray(x0 + (O_now - O_prev))
-        with self._timed("ccd_obstacles"):
-            toi = self._collision_free_fraction(lagged, x0, x1)
-        self._step["blocked"] = toi < 1.0
-        self._step["start_body"] = lagged - O_prev
-        if self._step["blocked"]:
-            self.moved_with_guess.append(self._step["index"])
-            logger.info(
-                "contact step %d: the obstacles' move alone is not collision-free (fraction "
-                "%.3g): it is made with the body's initial guess",
-                self._step["index"],
-                toi,
-            )
-
-    def _obstacle_move_error(self) -> IntersectionError:
-        step = self._step
-        move = step["obstacle"] - (step["lagged"] - step["start_body"])
-        return obstacle_move_error(self.surface, step["index"], move, self._dynamic)
+            self.obstacle_moves.check_move(self._step, obstacle[1], self._collision_free_fraction)
 
     def _step_motion(
         self, i: int, traj: "StateHistory", coeffs: "TimeStep"
@@ -589,17 +543,9 @@ class ContactTerm(NumericTerm):
         Ub = self.surface.gather(x.array_r)
         dU = self.surface.gather(dx.array_r)
         step = self._step
-        if step is not None and step["blocked"] and np.array_equal(Ub, step["start_body"]):
-            X = self.surface.rest_positions
-            x0 = np.asfortranarray(X + step["lagged"])
-            x1 = np.asfortranarray(X + Ub + dU + step["obstacle"])
-            with self._timed("ccd_obstacles"):
-                toi = self._collision_free_fraction(step["lagged"], x0, x1)
-            if toi >= 1.0:
-                return np.inf
-            if not np.any(dU):
-                raise self._obstacle_move_error()
-            return 0.0
+        first = self.obstacle_moves.first_move(step, Ub, dU, self._collision_free_fraction)
+        if first is not None:
+            return first
         if not np.any(dU):
             return np.inf
         U0 = Ub + (step["obstacle"] if step is not None else 0.0)
@@ -646,7 +592,7 @@ class ContactTerm(NumericTerm):
         if self.obstacles:
             nb = self.surface.num_body_vertices
             U = np.array(U, dtype=float)
-            U[nb:] = self._obstacle_at(step)[nb:]
+            U[nb:] = self.obstacle_moves.at(step)[nb:]
         x = self.surface.rest_positions + U
         mesh = self.surface.mesh
         if ipctk.has_intersections(mesh, np.asfortranarray(x), self.broad_phase):
@@ -684,7 +630,7 @@ class ContactTerm(NumericTerm):
         U = self.surface.gather(u) if u is not None else np.zeros_like(self.surface.rest_positions)
         if self.obstacles:
             nb = self.surface.num_body_vertices
-            U[nb:] = self._obstacle_at(step)[nb:]
+            U[nb:] = self.obstacle_moves.at(step)[nb:]
         x = np.asfortranarray(self.surface.rest_positions + U)
         return bool(ipctk.has_intersections(self.surface.mesh, x, ipctk.LBVH()))
 
