@@ -61,7 +61,7 @@ from dolfinx import fem
 from petsc4py import PETSc
 
 from diffsolids.contact.adjoint import ContactAdjoint
-from diffsolids.contact.checks import body_label, close_pairs, intersecting_pairs, pair_label
+from diffsolids.contact.checks import ConfigurationCheck
 from diffsolids.contact.collisions import CollisionBuilder
 from diffsolids.contact.diagnostics import body_forces, failure_report
 from diffsolids.contact.evaluation import (
@@ -88,7 +88,7 @@ from diffsolids.contact.step_bound import (  # noqa: F401  (test_soft_barrier im
 from diffsolids.contact.stiffness import suggest_barrier_stiffness
 from diffsolids.contact.surface import CollisionSurface
 from diffsolids.contact.timing import timed, timed_kernel, timing_summary
-from diffsolids.errors import IntersectionError, ParameterError
+from diffsolids.errors import ParameterError
 from diffsolids.model.numeric import NumericTerm
 
 if TYPE_CHECKING:
@@ -273,6 +273,17 @@ class ContactTerm(NumericTerm):
             self.dhat,
             self.dim,
             self.timings,
+        )
+        self.configuration = ConfigurationCheck(
+            self.surface,
+            self.obstacles,
+            model.domain.names,
+            self.friction_pairs,
+            self.builder,
+            self.partition,
+            self.broad_phase,
+            self.dhat,
+            self.min_gap,
         )
         self.friction_coefficients = coefficients_of(
             friction, len(self.friction_pairs), self.pair_index
@@ -570,12 +581,6 @@ class ContactTerm(NumericTerm):
         return self.step_bound.fraction(x0, x1, cached, with_candidates)
 
     # -- configuration checks ----------------------------------------------------------------
-    def _body_label(self, body: int) -> str:
-        return body_label(self.surface, self.obstacles, self.model.domain.names, body)
-
-    def _pair_label(self, a: int, b: int) -> str:
-        return pair_label(self._body_label, a, b)
-
     def check_configuration(self, U: np.ndarray, step: int = 0) -> float:
         """Refuse intersecting or touching configurations; returns the minimum distance.
 
@@ -593,31 +598,7 @@ class ContactTerm(NumericTerm):
             nb = self.surface.num_body_vertices
             U = np.array(U, dtype=float)
             U[nb:] = self.obstacle_moves.at(step)[nb:]
-        x = self.surface.rest_positions + U
-        mesh = self.surface.mesh
-        if ipctk.has_intersections(mesh, np.asfortranarray(x), self.broad_phase):
-            pairs = [
-                self._pair_label(a, b)
-                for a, b in intersecting_pairs(self.surface, self.friction_pairs, x)
-            ]
-            raise IntersectionError(
-                f"the configuration at step {step} intersects: {'; '.join(pairs) or 'unknown'}"
-                " (separate the bodies or fix the mesh)"
-            )
-        C = self.builder.build(x)
-        dist = self.partition.minimum_distance(C, mesh, x)
-        if dist <= self.min_gap * self.dhat:
-            gap = self.min_gap * self.dhat
-            pairs = [
-                self._pair_label(a, b)
-                for a, b in close_pairs(self.surface, self.friction_pairs, x, self.dhat, gap)
-            ]
-            raise IntersectionError(
-                f"at step {step} {'; '.join(pairs) or 'some bodies'} are {dist:.3e} apart, closer"
-                f" than {self.min_gap:g} dhat = {self.min_gap * self.dhat:.3e}: the barrier"
-                " cannot start from touching bodies (leave a gap)"
-            )
-        return dist
+        return self.configuration.minimum_distance(self.surface.rest_positions + U, step)
 
     def intersects(self, u: np.ndarray | None = None, step: int = 0) -> bool:
         """Whether the collision surface (bodies and obstacles at step ``step``) intersects.
