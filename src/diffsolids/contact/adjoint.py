@@ -17,14 +17,11 @@ import numpy as np
 import scipy.sparse as sp
 from dolfinx import fem
 
-from diffsolids.contact.collisions import CollisionBuilder
 from diffsolids.contact.evaluation import Evaluation
 from diffsolids.contact.friction_adjoint import friction_weight_adjoint
 from diffsolids.contact.lagging import LaggedFriction
-from diffsolids.contact.partition import CollisionPartition
 from diffsolids.contact.potential import ContactPotential
 from diffsolids.contact.shape import barrier_shape_adjoint
-from diffsolids.contact.surface import CollisionSurface
 
 if TYPE_CHECKING:
     from diffsolids.model import Model
@@ -37,41 +34,26 @@ class ContactAdjoint:
 
     Args:
         model: The Model (its displacement and shape spaces).
-        surface: The collision surface.
-        partition: How this rank's parts are summed over the ranks.
-        builder: Builds the collision sets with weight gradients.
-        lagging: The step's lagged friction.
-        potential: The barrier (kappa).
-        friction_potential: ipctk's friction potential.
-        area_weighting: Whether the collisions are area-weighted.
+        lagging: The step's lagged friction and its coefficients; its builder builds the
+            collision sets with weight gradients (on its surface, partitioned over the ranks).
+        potential: The barrier (kappa) and the friction potential.
         eps_v: Friction smoothing velocity.
-        num_pairs: Number of pairs of bodies (friction coefficients).
     """
 
     def __init__(
-        self,
-        model: "Model",
-        surface: CollisionSurface,
-        partition: CollisionPartition,
-        builder: CollisionBuilder,
-        lagging: LaggedFriction,
-        potential: ContactPotential,
-        friction_potential: ipctk.FrictionPotential,
-        area_weighting: bool,
-        eps_v: float,
-        num_pairs: int,
+        self, model: "Model", lagging: LaggedFriction, potential: ContactPotential, eps_v: float
     ) -> None:
         self.model = model
         self.dim = model.dim
-        self.surface = surface
-        self.partition = partition
-        self.builder = builder
+        self.builder = lagging.builder
+        self.surface = self.builder.surface
+        self.partition = self.builder.partition
+        self.area_weighting = self.builder.area_weighting
         self.lagging = lagging
         self.potential = potential
-        self.friction_potential = friction_potential
-        self.area_weighting = area_weighting
+        self.friction_potential = potential.friction_potential
         self.eps_v = eps_v
-        self.num_pairs = num_pairs
+        self.num_pairs = len(lagging.mu)
 
     def surface_vector(self, lam: fem.Function | np.ndarray) -> np.ndarray:
         """The collision-dof vector of a local V array or Function (gathered, flat)."""

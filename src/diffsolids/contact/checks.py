@@ -12,7 +12,6 @@ import numpy as np
 
 from diffsolids.contact.collisions import CollisionBuilder
 from diffsolids.contact.obstacle import Obstacle
-from diffsolids.contact.partition import CollisionPartition
 from diffsolids.contact.surface import CollisionSurface
 from diffsolids.errors import IntersectionError
 
@@ -126,37 +125,30 @@ class ConfigurationCheck:
     """Refuses configurations of a collision surface that intersect or touch, naming the pairs.
 
     Args:
-        surface: The collision surface.
-        obstacles: Its obstacles.
+        builder: Builds the collision set of a configuration (its surface, partition over the
+            ranks, broad phase and dhat are the check's).
+        obstacles: The surface's obstacles.
         names: The domain's names of body ids.
         pairs: The pairs of body ids (self-contact included).
-        builder: Builds the collision set of a configuration.
-        partition: The minimum distance over the ranks.
-        broad_phase: ipctk broad phase of the intersection test.
-        dhat: Barrier activation distance.
         min_gap: Configurations closer than ``min_gap * dhat`` are refused.
     """
 
     def __init__(
         self,
-        surface: CollisionSurface,
+        builder: CollisionBuilder,
         obstacles: Sequence[Obstacle],
         names: Mapping[str, int],
         pairs: Sequence[tuple[int, int]],
-        builder: CollisionBuilder,
-        partition: CollisionPartition,
-        broad_phase: ipctk.BroadPhase,
-        dhat: float,
         min_gap: float,
     ) -> None:
-        self.surface = surface
+        self.surface = builder.surface
+        self.partition = builder.partition
+        self.broad_phase = builder.broad_phase
+        self.dhat = builder.dhat
+        self.builder = builder
         self.obstacles = obstacles
         self.names = names
         self.pairs = pairs
-        self.builder = builder
-        self.partition = partition
-        self.broad_phase = broad_phase
-        self.dhat = dhat
         self.min_gap = min_gap
 
     def _body_label(self, body: int) -> str:

@@ -15,7 +15,6 @@ import numpy as np
 from diffsolids.contact.collisions import CollisionBuilder
 from diffsolids.contact.evaluation import Evaluation
 from diffsolids.contact.friction_table import checked_coefficients, tangential_collisions
-from diffsolids.contact.surface import CollisionSurface
 from diffsolids.contact.timing import timed
 
 __all__ = ["LaggedFriction"]
@@ -25,8 +24,7 @@ class LaggedFriction:
     """The friction state of the current step lagged from x^{i-1}, and its velocity.
 
     Args:
-        surface: The collision surface.
-        builder: Builds the lagged collision sets.
+        builder: Builds the lagged collision sets (on its collision surface).
         pair_table: (num_bodies, num_bodies) index of each pair of bodies among the pairs.
         num_pairs: Number of pairs of bodies.
         timings: The contact term's timers (``lagged_friction`` is added here).
@@ -40,13 +38,12 @@ class LaggedFriction:
 
     def __init__(
         self,
-        surface: CollisionSurface,
         builder: CollisionBuilder,
         pair_table: np.ndarray,
         num_pairs: int,
         timings: dict[str, list],
     ) -> None:
-        self.surface = surface
+        self.surface = builder.surface
         self.builder = builder
         self.pair_table = pair_table
         self.timings = timings

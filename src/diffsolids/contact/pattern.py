@@ -7,15 +7,13 @@ share outside it. It is the same on every rank (the union over the ranks) and st
 object while unchanged, so the solver's check of the pattern is free.
 """
 
-import ipctk
 import numpy as np
 
 from diffsolids.contact.evaluation import Evaluation
 from diffsolids.contact.free_dofs import FreeDofs
-from diffsolids.contact.partition import CollisionPartition
 from diffsolids.contact.potential import ContactPotential
 from diffsolids.contact.reach import reach_blocks
-from diffsolids.contact.surface import CollisionSurface, _contains, block_pattern
+from diffsolids.contact.surface import _contains, block_pattern
 from diffsolids.contact.timing import timed
 from diffsolids.solvers.sparsity import sorted_unique
 
@@ -31,32 +29,19 @@ class ContactPattern:
     """Vertex-block and matrix pattern of the contact Hessian (exact + friction stencils).
 
     Args:
-        surface: The collision surface.
-        partition: The union of the ranks' blocks.
-        potential: The Hessian at an evaluation.
-        friction_potential: ipctk's friction potential (its stencils).
-        dhat: Barrier activation distance.
-        dim: Geometric dimension.
-        timings: The contact term's timers.
+        potential: The Hessian at an evaluation; its collision surface, partition over the
+            ranks (the union of their blocks), friction potential (its stencils), dhat and
+            timers are those of the pattern.
     """
 
-    def __init__(
-        self,
-        surface: CollisionSurface,
-        partition: CollisionPartition,
-        potential: ContactPotential,
-        friction_potential: ipctk.FrictionPotential,
-        dhat: float,
-        dim: int,
-        timings: dict[str, list],
-    ) -> None:
-        self.surface = surface
-        self.partition = partition
+    def __init__(self, potential: ContactPotential) -> None:
+        self.surface = potential.surface
+        self.partition = potential.partition
         self.potential = potential
-        self.friction_potential = friction_potential
-        self.dhat = dhat
-        self.dim = dim
-        self.timings = timings
+        self.friction_potential = potential.friction_potential
+        self.dhat = potential.dhat
+        self.dim = potential.surface.dim
+        self.timings = potential.timings
         self._memo: tuple | None = None
 
     def blocks(self, ev: Evaluation, step: dict) -> np.ndarray:

@@ -19,22 +19,31 @@ from diffsolids.contact.evaluation import (
     contact_hessian,
 )
 from diffsolids.contact.lagging import LaggedFriction
-from diffsolids.contact.partition import CollisionPartition
-from diffsolids.contact.surface import CollisionSurface
 from diffsolids.contact.timing import timed
+from diffsolids.errors import ParameterError
 
-__all__ = ["ContactPotential"]
+__all__ = ["ContactPotential", "projection_method"]
+
+
+def projection_method(name: str) -> ipctk.PSDProjectionMethod:
+    """The ipctk PSD projection method called ``name`` ("clamp" or "abs").
+
+    Raises:
+        ParameterError: Another name.
+    """
+    methods = {"clamp": ipctk.PSDProjectionMethod.CLAMP, "abs": ipctk.PSDProjectionMethod.ABS}
+    if name not in methods:
+        raise ParameterError(f"hessian_projection {name!r}: expected 'clamp' or 'abs'")
+    return methods[name]
 
 
 class ContactPotential:
     """Barrier and lagged friction potential of the step at an evaluation (kept on it).
 
     Args:
-        surface: The collision surface.
-        partition: How values are summed over the ranks.
-        lagging: The step's lagged friction (velocity, ``beta_dt``).
+        lagging: The step's lagged friction (velocity, ``beta_dt``); the collision surface,
+            the partition over the ranks and dhat are its builder's.
         friction_potential: ipctk's smoothed friction potential.
-        dhat: Barrier activation distance.
         stiffness: Barrier stiffness kappa (None: not chosen yet, see :meth:`set_stiffness`).
         projection: PSD projection of the projected Hessian.
         timings: The contact term's timers.
@@ -46,20 +55,17 @@ class ContactPotential:
 
     def __init__(
         self,
-        surface: CollisionSurface,
-        partition: CollisionPartition,
         lagging: LaggedFriction,
         friction_potential: ipctk.FrictionPotential,
-        dhat: float,
         stiffness: float | None,
         projection: ipctk.PSDProjectionMethod,
         timings: dict[str, list],
     ) -> None:
-        self.surface = surface
-        self.partition = partition
+        self.surface = lagging.builder.surface
+        self.partition = lagging.builder.partition
         self.lagging = lagging
         self.friction_potential = friction_potential
-        self.dhat = dhat
+        self.dhat = lagging.builder.dhat
         self.projection = projection
         self.timings = timings
         self.stiffness: float | None = None

@@ -73,11 +73,11 @@ from diffsolids.contact.friction_table import (
     coefficients_of,
 )
 from diffsolids.contact.lagging import LaggedFriction
-from diffsolids.contact.obstacle import Obstacle
+from diffsolids.contact.obstacle import Obstacle, checked_obstacles
 from diffsolids.contact.obstacle_moves import ObstacleMoves
 from diffsolids.contact.partition import CollisionPartition
 from diffsolids.contact.pattern import ContactPattern
-from diffsolids.contact.potential import ContactPotential
+from diffsolids.contact.potential import ContactPotential, projection_method
 from diffsolids.contact.reach import step_motion
 from diffsolids.contact.step_bound import (  # noqa: F401  (test_soft_barrier imports them here)
     _CCD_REACH,
@@ -99,14 +99,6 @@ if TYPE_CHECKING:
 __all__ = ["ContactRecord", "ContactTerm"]
 
 logger = logging.getLogger("diffsolids")
-
-
-def _projection_method(name: str) -> ipctk.PSDProjectionMethod:
-    """The ipctk PSD projection method called ``name`` ("clamp" or "abs")."""
-    methods = {"clamp": ipctk.PSDProjectionMethod.CLAMP, "abs": ipctk.PSDProjectionMethod.ABS}
-    if name not in methods:
-        raise ParameterError(f"hessian_projection {name!r}: expected 'clamp' or 'abs'")
-    return methods[name]
 
 
 @dataclass
@@ -204,12 +196,12 @@ class ContactTerm(NumericTerm):
         self.eps_v = float(eps_v)
         self.area_weighting = bool(area_weighting)
         self.min_gap = float(min_gap)
-        self.projection = _projection_method(hessian_projection)
+        self.projection = projection_method(hessian_projection)
         if num_threads is None and self.comm.size > 1:
             num_threads = max(1, (os.cpu_count() or 1) // self.comm.size)
         if num_threads is not None:
             ipctk.set_num_threads(int(num_threads))
-        self.obstacles = self._check_obstacles(obstacles)
+        self.obstacles = checked_obstacles(obstacles, model.domain.names)
         self.surface = CollisionSurface(model.domain, model.V, self.obstacles, boundary)
         self.surface.obstacle_displacement(0.0)  # a bad motion fails here, not in a step
         if self.obstacles:  # obstacles never collide with each other
@@ -241,49 +233,17 @@ class ContactTerm(NumericTerm):
         self.friction_pairs: list[tuple[int, int]]
         self.friction_pairs, self._pair_index = body_pairs(self.body_ids)
         self.lagging = LaggedFriction(
-            self.surface, self.builder, self._pair_index, len(self.friction_pairs), self.timings
+            self.builder, self._pair_index, len(self.friction_pairs), self.timings
         )
+        kappa = None if stiffness is None else float(stiffness)
         self.potential = ContactPotential(
-            self.surface,
-            self.partition,
-            self.lagging,
-            self.friction_potential,
-            self.dhat,
-            None if stiffness is None else float(stiffness),
-            self.projection,
-            self.timings,
+            self.lagging, self.friction_potential, kappa, self.projection, self.timings
         )
-        self.adjoint = ContactAdjoint(
-            model,
-            self.surface,
-            self.partition,
-            self.builder,
-            self.lagging,
-            self.potential,
-            self.friction_potential,
-            self.area_weighting,
-            self.eps_v,
-            len(self.friction_pairs),
-        )
-        self.pattern = ContactPattern(
-            self.surface,
-            self.partition,
-            self.potential,
-            self.friction_potential,
-            self.dhat,
-            self.dim,
-            self.timings,
-        )
+        self.adjoint = ContactAdjoint(model, self.lagging, self.potential, self.eps_v)
+        self.pattern = ContactPattern(self.potential)
+        names = model.domain.names
         self.configuration = ConfigurationCheck(
-            self.surface,
-            self.obstacles,
-            model.domain.names,
-            self.friction_pairs,
-            self.builder,
-            self.partition,
-            self.broad_phase,
-            self.dhat,
-            self.min_gap,
+            self.builder, self.obstacles, names, self.friction_pairs, self.min_gap
         )
         self.friction_coefficients = coefficients_of(
             friction, len(self.friction_pairs), self.pair_index
@@ -317,20 +277,6 @@ class ContactTerm(NumericTerm):
         return self.step_bound.ccd
 
     # -- parameters ---------------------------------------------------------------------------
-    def _check_obstacles(self, obstacles: Sequence[Obstacle]) -> tuple[Obstacle, ...]:
-        obstacles = tuple(obstacles)
-        names = set(self.model.domain.names)
-        for o in obstacles:
-            if not isinstance(o, Obstacle):
-                raise ParameterError(f"obstacles must be Obstacle objects, got {type(o).__name__}")
-            if o.name is not None and o.name in names:
-                raise ParameterError(
-                    f"obstacle name {o.name!r} is taken (by a body, tag or another obstacle)"
-                )
-            if o.name is not None:
-                names.add(o.name)
-        return obstacles
-
     def _body_id(self, body: int | str) -> int:
         """Body id of a domain body or an obstacle (by id or name)."""
         if isinstance(body, str) and body in self._obstacle_names:
@@ -385,7 +331,8 @@ class ContactTerm(NumericTerm):
         hist = [surf.gather(traj.u[i - j]) + obstacle[j] for j in range(1, m + 1)]
         beta_dt = coeffs.beta_dt
         v_offset = sum(a * U for a, U in zip(coeffs.alpha, hist, strict=True)) / beta_dt
-        motion, deformation = self._step_motion(i, traj, coeffs)
+        # how far each collision vertex may move in the step
+        motion, deformation = step_motion(surf, len(self.body_ids), i, traj, coeffs.dt)
         self._step = {
             "index": i,
             "alpha": tuple(coeffs.alpha),
@@ -410,12 +357,6 @@ class ContactTerm(NumericTerm):
         self._forward_step = i if forward else None
         if forward and surf.has_moving_obstacles:
             self.obstacle_moves.check_move(self._step, obstacle[1], self._collision_free_fraction)
-
-    def _step_motion(
-        self, i: int, traj: "StateHistory", coeffs: "TimeStep"
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """How far each collision vertex may move in step ``i`` (:func:`step_motion`)."""
-        return step_motion(self.surface, len(self.body_ids), i, traj, coeffs.dt)
 
     def _update_static(self) -> None:
         if self.free_dofs.update_static(self.model.dirichlet_dofs()):
