@@ -11,48 +11,40 @@ lagged from x^{i-1} = X + W u^{i-1} once per step. The gradient of the friction 
 -F(v) (the friction force) and its Hessian Hess_v D / (beta dt). Static load steps use
 v = (u - u^{i-1}) / dt with coefficient dt (alpha = -1, beta = 1).
 
+ContactTerm is a thin composition of the parts of this scheme, each in its module of
+``diffsolids.contact``:
+
+- ``collisions.CollisionBuilder``: this rank's share of the collision set at positions x.
+- ``lagging.LaggedFriction``: the step's normal forces and tangent bases lagged from x^{i-1},
+  the friction coefficients of the pairs of bodies, the BDF velocity.
+- ``potential.ContactPotential``: kappa, and the energy, gradient and Hessian at an Evaluation.
+- ``pattern.ContactPattern``: the vertex blocks and matrix pattern of the step.
+- ``free_dofs.FreeDofs``: the free (not Dirichlet) collision dofs and the static vertices.
+- ``adjoint.ContactAdjoint``: the transposed derivatives of the residual applied to lam.
+- ``obstacle_moves.ObstacleMoves``: kinematic obstacles, their moves and the scheme of a step
+  with moving obstacles.
+- ``checks.ConfigurationCheck`` and ``step_bound.StepBound``: refused configurations and the
+  collision-free step bound (CCD).
+
+The term keeps the state of the step (its BDF history, lagged and obstacle displacements) and
+the evaluation cache: one Evaluation per displacement, valid while the token is unchanged (a
+new step, new rest positions or static vertices, and rebuilt lagged friction change it).
+
 Distributed contact: all ranks hold the whole collision surface (gathered once per evaluation)
 and build the collision set on it, but each collision is evaluated on one rank only
-(:class:`~diffsolids.contact.partition.CollisionPartition`: a hash of its ids picks the rank).
-Each rank keeps its share of the collision set and evaluates the friction collisions lagged
-from it, the barrier and friction derivatives and the adjoint products on it; energies are
-summed over the ranks, collision-dof vectors are summed (one allreduce of the surface vector,
-then each rank adds the rows it owns), matrix entries are added by every rank with global
-indices into the rows where they live (PETSc sends them in the assembly; the pattern, the union
-over the ranks, preallocates them). The broad and narrow phase of the collision set, the CCD
-step bound and the reach pattern are the same computation on every rank (see the partition
-module for why). On one rank this is the serial code with the identity for every reduction.
-
-Kinematic obstacles (:class:`~diffsolids.contact.obstacle.Obstacle`) are extra vertices of the
-collision mesh with prescribed displacements O^i = O(t_i) and no dofs: x = X + W u + O^i, their
-rows and columns never enter the PETSc vectors and matrices, and every adjoint product keeps the
-body rows only (obstacles have neither shape dofs nor state). Their velocity in the friction
-potential is the same BDF formula, (O^i + sum_j alpha_j O^{i-j}) / (beta dt), and the lagged
-normal forces and tangent bases are those at x^{i-1} (obstacles at O^{i-1}): friction acts on the
-relative sliding velocity.
-
-Scheme of a step with moving obstacles (never intersected): the Newton solve of step i runs with
-the obstacles at O^i (its line search scales only the body part). The move O^{i-1} -> O^i before
-it is checked by CCD in :meth:`ContactTerm.begin_step`: (1) with the bodies held at u^{i-1}; if
-that is collision-free, the Newton start (u^{i-1}, O^i) is admissible and every later path (the
-guess, the Newton steps) is checked with the obstacles at O^i; (2) otherwise (an obstacle pushing
-a body, e.g. an elevator, closes the gap within the step) the start is not admissible and the move
-must be made together with the body's initial guess: :meth:`ContactTerm.max_step` from exactly
-u^{i-1} then checks the straight path on which the obstacles move from O^{i-1} to O^i while the
-body moves from u^{i-1} to the guess, and admits it only in full (inf or 0). If no guess passes, a
-clear IntersectionError names the obstacle and the step (a smaller time step, or an initial
-guess that moves with the obstacle, is needed). So a moving obstacle may carry a body that
-already moves with it (the extrapolated guess u^{i-1} + dt v^{i-1} of a body riding a lift) or
-slide along it (a belt), but not push a body at rest, or quasi-statically in load steps, by
-more than their gap per step: that needs a continuation of the obstacle's move with
-intermediate solves (as ``Simulation._dirichlet_continuation`` does for Dirichlet values).
+(``partition.CollisionPartition``: a hash of its ids picks the rank). Energies are summed over
+the ranks, collision-dof vectors too (one allreduce of the surface vector, then each rank adds
+the rows it owns); matrix entries are added by every rank with global indices into the rows
+where they live (PETSc sends them in the assembly; the pattern, the union over the ranks,
+preallocates them). The broad and narrow phase of the collision set, the CCD step bound and the
+reach pattern are the same computation on every rank (see the partition module for why). On
+one rank this is the serial code with the identity for every reduction.
 """
 
 import contextlib
 import logging
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import ipctk
@@ -63,7 +55,7 @@ from petsc4py import PETSc
 from diffsolids.contact.adjoint import ContactAdjoint
 from diffsolids.contact.checks import ConfigurationCheck
 from diffsolids.contact.collisions import CollisionBuilder
-from diffsolids.contact.diagnostics import body_forces, failure_report
+from diffsolids.contact.diagnostics import ContactRecord, failure_report, step_record
 from diffsolids.contact.evaluation import (
     Evaluation,
 )
@@ -99,26 +91,6 @@ if TYPE_CHECKING:
 __all__ = ["ContactRecord", "ContactTerm"]
 
 logger = logging.getLogger("diffsolids")
-
-
-@dataclass
-class ContactRecord:
-    """Contact summary of one converged step.
-
-    Attributes:
-        step: Step index.
-        num_collisions: Active primitive pairs (distance below dhat).
-        min_distance: Smallest distance between active pairs (inf when there are none).
-        normal_force: (num_bodies, dim) total barrier force on each body (rows: ``body_ids``,
-            the domain's bodies, then the obstacles: the force on an obstacle is its reaction).
-        friction_force: (num_bodies, dim) total friction force on each body.
-    """
-
-    step: int
-    num_collisions: int
-    min_distance: float
-    normal_force: np.ndarray
-    friction_force: np.ndarray
 
 
 class ContactTerm(NumericTerm):
@@ -263,7 +235,7 @@ class ContactTerm(NumericTerm):
 
     @property
     def barrier(self) -> ipctk.BarrierPotential | None:
-        """Ipctk BarrierPotential with :attr:`stiffness` (None until chosen)."""
+        """The ipctk BarrierPotential with :attr:`stiffness` (None until chosen)."""
         return self.potential.barrier
 
     @property
@@ -405,7 +377,7 @@ class ContactTerm(NumericTerm):
     def add_residual(self, u: fem.Function, b: PETSc.Vec) -> None:
         """Add the gradient of the contact potential to the owned rows of ``b`` (collective).
 
-        The gradient is summed over the ranks' shares first (:meth:`_gradient`).
+        The gradient is summed over the ranks' shares first.
         """
         g = self.potential.gradient(self._evaluate(u))
         self.surface.add_to_owned(b.array_w, g)
@@ -485,7 +457,7 @@ class ContactTerm(NumericTerm):
 
         The CCD runs on the step extended to ``2 dx``, so a free full step reports a value > 1.
         Obstacles stay at their step-i positions, except on the step's first move when their
-        own move is not collision-free (see the module docstring): from exactly u^{i-1}, the
+        own move is not collision-free (see ``contact.obstacle_moves``): from exactly u^{i-1}, the
         path on which they move from t_{i-1} to t_i with the body is checked, and admitted only
         in full (inf, or 0).
 
@@ -562,25 +534,12 @@ class ContactTerm(NumericTerm):
         ev = self._evaluate(traj.u[i])
         g = self.potential.gradient(ev)
         gb = self.potential.barrier_gradient(ev)
-        normal, friction = body_forces(self.surface.body_index, len(self.body_ids), g, gb)
-        C = ev.collisions
-        count = self.partition.count(C)
-        dist = self.partition.minimum_distance(C, self.surface.mesh, ev.x)
-        rec = ContactRecord(i, count, dist, normal, friction)
+        rec = step_record(i, self.partition, self.surface, len(self.body_ids), ev, g, gb)
         self.records.append(rec)
         f = self.force_function
         f.x.array[:] = 0.0
         self.surface.add_to_owned(f.x.array, -g)
         f.x.scatter_forward()
-        logger.info(
-            "contact step %4d  pairs=%d  min_distance=%.3e  |normal force|=%.3e  "
-            "|friction force|=%.3e",
-            i,
-            rec.num_collisions,
-            rec.min_distance,
-            np.linalg.norm(normal, axis=1).max(initial=0.0),
-            np.linalg.norm(friction, axis=1).max(initial=0.0),
-        )
         return rec
 
     def failure_report(self) -> str | None:
@@ -639,10 +598,5 @@ class ContactTerm(NumericTerm):
         """(d g / d mu_p)^T lam for each pair p of :attr:`friction_pairs` (global, all ranks).
 
         Each rank's collisions give their part, summed over the ranks.
-
-        The friction gradient is linear in each collision's mu (static = kinetic): per pair, its
-        gradient with mu = 1 on that pair and 0 elsewhere (one ipctk call per pair, measured
-        faster than reading every collision's ids and weights for a batched sum with two or
-        three bodies).
         """
         return self.adjoint.friction(self._evaluate(u), lam)
