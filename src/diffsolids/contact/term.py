@@ -56,14 +56,9 @@ from diffsolids.contact.adjoint import ContactAdjoint
 from diffsolids.contact.checks import ConfigurationCheck
 from diffsolids.contact.collisions import CollisionBuilder
 from diffsolids.contact.diagnostics import ContactRecord, failure_report, step_record
-from diffsolids.contact.evaluation import (
-    Evaluation,
-)
+from diffsolids.contact.evaluation import Evaluation
 from diffsolids.contact.free_dofs import FreeDofs
-from diffsolids.contact.friction_table import (
-    body_pairs,
-    coefficients_of,
-)
+from diffsolids.contact.friction_table import body_pairs, coefficients_of
 from diffsolids.contact.lagging import LaggedFriction
 from diffsolids.contact.obstacle import Obstacle, checked_obstacles
 from diffsolids.contact.obstacle_moves import ObstacleMoves
@@ -213,9 +208,8 @@ class ContactTerm(NumericTerm):
         )
         self.adjoint = ContactAdjoint(model, self.lagging, self.potential, self.eps_v)
         self.pattern = ContactPattern(self.potential)
-        names = model.domain.names
         self.configuration = ConfigurationCheck(
-            self.builder, self.obstacles, names, self.friction_pairs, self.min_gap
+            self.builder, self.obstacles, model.domain.names, self.friction_pairs, self.min_gap
         )
         self.friction_coefficients = coefficients_of(
             friction, len(self.friction_pairs), self.pair_index
