@@ -2,7 +2,7 @@
 
 References kept here (test-only): the per-collision loops of ``contact/shape.py``
 (``_ee_correction`` over mollified edge-edge pairs, ipctk's per-pair mollifier helpers) and of
-``ContactTerm._friction_rest_adjoint`` (ipctk's per-collision friction force times the weight
+``ContactAdjoint.friction_rest`` (ipctk's per-collision friction force times the weight
 gradient), as they were before the vectorisation. The scenes of test_contact_kernels: 2D and
 3D, friction 0.4 on the sliding (eps_v 0.5) and the smoothed (eps_v 100) branch, mollified
 edge-edge pairs in 3D. The finite-difference checks of the kernels stay in
@@ -17,7 +17,7 @@ from mpi4py import MPI
 from test_contact_kernels import _Checker, _scene
 
 import diffsolids.contact.shape as contact_shape
-from diffsolids.contact import ContactTerm
+from diffsolids.contact.adjoint import ContactAdjoint
 from diffsolids.contact.friction_adjoint import _gather
 
 TOL = 1e-12
@@ -65,19 +65,20 @@ def _reference_ee_correction(collisions, mesh, x: np.ndarray, barrier, stiffness
     )
 
 
-def _reference_friction_rest_adjoint(self: ContactTerm, ev, lam_c: np.ndarray) -> np.ndarray:
-    T = self._tangential_collisions(self._mu_table(self._mu), shape_derivatives=True)
-    Jl = self._friction_jacobian(ev, T, ipctk.FrictionPotential.DiffWRT.LAGGED_DISPLACEMENTS)
+def _reference_friction_rest_adjoint(self: ContactAdjoint, ev, lam_c: np.ndarray) -> np.ndarray:
+    lagging = self.lagging
+    T = lagging.tangential_collisions(lagging.mu_table(lagging.mu), self.potential.barrier, True)
+    Jl = self.friction_jacobian(ev, T, ipctk.FrictionPotential.DiffWRT.LAGGED_DISPLACEMENTS)
     out = Jl.T @ lam_c
     if not self.area_weighting:
         return out
     mesh, d = self.surface.mesh, self.dim
     E, F = mesh.edges, mesh.faces
     X = self.surface.rest_positions
-    U = self._step["lagged"]
-    V = self._velocity(ev.U)
+    U = lagging.step["lagged"]
+    V = lagging.velocity(ev.U)
     lam = lam_c.reshape(-1, d)
-    potential, barrier = self.friction_potential, self.barrier
+    potential, barrier = self.friction_potential, self.potential.barrier
     for group in (T.vv_collisions, T.ev_collisions, T.ee_collisions, T.fv_collisions):
         for c in group:
             ids = np.asarray(c.vertex_ids(E, F))
@@ -102,8 +103,9 @@ def test_vectorised_contact_adjoint_equals_the_loops(dim, degree, order, eps_v, 
     model, contact, _, u, _ = _scene(dim, degree, order, eps_v, comm=MPI.COMM_SELF)
     lam = _Checker(model, contact, u).random()
     ev = contact._evaluate(u)
-    lam_c = contact._lambda(lam)
-    T = contact._tangential_collisions(contact._mu_table(contact._mu), shape_derivatives=True)
+    lam_c = contact.adjoint.surface_vector(lam)
+    lagging = contact.lagging
+    T = lagging.tangential_collisions(lagging.mu_table(lagging.mu), contact.barrier, True)
     assert len(T) > 0
     ids, kind, _ = _gather(T, contact.surface.mesh)
     E, F = contact.surface.mesh.edges, contact.surface.mesh.faces
@@ -113,14 +115,14 @@ def test_vectorised_contact_adjoint_equals_the_loops(dim, degree, order, eps_v, 
     assert len(np.unique(kind)) >= 2  # more than one collision type in play
 
     # the friction force's rest-position adjoint, and its area-weight part on its own
-    vectorised = contact._friction_rest_adjoint(ev, lam_c)
-    reference = _reference_friction_rest_adjoint(contact, ev, lam_c)
+    vectorised = contact.adjoint.friction_rest(ev, lam_c)
+    reference = _reference_friction_rest_adjoint(contact.adjoint, ev, lam_c)
     assert _rel(vectorised, reference) <= TOL
-    lagged = contact._lagged_jacobian(ev).T @ lam_c
+    lagged = contact.adjoint.lagged_jacobian(ev).T @ lam_c
     assert _rel(vectorised - lagged, reference - lagged) <= TOL
 
     # the mollifier correction, pair by pair (3D), and the whole shape adjoint
-    C = contact._build(ev.x, shape_derivatives=True)
+    C = contact.builder.build(ev.x, shape_derivatives=True)
     x = np.asfortranarray(ev.x)
     mesh = contact.surface.mesh
     if dim == 3:
@@ -139,7 +141,7 @@ def test_vectorised_contact_adjoint_equals_the_loops(dim, degree, order, eps_v, 
         "_ee_correction_adjoint",
         lambda C, mesh, x, b, k, lam: _reference_ee_correction(C, mesh, x, b, k).T @ lam,
     )
-    monkeypatch.setattr(ContactTerm, "_friction_rest_adjoint", _reference_friction_rest_adjoint)
+    monkeypatch.setattr(ContactAdjoint, "friction_rest", _reference_friction_rest_adjoint)
     assert _rel(gX, contact.adjoint_shape(u, lam)) <= TOL
 
 

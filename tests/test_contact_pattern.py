@@ -18,7 +18,7 @@ from mpi4py import MPI
 from scipy.spatial import cKDTree
 
 import diffsolids as ds
-import diffsolids.contact.term as contact_term
+import diffsolids.contact.pattern as contact_pattern
 from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
 from diffsolids.contact.reach import box_overlaps, reach_blocks
 from diffsolids.contact.surface import block_pattern
@@ -148,7 +148,7 @@ def _pairs_within(surf, x: np.ndarray, distance: float) -> set:
 
 def _run(monkeypatch, reach=None, num_steps: int = 8):
     if reach is not None:
-        monkeypatch.setattr(contact_term, "reach_blocks", reach)
+        monkeypatch.setattr(contact_pattern, "reach_blocks", reach)
     model, integ, contact = _scene_2d(COMM, num_steps)
     sim = ds.Simulation(model, integ, ds.SolverOptions(rtol=1e-9))
     traj = sim.run()
@@ -239,7 +239,7 @@ def test_fig1_pool_pattern_is_sparse():
     surf = contact.surface
     nv = surf.num_vertices
     free = np.flatnonzero(~surf.static)
-    a, b = np.divmod(contact._reach_pattern(), nv)
+    a, b = np.divmod(contact.pattern.reach(contact._step), nv)
     pattern = set(zip(a.tolist(), b.tolist(), strict=True))
     free_pairs = {(p, q) for p, q in pattern if p < q and not surf.static[[p, q]].any()}
     assert len(free_pairs) < 0.05 * len(free) * (len(free) - 1) / 2

@@ -109,10 +109,10 @@ def test_contact_hessian_projection_names():
     """The names "abs" and "clamp" map to ipctk's methods; any other name is refused by name."""
     import ipctk
 
-    from diffsolids.contact.term import _projection_method
+    from diffsolids.contact.potential import projection_method
     from diffsolids.errors import ParameterError
 
-    assert _projection_method("abs") == ipctk.PSDProjectionMethod.ABS
-    assert _projection_method("clamp") == ipctk.PSDProjectionMethod.CLAMP
+    assert projection_method("abs") == ipctk.PSDProjectionMethod.ABS
+    assert projection_method("clamp") == ipctk.PSDProjectionMethod.CLAMP
     with pytest.raises(ParameterError, match="hessian_projection 'none'"):
-        _projection_method("none")
+        projection_method("none")

@@ -140,7 +140,7 @@ def newton_cost(comm, obstacle: str, steps: int, stiffness: float | None = None)
     pairs, free_pairs = [], []
     for i in range(1, steps + 1):  # each step's pattern again, as the run made it
         contact.begin_step(i, traj, sim.integrator.coefficients(i))
-        a, b = np.divmod(contact._reach_pattern(), nv)
+        a, b = np.divmod(contact.pattern.reach(contact._step), nv)
         pairs.append(int(np.count_nonzero(a < b)))
         free_pairs.append(int(np.count_nonzero((a < b) & free[a] & free[b])))
     patterns = sim.solver.patterns

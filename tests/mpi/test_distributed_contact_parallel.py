@@ -131,7 +131,7 @@ def _kernels(build, comm) -> dict:
     out["shape"] = _sorted_nodal(model.shape_space, contact.adjoint_shape(u, lam), d)
     # one fresh build at the state: this rank's share of candidates and collisions
     ev = contact._evaluate(u)
-    C = contact._build(ev.x)
+    C = contact.builder.build(ev.x)
     out["share"] = {
         "collisions": len(C),
         "keys": collision_keys(C),

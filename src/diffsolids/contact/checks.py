@@ -10,10 +10,19 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 import ipctk
 import numpy as np
 
+from diffsolids.contact.collisions import CollisionBuilder
 from diffsolids.contact.obstacle import Obstacle
 from diffsolids.contact.surface import CollisionSurface
+from diffsolids.errors import IntersectionError
 
-__all__ = ["body_label", "close_pairs", "edges_of", "intersecting_pairs", "pair_label"]
+__all__ = [
+    "ConfigurationCheck",
+    "body_label",
+    "close_pairs",
+    "edges_of",
+    "intersecting_pairs",
+    "pair_label",
+]
 
 
 def edges_of(faces: np.ndarray) -> np.ndarray:
@@ -110,3 +119,71 @@ def close_pairs(
         if len(Cs) and np.sqrt(Cs.compute_minimum_distance(sub, xs)) <= gap:
             close.append((a, b))
     return close
+
+
+class ConfigurationCheck:
+    """Refuses configurations of a collision surface that intersect or touch, naming the pairs.
+
+    Args:
+        builder: Builds the collision set of a configuration (its surface, partition over the
+            ranks, broad phase and dhat are the check's).
+        obstacles: The surface's obstacles.
+        names: The domain's names of body ids.
+        pairs: The pairs of body ids (self-contact included).
+        min_gap: Configurations closer than ``min_gap * dhat`` are refused.
+    """
+
+    def __init__(
+        self,
+        builder: CollisionBuilder,
+        obstacles: Sequence[Obstacle],
+        names: Mapping[str, int],
+        pairs: Sequence[tuple[int, int]],
+        min_gap: float,
+    ) -> None:
+        self.surface = builder.surface
+        self.partition = builder.partition
+        self.broad_phase = builder.broad_phase
+        self.dhat = builder.dhat
+        self.builder = builder
+        self.obstacles = obstacles
+        self.names = names
+        self.pairs = pairs
+        self.min_gap = min_gap
+
+    def _body_label(self, body: int) -> str:
+        return body_label(self.surface, self.obstacles, self.names, body)
+
+    def _pair_label(self, a: int, b: int) -> str:
+        return pair_label(self._body_label, a, b)
+
+    def minimum_distance(self, x: np.ndarray, step: int) -> float:
+        """The minimum distance of the configuration x of step ``step`` (collective).
+
+        Raises:
+            IntersectionError: Naming the bodies that intersect or are closer than
+                ``min_gap * dhat``.
+        """
+        mesh = self.surface.mesh
+        if ipctk.has_intersections(mesh, np.asfortranarray(x), self.broad_phase):
+            pairs = [
+                self._pair_label(a, b) for a, b in intersecting_pairs(self.surface, self.pairs, x)
+            ]
+            raise IntersectionError(
+                f"the configuration at step {step} intersects: {'; '.join(pairs) or 'unknown'}"
+                " (separate the bodies or fix the mesh)"
+            )
+        C = self.builder.build(x)
+        dist = self.partition.minimum_distance(C, mesh, x)
+        if dist <= self.min_gap * self.dhat:
+            gap = self.min_gap * self.dhat
+            pairs = [
+                self._pair_label(a, b)
+                for a, b in close_pairs(self.surface, self.pairs, x, self.dhat, gap)
+            ]
+            raise IntersectionError(
+                f"at step {step} {'; '.join(pairs) or 'some bodies'} are {dist:.3e} apart, closer"
+                f" than {self.min_gap:g} dhat = {self.min_gap * self.dhat:.3e}: the barrier"
+                " cannot start from touching bodies (leave a gap)"
+            )
+        return dist

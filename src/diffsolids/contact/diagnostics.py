@@ -1,12 +1,81 @@
-"""Diagnostics of the contact term: forces per body, failure reports and their hints."""
+"""Diagnostics of the contact term: step records, forces per body, failure reports, hints."""
+
+import logging
+from dataclasses import dataclass
 
 import numpy as np
 
+from diffsolids.contact.evaluation import Evaluation
+from diffsolids.contact.partition import CollisionPartition
 from diffsolids.contact.step_bound import _GAP_FLOOR_ULPS
 from diffsolids.contact.surface import CollisionSurface
 from diffsolids.errors import IntersectionError
 
-__all__ = ["body_forces", "failure_report", "obstacle_move_error"]
+__all__ = [
+    "ContactRecord",
+    "body_forces",
+    "failure_report",
+    "obstacle_move_error",
+    "step_record",
+]
+
+logger = logging.getLogger("diffsolids")
+
+
+@dataclass
+class ContactRecord:
+    """Contact summary of one converged step.
+
+    Attributes:
+        step: Step index.
+        num_collisions: Active primitive pairs (distance below dhat).
+        min_distance: Smallest distance between active pairs (inf when there are none).
+        normal_force: (num_bodies, dim) total barrier force on each body (rows: ``body_ids``,
+            the domain's bodies, then the obstacles: the force on an obstacle is its reaction).
+        friction_force: (num_bodies, dim) total friction force on each body.
+    """
+
+    step: int
+    num_collisions: int
+    min_distance: float
+    normal_force: np.ndarray
+    friction_force: np.ndarray
+
+
+def step_record(
+    i: int,
+    partition: CollisionPartition,
+    surface: CollisionSurface,
+    num_bodies: int,
+    ev: Evaluation,
+    gradient: np.ndarray,
+    barrier_gradient: np.ndarray,
+) -> ContactRecord:
+    """The record of the converged step ``i`` at ev, logged (collective).
+
+    Args:
+        i: Step index.
+        partition: The collision counts and distances over the ranks.
+        surface: The collision surface.
+        num_bodies: Number of bodies (obstacles included).
+        ev: The evaluation at the converged state.
+        gradient: Gradient of the contact potential at ev (summed over the ranks).
+        barrier_gradient: Its barrier part.
+    """
+    normal, friction = body_forces(surface.body_index, num_bodies, gradient, barrier_gradient)
+    C = ev.collisions
+    count = partition.count(C)
+    dist = partition.minimum_distance(C, surface.mesh, ev.x)
+    rec = ContactRecord(i, count, dist, normal, friction)
+    logger.info(
+        "contact step %4d  pairs=%d  min_distance=%.3e  |normal force|=%.3e  |friction force|=%.3e",
+        i,
+        rec.num_collisions,
+        rec.min_distance,
+        np.linalg.norm(normal, axis=1).max(initial=0.0),
+        np.linalg.norm(friction, axis=1).max(initial=0.0),
+    )
+    return rec
 
 
 def body_forces(

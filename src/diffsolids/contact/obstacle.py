@@ -46,7 +46,7 @@ from diffsolids.mesh import Domain
 from diffsolids.mesh.readers import _rotation_matrix
 from diffsolids.parallel import collective_comm
 
-__all__ = ["Obstacle"]
+__all__ = ["Obstacle", "checked_obstacles"]
 
 Motion = Callable[[float], Any]
 
@@ -316,3 +316,27 @@ class Obstacle:
             raise MeshError(f"{self.label} differs between ranks: {shapes} on rank 0")
         for arr in (self.rest_positions, self.edges, self.faces):
             comm.Bcast(arr, root=0)
+
+
+def checked_obstacles(obstacles: Sequence[Obstacle], names: Sequence[str]) -> tuple[Obstacle, ...]:
+    """The obstacles as a tuple, checked: Obstacle objects whose names are not taken.
+
+    Args:
+        obstacles: The obstacles of a contact term.
+        names: The names already taken (the domain's names of bodies and tags).
+
+    Raises:
+        ParameterError: An obstacle that is not an Obstacle or whose name is taken.
+    """
+    obstacles = tuple(obstacles)
+    names = set(names)
+    for o in obstacles:
+        if not isinstance(o, Obstacle):
+            raise ParameterError(f"obstacles must be Obstacle objects, got {type(o).__name__}")
+        if o.name is not None and o.name in names:
+            raise ParameterError(
+                f"obstacle name {o.name!r} is taken (by a body, tag or another obstacle)"
+            )
+        if o.name is not None:
+            names.add(o.name)
+    return obstacles

@@ -11,76 +11,61 @@ lagged from x^{i-1} = X + W u^{i-1} once per step. The gradient of the friction 
 -F(v) (the friction force) and its Hessian Hess_v D / (beta dt). Static load steps use
 v = (u - u^{i-1}) / dt with coefficient dt (alpha = -1, beta = 1).
 
+ContactTerm is a thin composition of the parts of this scheme, each in its module of
+``diffsolids.contact``:
+
+- ``collisions.CollisionBuilder``: this rank's share of the collision set at positions x.
+- ``lagging.LaggedFriction``: the step's normal forces and tangent bases lagged from x^{i-1},
+  the friction coefficients of the pairs of bodies, the BDF velocity.
+- ``potential.ContactPotential``: kappa, and the energy, gradient and Hessian at an Evaluation.
+- ``pattern.ContactPattern``: the vertex blocks and matrix pattern of the step.
+- ``free_dofs.FreeDofs``: the free (not Dirichlet) collision dofs and the static vertices.
+- ``adjoint.ContactAdjoint``: the transposed derivatives of the residual applied to lam.
+- ``obstacle_moves.ObstacleMoves``: kinematic obstacles, their moves and the scheme of a step
+  with moving obstacles.
+- ``checks.ConfigurationCheck`` and ``step_bound.StepBound``: refused configurations and the
+  collision-free step bound (CCD).
+
+The term keeps the state of the step (its BDF history, lagged and obstacle displacements) and
+the evaluation cache: one Evaluation per displacement, valid while the token is unchanged (a
+new step, new rest positions or static vertices, and rebuilt lagged friction change it).
+
 Distributed contact: all ranks hold the whole collision surface (gathered once per evaluation)
 and build the collision set on it, but each collision is evaluated on one rank only
-(:class:`~diffsolids.contact.partition.CollisionPartition`: a hash of its ids picks the rank).
-Each rank keeps its share of the collision set and evaluates the friction collisions lagged
-from it, the barrier and friction derivatives and the adjoint products on it; energies are
-summed over the ranks, collision-dof vectors are summed (one allreduce of the surface vector,
-then each rank adds the rows it owns), matrix entries are added by every rank with global
-indices into the rows where they live (PETSc sends them in the assembly; the pattern, the union
-over the ranks, preallocates them). The broad and narrow phase of the collision set, the CCD
-step bound and the reach pattern are the same computation on every rank (see the partition
-module for why). On one rank this is the serial code with the identity for every reduction.
-
-Kinematic obstacles (:class:`~diffsolids.contact.obstacle.Obstacle`) are extra vertices of the
-collision mesh with prescribed displacements O^i = O(t_i) and no dofs: x = X + W u + O^i, their
-rows and columns never enter the PETSc vectors and matrices, and every adjoint product keeps the
-body rows only (obstacles have neither shape dofs nor state). Their velocity in the friction
-potential is the same BDF formula, (O^i + sum_j alpha_j O^{i-j}) / (beta dt), and the lagged
-normal forces and tangent bases are those at x^{i-1} (obstacles at O^{i-1}): friction acts on the
-relative sliding velocity.
-
-Scheme of a step with moving obstacles (never intersected): the Newton solve of step i runs with
-the obstacles at O^i (its line search scales only the body part). The move O^{i-1} -> O^i before
-it is checked by CCD in :meth:`ContactTerm.begin_step`: (1) with the bodies held at u^{i-1}; if
-that is collision-free, the Newton start (u^{i-1}, O^i) is admissible and every later path (the
-guess, the Newton steps) is checked with the obstacles at O^i; (2) otherwise (an obstacle pushing
-a body, e.g. an elevator, closes the gap within the step) the start is not admissible and the move
-must be made together with the body's initial guess: :meth:`ContactTerm.max_step` from exactly
-u^{i-1} then checks the straight path on which the obstacles move from O^{i-1} to O^i while the
-body moves from u^{i-1} to the guess, and admits it only in full (inf or 0). If no guess passes, a
-clear IntersectionError names the obstacle and the step (a smaller time step, or an initial
-guess that moves with the obstacle, is needed). So a moving obstacle may carry a body that
-already moves with it (the extrapolated guess u^{i-1} + dt v^{i-1} of a body riding a lift) or
-slide along it (a belt), but not push a body at rest, or quasi-statically in load steps, by
-more than their gap per step: that needs a continuation of the obstacle's move with
-intermediate solves (as ``Simulation._dirichlet_continuation`` does for Dirichlet values).
+(``partition.CollisionPartition``: a hash of its ids picks the rank). Energies are summed over
+the ranks, collision-dof vectors too (one allreduce of the surface vector, then each rank adds
+the rows it owns); matrix entries are added by every rank with global indices into the rows
+where they live (PETSc sends them in the assembly; the pattern, the union over the ranks,
+preallocates them). The broad and narrow phase of the collision set, the CCD step bound and the
+reach pattern are the same computation on every rank (see the partition module for why). On
+one rank this is the serial code with the identity for every reduction.
 """
 
 import contextlib
 import logging
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import ipctk
 import numpy as np
-import scipy.sparse as sp
 from dolfinx import fem
-from mpi4py import MPI
 from petsc4py import PETSc
 
-from diffsolids.contact.checks import body_label, close_pairs, intersecting_pairs, pair_label
-from diffsolids.contact.diagnostics import body_forces, failure_report, obstacle_move_error
-from diffsolids.contact.evaluation import (
-    Evaluation,
-    contact_energy,
-    contact_gradient,
-    contact_hessian,
-)
-from diffsolids.contact.friction_adjoint import friction_weight_adjoint
-from diffsolids.contact.friction_table import (
-    body_pairs,
-    checked_coefficients,
-    coefficients_of,
-    tangential_collisions,
-)
-from diffsolids.contact.obstacle import Obstacle
+from diffsolids.contact.adjoint import ContactAdjoint
+from diffsolids.contact.checks import ConfigurationCheck
+from diffsolids.contact.collisions import CollisionBuilder
+from diffsolids.contact.diagnostics import ContactRecord, failure_report, step_record
+from diffsolids.contact.evaluation import Evaluation
+from diffsolids.contact.free_dofs import FreeDofs
+from diffsolids.contact.friction_table import body_pairs, coefficients_of
+from diffsolids.contact.lagging import LaggedFriction
+from diffsolids.contact.obstacle import Obstacle, checked_obstacles
+from diffsolids.contact.obstacle_moves import ObstacleMoves
 from diffsolids.contact.partition import CollisionPartition
-from diffsolids.contact.reach import reach_blocks, step_motion
-from diffsolids.contact.shape import barrier_shape_adjoint
+from diffsolids.contact.pattern import ContactPattern
+from diffsolids.contact.potential import ContactPotential, projection_method
+from diffsolids.contact.reach import step_motion
 from diffsolids.contact.step_bound import (  # noqa: F401  (test_soft_barrier imports them here)
     _CCD_REACH,
     _GAP_FLOOR_ULPS,
@@ -88,12 +73,10 @@ from diffsolids.contact.step_bound import (  # noqa: F401  (test_soft_barrier im
     _edge_vertex_bounds,
 )
 from diffsolids.contact.stiffness import suggest_barrier_stiffness
-from diffsolids.contact.surface import CollisionSurface, _contains, block_pattern
+from diffsolids.contact.surface import CollisionSurface
 from diffsolids.contact.timing import timed, timed_kernel, timing_summary
-from diffsolids.errors import IntersectionError, ParameterError
+from diffsolids.errors import ParameterError
 from diffsolids.model.numeric import NumericTerm
-from diffsolids.parallel import collective_comm
-from diffsolids.solvers.sparsity import sorted_unique
 
 if TYPE_CHECKING:
     from diffsolids.integrators import Integrator, TimeStep
@@ -103,39 +86,6 @@ if TYPE_CHECKING:
 __all__ = ["ContactRecord", "ContactTerm"]
 
 logger = logging.getLogger("diffsolids")
-
-# the matrix pattern of a step covers the pairs within this many dhat at u^{i-1} (plus motion)
-_PATTERN_REACH = 2.0
-# ... when no vertex moves farther than this times the step's estimate (ContactTerm._step_motion)
-_MOTION_FACTOR = 1.0
-
-
-def _projection_method(name: str) -> ipctk.PSDProjectionMethod:
-    """The ipctk PSD projection method called ``name`` ("clamp" or "abs")."""
-    methods = {"clamp": ipctk.PSDProjectionMethod.CLAMP, "abs": ipctk.PSDProjectionMethod.ABS}
-    if name not in methods:
-        raise ParameterError(f"hessian_projection {name!r}: expected 'clamp' or 'abs'")
-    return methods[name]
-
-
-@dataclass
-class ContactRecord:
-    """Contact summary of one converged step.
-
-    Attributes:
-        step: Step index.
-        num_collisions: Active primitive pairs (distance below dhat).
-        min_distance: Smallest distance between active pairs (inf when there are none).
-        normal_force: (num_bodies, dim) total barrier force on each body (rows: ``body_ids``,
-            the domain's bodies, then the obstacles: the force on an obstacle is its reaction).
-        friction_force: (num_bodies, dim) total friction force on each body.
-    """
-
-    step: int
-    num_collisions: int
-    min_distance: float
-    normal_force: np.ndarray
-    friction_force: np.ndarray
 
 
 class ContactTerm(NumericTerm):
@@ -210,16 +160,15 @@ class ContactTerm(NumericTerm):
         self.comm = model.domain.comm
         self.dim = model.dim
         self.dhat = float(dhat)
-        self.stiffness = None if stiffness is None else float(stiffness)
         self.eps_v = float(eps_v)
         self.area_weighting = bool(area_weighting)
         self.min_gap = float(min_gap)
-        self.projection = _projection_method(hessian_projection)
+        self.projection = projection_method(hessian_projection)
         if num_threads is None and self.comm.size > 1:
             num_threads = max(1, (os.cpu_count() or 1) // self.comm.size)
         if num_threads is not None:
             ipctk.set_num_threads(int(num_threads))
-        self.obstacles = self._check_obstacles(obstacles)
+        self.obstacles = checked_obstacles(obstacles, model.domain.names)
         self.surface = CollisionSurface(model.domain, model.V, self.obstacles, boundary)
         self.surface.obstacle_displacement(0.0)  # a bad motion fails here, not in a step
         if self.obstacles:  # obstacles never collide with each other
@@ -229,14 +178,14 @@ class ContactTerm(NumericTerm):
         self.body_ids = self.surface.body_ids
         pairs = zip(self.obstacles, self.surface.obstacle_ids, strict=True)
         self._obstacle_names = {o.name: b for o, b in pairs if o.name}
-        self._clock = None
-        self._dynamic = True
-        self.barrier = None
-        if self.stiffness is not None:
-            self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness)
+        self.timings: dict[str, list] = {}
+        self.obstacle_moves = ObstacleMoves(self.surface, self.dim, self.timings)
         self.friction_potential = ipctk.FrictionPotential(self.eps_v)
         self.broad_phase = ipctk.LBVH()
         self.partition = CollisionPartition(self.comm)
+        self.builder = CollisionBuilder(
+            self.surface, self.broad_phase, self.partition, self.dhat, self.area_weighting
+        )
         if narrow_phase == "additive":
             ccd = ipctk.AdditiveCCD()
         elif narrow_phase == "tight_inclusion":
@@ -250,25 +199,43 @@ class ContactTerm(NumericTerm):
         )
         self.friction_pairs: list[tuple[int, int]]
         self.friction_pairs, self._pair_index = body_pairs(self.body_ids)
-        self._mu = np.zeros(len(self.friction_pairs))
+        self.lagging = LaggedFriction(
+            self.builder, self._pair_index, len(self.friction_pairs), self.timings
+        )
+        kappa = None if stiffness is None else float(stiffness)
+        self.potential = ContactPotential(
+            self.lagging, self.friction_potential, kappa, self.projection, self.timings
+        )
+        self.adjoint = ContactAdjoint(model, self.lagging, self.potential, self.eps_v)
+        self.pattern = ContactPattern(self.potential)
+        self.configuration = ConfigurationCheck(
+            self.builder, self.obstacles, model.domain.names, self.friction_pairs, self.min_gap
+        )
         self.friction_coefficients = coefficients_of(
             friction, len(self.friction_pairs), self.pair_index
         )
         self.records: list[ContactRecord] = []
-        # forward steps whose obstacle move was made with the body's initial guess
-        self.moved_with_guess: list[int] = []
-        self.timings: dict[str, list] = {}
         self.force_function = fem.Function(model.V, name="contact_force")
         self._token = 0
         self._eval: Evaluation | None = None
         self._step = None
-        self._free_key = None
-        self._free = np.ones(self.surface.num_vertices * self.dim, dtype=bool)
+        self.free_dofs = FreeDofs(self.surface, self.comm, self.dim)
         self._forward_step: int | None = None
-        self._segment = None
-        self._tangential = None
-        self._pattern_memo = None
-        self._shape_builds: list[tuple] = []
+
+    @property
+    def stiffness(self) -> float | None:
+        """Barrier stiffness kappa (None until chosen at the first step)."""
+        return self.potential.stiffness
+
+    @property
+    def barrier(self) -> ipctk.BarrierPotential | None:
+        """The ipctk BarrierPotential with :attr:`stiffness` (None until chosen)."""
+        return self.potential.barrier
+
+    @property
+    def moved_with_guess(self) -> list[int]:
+        """Forward steps whose obstacle move was made with the body's initial guess."""
+        return self.obstacle_moves.moved_with_guess
 
     @property
     def ccd(self) -> ipctk.NarrowPhaseCCD:
@@ -276,20 +243,6 @@ class ContactTerm(NumericTerm):
         return self.step_bound.ccd
 
     # -- parameters ---------------------------------------------------------------------------
-    def _check_obstacles(self, obstacles: Sequence[Obstacle]) -> tuple[Obstacle, ...]:
-        obstacles = tuple(obstacles)
-        names = set(self.model.domain.names)
-        for o in obstacles:
-            if not isinstance(o, Obstacle):
-                raise ParameterError(f"obstacles must be Obstacle objects, got {type(o).__name__}")
-            if o.name is not None and o.name in names:
-                raise ParameterError(
-                    f"obstacle name {o.name!r} is taken (by a body, tag or another obstacle)"
-                )
-            if o.name is not None:
-                names.add(o.name)
-        return obstacles
-
     def _body_id(self, body: int | str) -> int:
         """Body id of a domain body or an obstacle (by id or name)."""
         if isinstance(body, str) and body in self._obstacle_names:
@@ -308,18 +261,15 @@ class ContactTerm(NumericTerm):
     @property
     def friction_coefficients(self) -> np.ndarray:
         """Friction coefficient of each pair in :attr:`friction_pairs` (a copy; assign to set)."""
-        return self._mu.copy()
+        return self.lagging.mu.copy()
 
     @friction_coefficients.setter
     def friction_coefficients(self, values: np.ndarray | Sequence[float]) -> None:
-        mu = checked_coefficients(values, len(self.friction_pairs))
-        if not np.array_equal(mu, self._mu):
-            self._mu = mu
-            self._tangential = None  # rebuilt lazily for the current step
+        self.lagging.set_coefficients(values)
 
     def set_friction(self, body_a: int | str, body_b: int | str, mu: float) -> None:
         """Set the friction coefficient between two bodies (the same body for self-contact)."""
-        values = self._mu.copy()
+        values = self.lagging.mu.copy()
         values[self.pair_index(body_a, body_b)] = mu
         self.friction_coefficients = values
 
@@ -328,8 +278,7 @@ class ContactTerm(NumericTerm):
         """Fix kappa from the scene (collective): suggest_barrier_stiffness at ``u``."""
         state = fem.Function(self.model.V)
         state.x.array[:] = u
-        self.stiffness = suggest_barrier_stiffness(self, integrator, state)
-        self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness)
+        self.potential.set_stiffness(suggest_barrier_stiffness(self, integrator, state))
         logger.info("contact: barrier stiffness chosen: kappa = %.4g", self.stiffness)
 
     def begin_step(
@@ -340,19 +289,16 @@ class ContactTerm(NumericTerm):
         if surf.update_rest_positions():
             self._token += 1
         self._update_static()
-        if sim is not None:
-            self._clock = sim.integrator.time
-            self._dynamic = sim.integrator.dynamic
-        elif self._clock is None:
-            self._clock = lambda k, dt=coeffs.dt: k * dt
+        self.obstacle_moves.follow(sim, coeffs)
         if self.stiffness is None:
             self._choose_stiffness(sim.integrator if sim is not None else None, traj.u[i - 1])
         m = len(coeffs.alpha)
-        obstacle = [self._obstacle_at(i - j) for j in range(m + 1)]
+        obstacle = [self.obstacle_moves.at(i - j) for j in range(m + 1)]
         hist = [surf.gather(traj.u[i - j]) + obstacle[j] for j in range(1, m + 1)]
         beta_dt = coeffs.beta_dt
         v_offset = sum(a * U for a, U in zip(coeffs.alpha, hist, strict=True)) / beta_dt
-        motion, deformation = self._step_motion(i, traj, coeffs)
+        # how far each collision vertex may move in the step
+        motion, deformation = step_motion(surf, len(self.body_ids), i, traj, coeffs.dt)
         self._step = {
             "index": i,
             "alpha": tuple(coeffs.alpha),
@@ -367,173 +313,29 @@ class ContactTerm(NumericTerm):
         }
         self._token += 1
         self._eval = None
-        self._tangential = None
-        self._lagged = None
-        self._segment = None
+        self.lagging.begin_step(self._step)
+        self.builder.segment = None
         forward = len(traj.u) == i
         if forward and (self._forward_step is None or i != self._forward_step + 1):
             self.records = []
-            self.moved_with_guess = []
+            self.obstacle_moves.moved_with_guess = []
             self.check_configuration(hist[0], step=i - 1)
         self._forward_step = i if forward else None
         if forward and surf.has_moving_obstacles:
-            self._check_obstacle_move(hist[0], obstacle[1], obstacle[0])
-
-    def _obstacle_at(self, k: int) -> np.ndarray:
-        """(num_vertices, dim): zero body rows, the obstacles' displacements at step ``k``."""
-        surf = self.surface
-        if not surf.has_moving_obstacles:
-            return np.zeros((surf.num_vertices, self.dim))
-        if self._clock is None:
-            if k != 0:
-                raise ParameterError(
-                    f"the time of step {k} is not known yet (moving obstacles): run or begin a "
-                    "step of the simulation first"
-                )
-            return surf.obstacle_displacement(0.0)
-        return surf.obstacle_displacement(float(self._clock(k)))
-
-    def _check_obstacle_move(
-        self, lagged: np.ndarray, O_prev: np.ndarray, O_now: np.ndarray
-    ) -> None:
-        """CCD of the obstacles' move O^{i-1} -> O^i with the bodies held at u^{i-1} (collective).
-
-        Free: the Newton start (u^{i-1}, O^i) is admissible. Not free: the move must be made
-        with the body's initial guess (see :meth:`max_step`); ``blocked`` records that.
-        """
-        if np.array_equal(O_prev, O_now):
-            return
-        X = self.surface.rest_positions
-        x0 = np.asfortranarray(X + lagged)
-        x1 = np.asfortranarray(x0 + (O_now - O_prev))
-        with self._timed("ccd_obstacles"):
-            toi = self._collision_free_fraction(lagged, x0, x1)
-        self._step["blocked"] = toi < 1.0
-        self._step["start_body"] = lagged - O_prev
-        if self._step["blocked"]:
-            self.moved_with_guess.append(self._step["index"])
-            logger.info(
-                "contact step %d: the obstacles' move alone is not collision-free (fraction "
-                "%.3g): it is made with the body's initial guess",
-                self._step["index"],
-                toi,
-            )
-
-    def _obstacle_move_error(self) -> IntersectionError:
-        step = self._step
-        move = step["obstacle"] - (step["lagged"] - step["start_body"])
-        return obstacle_move_error(self.surface, step["index"], move, self._dynamic)
-
-    def _step_motion(
-        self, i: int, traj: "StateHistory", coeffs: "TimeStep"
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """How far each collision vertex may move in step ``i`` (:func:`step_motion`)."""
-        return step_motion(self.surface, len(self.body_ids), i, traj, coeffs.dt)
+            self.obstacle_moves.check_move(self._step, obstacle[1], self._collision_free_fraction)
 
     def _update_static(self) -> None:
-        if self._free_mask(self.model.dirichlet_dofs(), static=True):
+        if self.free_dofs.update_static(self.model.dirichlet_dofs()):
             self._token += 1
-
-    def _free_mask(self, bc_dofs: np.ndarray, static: bool = False) -> np.ndarray | bool:
-        """Free collision dofs for these (local) Dirichlet dofs; collective.
-
-        With ``static``, also mark fully prescribed vertices as static obstacles and return
-        whether anything changed.
-        """
-        bc = np.asarray(bc_dofs)
-        key = (len(bc), hash(bc.tobytes()))
-        changed = collective_comm(self.comm).allreduce(key != self._free_key, op=MPI.LOR)
-        if changed:
-            self._free = ~self.surface.dof_mask(bc)
-            self._free_key = key
-        if static:
-            if changed or self.surface.static is None:
-                fixed = ~self._free.reshape(-1, self.dim)
-                self.surface.set_static(fixed.all(axis=1))
-                return True
-            return False
-        return self._free
-
-    def _build(self, x: np.ndarray, shape_derivatives: bool = False) -> ipctk.NormalCollisions:
-        """This rank's share of the collision set at positions x (weight gradients when asked).
-
-        The whole set is built on every rank (the same on all), then only this rank's
-        collisions are kept (:meth:`CollisionPartition.keep_share`).
-
-        The sets with weight gradients are kept for the last two positions (same collision mesh
-        and static mask): the adjoint of step i builds them at x^i and, for the lagged
-        friction, at x^{i-1}, where the adjoint of step i - 1 needs its own again.
-        """
-        surf = self.surface
-        if shape_derivatives:
-            for mesh, static, xc, C in self._shape_builds:
-                if mesh is surf.mesh and static is surf.static and np.array_equal(xc, x):
-                    return C
-        C = ipctk.NormalCollisions()
-        C.use_area_weighting = self.area_weighting
-        C.enable_shape_derivatives = shape_derivatives
-        C.build(surf.mesh, np.asfortranarray(x), self.dhat, 0.0, self.broad_phase)
-        self.partition.keep_share(C)
-        if shape_derivatives:
-            self._shape_builds = [(surf.mesh, surf.static, np.array(x), C), *self._shape_builds[:1]]
-        return C
-
-    def _build_on_segment(self, U: np.ndarray, x: np.ndarray) -> ipctk.NormalCollisions:
-        """Collision set at x, reusing the CCD candidates when x lies on the last checked step.
-
-        The line search only visits points x0 + t dx, t in [0, 1], of the segment the CCD swept
-        (to 2 dx) with boxes inflated by dhat: its candidates contain every pair within dhat
-        there, so only the narrow phase runs.
-        """
-        seg = self._segment
-        if seg is not None:
-            U0, dU, candidates, token = seg
-            if token == self._token:
-                diff = U - U0
-                t = float(np.vdot(diff, dU) / np.vdot(dU, dU))
-                tol = 1e-10 * (np.abs(U0).max() + np.abs(dU).max())
-                if -1e-12 <= t <= _CCD_REACH and np.abs(diff - t * dU).max() <= tol:
-                    C = ipctk.NormalCollisions()
-                    C.use_area_weighting = self.area_weighting
-                    C.build(candidates, self.surface.mesh, np.asfortranarray(x), self.dhat, 0.0)
-                    return self.partition.keep_share(C)
-        return self._build(x)
-
-    def _lagged_state(
-        self, shape_derivatives: bool = False
-    ) -> tuple[np.ndarray, ipctk.NormalCollisions]:
-        """(positions, collisions) at x^{i-1}; with weight gradients when asked."""
-        key = "lagged_shape" if shape_derivatives else "lagged"
-        cached = getattr(self, "_lagged", None) or {}
-        if key not in cached:
-            x = self.surface.rest_positions + self._step["lagged"]
-            cached[key] = (x, self._build(x, shape_derivatives))
-            self._lagged = cached
-        return cached[key]
-
-    def _tangential_collisions(
-        self, mu_table: np.ndarray, shape_derivatives: bool = False
-    ) -> ipctk.TangentialCollisions:
-        x, C = self._lagged_state(shape_derivatives)
-        return tangential_collisions(self.surface, x, C, self.barrier, mu_table)
-
-    def _mu_table(self, coefficients: np.ndarray) -> np.ndarray:
-        return coefficients[self._pair_index]
 
     def _friction(self) -> ipctk.TangentialCollisions | None:
         """The step's TangentialCollisions with the current coefficients (None if all mu = 0)."""
         if self._step is None:
             raise ParameterError("ContactTerm.begin_step must be called before evaluations")
-        if not np.any(self._mu > 0):
-            return None
-        if self._tangential is None:
-            with self._timed("lagged_friction"):
-                self._tangential = self._tangential_collisions(self._mu_table(self._mu))
+        T, built = self.lagging.current(self.barrier)
+        if built:
             self._token += 1
-        return self._tangential
-
-    def _velocity(self, U: np.ndarray) -> np.ndarray:
-        return U / self._step["beta_dt"] + self._step["v_offset"]
+        return T
 
     # -- evaluation cache --------------------------------------------------------------------
     def _timed(self, name: str) -> contextlib.AbstractContextManager:
@@ -555,146 +357,23 @@ class ContactTerm(NumericTerm):
             return ev
         x = self.surface.rest_positions + U
         with self._timed("build"):
-            C = self._build_on_segment(U, x)
+            C = self.builder.build_on_segment(U, x, self._token)
         ev = Evaluation(U, x, C, self._token)
         ev.extras["friction"] = T
         self._eval = ev
         return ev
 
-    def _energy(self, ev: Evaluation) -> float:
-        if ev.energy is None:
-            self._energy_now(ev)
-        return ev.energy
-
-    def _energy_now(self, ev: Evaluation) -> None:
-        with self._timed("energy"):
-            e = contact_energy(
-                self.barrier,
-                self.friction_potential,
-                self.surface.mesh,
-                ev,
-                self._friction_velocity(ev),
-                self._step["beta_dt"],
-            )
-            ev.energy = self.partition.total(e)
-
-    def _gradient(self, ev: Evaluation) -> np.ndarray:
-        if ev.gradient is None:
-            self._gradient_now(ev)
-        return ev.gradient
-
-    def _gradient_now(self, ev: Evaluation) -> None:
-        """The gradient summed over the ranks (the same on all); its barrier part kept local."""
-        with self._timed("gradient"):
-            g, ev.extras["barrier_gradient_share"] = contact_gradient(
-                self.barrier,
-                self.friction_potential,
-                self.surface.mesh,
-                ev,
-                self._friction_velocity(ev),
-            )
-        with self._timed("reduce"):
-            ev.gradient = self.partition.sum(g)
-
-    def _barrier_gradient(self, ev: Evaluation) -> np.ndarray:
-        """The barrier part of the gradient at ev, summed over the ranks (collective)."""
-        if "barrier_gradient" not in ev.extras:
-            self._gradient(ev)
-            ev.extras["barrier_gradient"] = self.partition.sum(ev.extras["barrier_gradient_share"])
-        return ev.extras["barrier_gradient"]
-
-    def _hessian(self, ev: Evaluation, project: bool = False) -> sp.csc_matrix:
-        method = self.projection if project else ipctk.PSDProjectionMethod.NONE
-        attr = "projected" if project else "hessian"
-        if getattr(ev, attr) is None:
-            with self._timed("hessian_projected" if project else "hessian"):
-                self._hessian_now(ev, attr, method)
-        return getattr(ev, attr)
-
-    def _hessian_now(self, ev: Evaluation, attr: str, method: ipctk.PSDProjectionMethod) -> None:
-        V = self._friction_velocity(ev)
-        beta_dt = self._step["beta_dt"] if V is not None else 1.0
-        H = contact_hessian(
-            self.barrier, self.friction_potential, self.surface.mesh, ev, V, beta_dt, method
-        )
-        setattr(ev, attr, H)
-
-    def _friction_velocity(self, ev: Evaluation) -> np.ndarray | None:
-        """The velocity at ev when the step has friction (None without)."""
-        return None if ev.extras["friction"] is None else self._velocity(ev.U)
-
-    def _blocks(self, ev: Evaluation) -> np.ndarray:
-        """Vertex-block pattern of the Newton matrix at ev (exact Hessian + friction stencils).
-
-        The same on all ranks (collective): the reach pattern and the blocks of every rank's
-        share outside it.
-
-        The step's :meth:`_reach_pattern` itself (the same array) while it holds them all, so
-        that the matrix pattern stays the same object and the solver's check is free.
-        """
-        if ev.blocks is None:
-            parts = [self._hessian(ev)]
-            T = ev.extras["friction"]
-            if T is not None:
-                if "friction_pattern" not in self._step:
-                    # at zero sliding velocity the friction Hessian covers every stencil
-                    zero = np.asfortranarray(np.zeros_like(ev.U))
-                    self._step["friction_pattern"] = self.friction_potential.hessian(
-                        T, self.surface.mesh, zero
-                    )
-                parts.append(self._step["friction_pattern"])
-            surf = self.surface
-            needed = block_pattern(*parts, dim=self.dim, num_vertices=surf.num_vertices)
-            if surf.static is not None:  # blocks of static vertices have no matrix entries
-                a, b = np.divmod(needed, surf.num_vertices)
-                needed = needed[~(surf.static[a] | surf.static[b])]
-            reach = self._reach_pattern()
-            # other ranks add their Hessians' entries to the rows this rank owns: the union
-            outside = self.partition.union(needed[~_contains(reach, needed)])
-            ev.blocks = reach if len(outside) == 0 else sorted_unique(reach, outside)
-        return ev.blocks
-
-    def _reach_pattern(self) -> np.ndarray:
-        """Vertex blocks of the pairs that can meet in the step: a superset for the whole step.
-
-        The stencils of the pairs of primitives whose boxes at u^{i-1}, each grown by
-        ``_PATTERN_REACH / 2`` dhat plus how far its vertices may move in the step
-        (:meth:`_step_motion`; relative to their body for pairs of one body), overlap
-        (:func:`~diffsolids.contact.reach.reach_blocks`). So a new contact rarely needs a
-        larger matrix (a rebuild and a new symbolic factorisation), and the pattern follows
-        the pairs that are near, not the size of the primitives (a coarse obstacle). Left out:
-        pairs of one body that are neighbours on the surface at rest (not contacts), and blocks
-        of static vertices (no matrix entries; a pair with a static primitive adds none but the
-        other primitive's own, which are always in).
-        """
-        step = self._step
-        if "reach" not in step:
-            with self._timed("reach_pattern"):
-                surf = self.surface
-                step["reach"] = reach_blocks(
-                    surf.rest_positions + step["lagged"],
-                    surf.rest_positions,
-                    surf.edges,
-                    surf.faces,
-                    surf.body,
-                    0.5 * _PATTERN_REACH * self.dhat,
-                    _MOTION_FACTOR * step["motion"],
-                    _MOTION_FACTOR * step["deformation"],
-                    surf.static,
-                )
-        return step["reach"]
-
     # -- numeric-term interface (forward) -----------------------------------------------------
     def energy(self, u: fem.Function) -> float:
         """Contact part of the incremental potential (identical on all ranks; collective)."""
-        return self._energy(self._evaluate(u))
+        return self.potential.energy(self._evaluate(u))
 
     def add_residual(self, u: fem.Function, b: PETSc.Vec) -> None:
         """Add the gradient of the contact potential to the owned rows of ``b`` (collective).
 
-        The gradient is summed over the ranks' shares first (:meth:`_gradient`).
+        The gradient is summed over the ranks' shares first.
         """
-        g = self._gradient(self._evaluate(u))
+        g = self.potential.gradient(self._evaluate(u))
         self.surface.add_to_owned(b.array_w, g)
 
     def add_jacobian(
@@ -712,9 +391,9 @@ class ContactTerm(NumericTerm):
             project: Add the PSD-projected Hessian (Newton fallback) instead of the exact one.
         """
         ev = self._evaluate(u)
-        free = self._free_mask(bc_dofs)
-        H = self._hessian(ev, project)
-        keep = self._blocks(ev) if project else None
+        free = self.free_dofs.mask(bc_dofs)
+        H = self.potential.hessian(ev, project)
+        keep = self.pattern.blocks(ev, self._step) if project else None
         with self._timed("insert"):
             self.surface.add_matrix(A, H, free, keep=keep)
 
@@ -738,12 +417,12 @@ class ContactTerm(NumericTerm):
             bc_dofs: Local indices of Dirichlet dofs.
         """
         ev = self._evaluate(u)
-        free = self._free_mask(bc_dofs)
+        free = self.free_dofs.mask(bc_dofs)
         d = self.surface.gather(np.asarray(increment)).ravel()
         d[free] = 0.0
         if not np.any(d):
             return
-        g = self.partition.sum(self._hessian(ev) @ d)
+        g = self.partition.sum(self.potential.hessian(ev) @ d)
         g[~free] = 0.0
         self.surface.add_to_owned(b.array_w, g)
 
@@ -758,32 +437,21 @@ class ContactTerm(NumericTerm):
         ev = self._evaluate(u)
         d = self.surface.gather(np.asarray(direction)).ravel()
         with self._timed("hessian_action"):
-            Hd = self._hessian(ev) @ d
+            Hd = self.potential.hessian(ev) @ d
         with self._timed("reduce"):
             Hd = self.partition.sum(Hd)
         self.surface.add_to_owned(y.array_w, Hd)
 
     def matrix_pattern(self, u: fem.Function, bc_dofs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Global (rows, cols) of the entries :meth:`add_jacobian` may add at ``u`` (owned rows)."""
-        ev = self._evaluate(u)
-        blocks = self._blocks(ev)
-        free = self._free_mask(bc_dofs)
-        memo = self._pattern_memo
-        # the same arrays while the pattern is unchanged: the solver then skips its checks
-        same = memo is not None and (memo[0] is blocks or np.array_equal(memo[0], blocks))
-        if same and memo[1] == self._free_key:
-            return memo[2]
-        with self._timed("pattern"):
-            entries = self.surface.matrix_entries(blocks, free)
-        self._pattern_memo = (blocks, self._free_key, entries)
-        return entries
+        return self.pattern.matrix_pattern(self._evaluate(u), self._step, self.free_dofs, bc_dofs)
 
     def max_step(self, x: PETSc.Vec, dx: PETSc.Vec) -> float:
         """Largest a such that the surface moves collision-free along x + s dx, s in [0, a).
 
         The CCD runs on the step extended to ``2 dx``, so a free full step reports a value > 1.
         Obstacles stay at their step-i positions, except on the step's first move when their
-        own move is not collision-free (see the module docstring): from exactly u^{i-1}, the
+        own move is not collision-free (see ``contact.obstacle_moves``): from exactly u^{i-1}, the
         path on which they move from t_{i-1} to t_i with the body is checked, and admitted only
         in full (inf, or 0).
 
@@ -793,17 +461,9 @@ class ContactTerm(NumericTerm):
         Ub = self.surface.gather(x.array_r)
         dU = self.surface.gather(dx.array_r)
         step = self._step
-        if step is not None and step["blocked"] and np.array_equal(Ub, step["start_body"]):
-            X = self.surface.rest_positions
-            x0 = np.asfortranarray(X + step["lagged"])
-            x1 = np.asfortranarray(X + Ub + dU + step["obstacle"])
-            with self._timed("ccd_obstacles"):
-                toi = self._collision_free_fraction(step["lagged"], x0, x1)
-            if toi >= 1.0:
-                return np.inf
-            if not np.any(dU):
-                raise self._obstacle_move_error()
-            return 0.0
+        first = self.obstacle_moves.first_move(step, Ub, dU, self._collision_free_fraction)
+        if first is not None:
+            return first
         if not np.any(dU):
             return np.inf
         U0 = Ub + (step["obstacle"] if step is not None else 0.0)
@@ -811,7 +471,7 @@ class ContactTerm(NumericTerm):
         x1 = np.asfortranarray(x0 + _CCD_REACH * dU)
         with self._timed("ccd"):
             toi, candidates = self._collision_free_fraction(U0, x0, x1, with_candidates=True)
-        self._segment = (U0, dU, candidates, self._token)
+        self.builder.segment = (U0, dU, candidates, self._token)
         return toi * _CCD_REACH
 
     def _collision_free_fraction(
@@ -828,12 +488,6 @@ class ContactTerm(NumericTerm):
         return self.step_bound.fraction(x0, x1, cached, with_candidates)
 
     # -- configuration checks ----------------------------------------------------------------
-    def _body_label(self, body: int) -> str:
-        return body_label(self.surface, self.obstacles, self.model.domain.names, body)
-
-    def _pair_label(self, a: int, b: int) -> str:
-        return pair_label(self._body_label, a, b)
-
     def check_configuration(self, U: np.ndarray, step: int = 0) -> float:
         """Refuse intersecting or touching configurations; returns the minimum distance.
 
@@ -850,32 +504,8 @@ class ContactTerm(NumericTerm):
         if self.obstacles:
             nb = self.surface.num_body_vertices
             U = np.array(U, dtype=float)
-            U[nb:] = self._obstacle_at(step)[nb:]
-        x = self.surface.rest_positions + U
-        mesh = self.surface.mesh
-        if ipctk.has_intersections(mesh, np.asfortranarray(x), self.broad_phase):
-            pairs = [
-                self._pair_label(a, b)
-                for a, b in intersecting_pairs(self.surface, self.friction_pairs, x)
-            ]
-            raise IntersectionError(
-                f"the configuration at step {step} intersects: {'; '.join(pairs) or 'unknown'}"
-                " (separate the bodies or fix the mesh)"
-            )
-        C = self._build(x)
-        dist = self.partition.minimum_distance(C, mesh, x)
-        if dist <= self.min_gap * self.dhat:
-            gap = self.min_gap * self.dhat
-            pairs = [
-                self._pair_label(a, b)
-                for a, b in close_pairs(self.surface, self.friction_pairs, x, self.dhat, gap)
-            ]
-            raise IntersectionError(
-                f"at step {step} {'; '.join(pairs) or 'some bodies'} are {dist:.3e} apart, closer"
-                f" than {self.min_gap:g} dhat = {self.min_gap * self.dhat:.3e}: the barrier"
-                " cannot start from touching bodies (leave a gap)"
-            )
-        return dist
+            U[nb:] = self.obstacle_moves.at(step)[nb:]
+        return self.configuration.minimum_distance(self.surface.rest_positions + U, step)
 
     def intersects(self, u: np.ndarray | None = None, step: int = 0) -> bool:
         """Whether the collision surface (bodies and obstacles at step ``step``) intersects.
@@ -888,7 +518,7 @@ class ContactTerm(NumericTerm):
         U = self.surface.gather(u) if u is not None else np.zeros_like(self.surface.rest_positions)
         if self.obstacles:
             nb = self.surface.num_body_vertices
-            U[nb:] = self._obstacle_at(step)[nb:]
+            U[nb:] = self.obstacle_moves.at(step)[nb:]
         x = np.asfortranarray(self.surface.rest_positions + U)
         return bool(ipctk.has_intersections(self.surface.mesh, x, ipctk.LBVH()))
 
@@ -896,160 +526,15 @@ class ContactTerm(NumericTerm):
     def end_step(self, i: int, traj: "StateHistory") -> ContactRecord:
         """Record and log contact forces and the minimum distance of the converged step ``i``."""
         ev = self._evaluate(traj.u[i])
-        g = self._gradient(ev)
-        gb = self._barrier_gradient(ev)
-        normal, friction = body_forces(self.surface.body_index, len(self.body_ids), g, gb)
-        C = ev.collisions
-        count = self.partition.count(C)
-        dist = self.partition.minimum_distance(C, self.surface.mesh, ev.x)
-        rec = ContactRecord(i, count, dist, normal, friction)
+        g = self.potential.gradient(ev)
+        gb = self.potential.barrier_gradient(ev)
+        rec = step_record(i, self.partition, self.surface, len(self.body_ids), ev, g, gb)
         self.records.append(rec)
         f = self.force_function
         f.x.array[:] = 0.0
         self.surface.add_to_owned(f.x.array, -g)
         f.x.scatter_forward()
-        logger.info(
-            "contact step %4d  pairs=%d  min_distance=%.3e  |normal force|=%.3e  "
-            "|friction force|=%.3e",
-            i,
-            rec.num_collisions,
-            rec.min_distance,
-            np.linalg.norm(normal, axis=1).max(initial=0.0),
-            np.linalg.norm(friction, axis=1).max(initial=0.0),
-        )
         return rec
-
-    # -- adjoint kernels ---------------------------------------------------------------------
-    def _lambda(self, lam: fem.Function | np.ndarray) -> np.ndarray:
-        values = lam.x.array if isinstance(lam, fem.Function) else np.asarray(lam)
-        return self.surface.gather(values).ravel()
-
-    def _local(self, g: np.ndarray) -> np.ndarray:
-        return self.surface.to_local(g, len(self.model.fields.u.x.array))
-
-    def _friction_jacobian(
-        self,
-        ev: Evaluation,
-        T: ipctk.TangentialCollisions,
-        wrt: ipctk.FrictionPotential.DiffWRT,
-    ) -> sp.csc_matrix:
-        V = np.asfortranarray(self._velocity(ev.U))
-        return sp.csc_matrix(
-            self.friction_potential.force_jacobian(
-                T,
-                self.surface.mesh,
-                np.asfortranarray(self.surface.rest_positions),
-                np.asfortranarray(self._step["lagged"]),
-                V,
-                self.barrier,
-                wrt,
-            )
-        )
-
-    def _lagged_jacobian(self, ev: Evaluation) -> sp.csc_matrix:
-        """dF/dU^{i-1} at ev (kept with ev: the history and shape kernels both need it)."""
-        J = ev.extras.get("friction_lagged_jacobian")
-        if J is None:
-            wrt = ipctk.FrictionPotential.DiffWRT.LAGGED_DISPLACEMENTS
-            J = self._friction_jacobian(ev, ev.extras["friction"], wrt)
-            ev.extras["friction_lagged_jacobian"] = J
-        return J
-
-    @timed_kernel("adjoint_history")
-    def adjoint_history(
-        self, u: fem.Function | np.ndarray, lam: fem.Function | np.ndarray
-    ) -> dict[int, np.ndarray]:
-        """(d g / d u^{i-j})^T lam for j = 1..m_i (owned entries of local V arrays).
-
-        g is the contact part of the step residual: friction depends on u^{i-1} through the
-        lagged normal forces and tangent bases and on u^{i-1}..u^{i-m} through the velocity.
-        """
-        ev = self._evaluate(u)
-        T = ev.extras["friction"]
-        alpha, beta_dt = self._step["alpha"], self._step["beta_dt"]
-        if T is None:
-            n = len(self.model.fields.u.x.array)
-            return {j: np.zeros(n) for j in range(1, len(alpha) + 1)}
-        lam_c = self._lambda(lam)
-        DW = ipctk.FrictionPotential.DiffWRT
-        # g_f = -F(X, U^{i-1}, v):  dg/dU^{i-j} = -dF/dv alpha_j / (beta dt)  (- dF/dU_lag, j = 1)
-        Jv = self._friction_jacobian(ev, T, DW.VELOCITIES)
-        Jl = self._lagged_jacobian(ev)
-        # this rank's collisions: summed over the ranks in one allreduce
-        tv, jl = self.partition.sum(np.stack([-(Jv.T @ lam_c) / beta_dt, Jl.T @ lam_c]))
-        out = {}
-        for j, a in enumerate(alpha, start=1):
-            g = a * tv
-            if j == 1:
-                g = g - jl
-            out[j] = self._local(g)
-        return out
-
-    @timed_kernel("adjoint_shape")
-    def adjoint_shape(
-        self, u: fem.Function | np.ndarray, lam: fem.Function | np.ndarray
-    ) -> np.ndarray:
-        """(d g / d X)^T lam over the dofs of the P1 rest-coordinate space (owned entries).
-
-        Includes the barrier shape derivative with area-weight terms and the 3D edge-edge
-        mollifier correction, and the friction force's rest-position Jacobian.
-        """
-        ev = self._evaluate(u)
-        lam_c = self._lambda(lam)
-        mesh = self.surface.mesh
-        C = self._build(ev.x, shape_derivatives=True)
-        x = np.asfortranarray(ev.x)
-        g = barrier_shape_adjoint(C, mesh, x, self.barrier, self.stiffness, lam_c)
-        if np.any(self._mu > 0):
-            g = g - self._friction_rest_adjoint(ev, lam_c)
-        g = self.partition.sum(g)  # this rank's collisions: summed over the ranks
-        Sspace = self.model.shape_space
-        smap = self.surface.shape_map(Sspace)
-        bs = Sspace.dofmap.index_map_bs
-        imap = Sspace.dofmap.index_map
-        out = np.zeros((imap.size_local + imap.num_ghosts) * bs)
-        d = self.dim
-        gv = smap.pull_back(g.reshape(-1, d))  # edge/face nodes move with their vertices
-        out.reshape(-1, bs)[smap.blocks, :d] += gv[smap.cv]
-        return out
-
-    def _friction_rest_adjoint(self, ev: Evaluation, lam_c: np.ndarray) -> np.ndarray:
-        """(dF/dX)^T lam: the friction force's rest-position Jacobian at fixed U^{i-1}, transposed.
-
-        This rank's collisions only (the caller sums over the ranks).
-
-        dF/dX = dF/dU^{i-1} + sum_c (F_c / w_c) grad w_c^T (area weights w_c; the force of
-        collision c is proportional to w_c). ipctk's REST_POSITIONS Jacobian adds these outer
-        products to one growing sparse matrix, a cost quadratic in the number of collisions
-        (1 s per step for 2k collisions); applied to lam they are scalars times weight
-        gradients, batched over all collisions by
-        :func:`~diffsolids.contact.friction_adjoint.friction_weight_adjoint`.
-        """
-        out = self._lagged_jacobian(ev).T @ lam_c
-        if not self.area_weighting:
-            return out
-        T = self._tangential_collisions(self._mu_table(self._mu), shape_derivatives=True)
-        x = self.surface.rest_positions + self._step["lagged"]
-        return out + friction_weight_adjoint(
-            T,
-            self.surface.mesh,
-            x,
-            self._velocity(ev.U),
-            lam_c,
-            self.barrier,
-            self.stiffness,
-            self.eps_v,
-            self._mu_table(self._mu),
-            self.surface.body_index,
-        )
-
-    def adjoint_parameter(
-        self, name: str, u: fem.Function | np.ndarray, lam: fem.Function | np.ndarray
-    ) -> np.ndarray:
-        """Lam . dG_i/d(friction coefficient of each pair of :attr:`friction_pairs`)."""
-        if name != "friction":
-            return super().adjoint_parameter(name, u, lam)
-        return self.adjoint_friction(u, lam)
 
     def failure_report(self) -> str | None:
         """The contact state at the last evaluated iterate (for NewtonConvergenceError)."""
@@ -1060,12 +545,45 @@ class ContactTerm(NumericTerm):
         if count == 0:
             return failure_report(self.stiffness, self.dhat)
         d = self.partition.minimum_distance(ev.collisions, self.surface.mesh, ev.x)
-        force = float(np.linalg.norm(self._gradient(ev).reshape(-1, self.dim), axis=1).max())
+        force = float(
+            np.linalg.norm(self.potential.gradient(ev).reshape(-1, self.dim), axis=1).max()
+        )
         floor = self.step_bound.floor_held
         floor = self.partition.minimum(np.inf if floor is None else floor)
         return failure_report(
             self.stiffness, self.dhat, count, d, force, None if np.isinf(floor) else floor
         )
+
+    # -- adjoint kernels ---------------------------------------------------------------------
+    @timed_kernel("adjoint_history")
+    def adjoint_history(
+        self, u: fem.Function | np.ndarray, lam: fem.Function | np.ndarray
+    ) -> dict[int, np.ndarray]:
+        """(d g / d u^{i-j})^T lam for j = 1..m_i (owned entries of local V arrays).
+
+        g is the contact part of the step residual: friction depends on u^{i-1} through the
+        lagged normal forces and tangent bases and on u^{i-1}..u^{i-m} through the velocity.
+        """
+        return self.adjoint.history(self._evaluate(u), lam)
+
+    @timed_kernel("adjoint_shape")
+    def adjoint_shape(
+        self, u: fem.Function | np.ndarray, lam: fem.Function | np.ndarray
+    ) -> np.ndarray:
+        """(d g / d X)^T lam over the dofs of the P1 rest-coordinate space (owned entries).
+
+        Includes the barrier shape derivative with area-weight terms and the 3D edge-edge
+        mollifier correction, and the friction force's rest-position Jacobian.
+        """
+        return self.adjoint.shape(self._evaluate(u), lam)
+
+    def adjoint_parameter(
+        self, name: str, u: fem.Function | np.ndarray, lam: fem.Function | np.ndarray
+    ) -> np.ndarray:
+        """Lam . dG_i/d(friction coefficient of each pair of :attr:`friction_pairs`)."""
+        if name != "friction":
+            return super().adjoint_parameter(name, u, lam)
+        return self.adjoint_friction(u, lam)
 
     @timed_kernel("adjoint_friction")
     def adjoint_friction(
@@ -1074,20 +592,5 @@ class ContactTerm(NumericTerm):
         """(d g / d mu_p)^T lam for each pair p of :attr:`friction_pairs` (global, all ranks).
 
         Each rank's collisions give their part, summed over the ranks.
-
-        The friction gradient is linear in each collision's mu (static = kinetic): per pair, its
-        gradient with mu = 1 on that pair and 0 elsewhere (one ipctk call per pair, measured
-        faster than reading every collision's ids and weights for a batched sum with two or
-        three bodies).
         """
-        ev = self._evaluate(u)
-        lam_c = self._lambda(lam)
-        V = np.asfortranarray(self._velocity(ev.U))
-        out = np.zeros(len(self.friction_pairs))
-        for p in range(len(self.friction_pairs)):
-            unit = np.zeros(len(self.friction_pairs))
-            unit[p] = 1.0
-            T = self._tangential_collisions(self._mu_table(unit))
-            if len(T):
-                out[p] = self.friction_potential.gradient(T, self.surface.mesh, V) @ lam_c
-        return self.partition.sum(out)
+        return self.adjoint.friction(self._evaluate(u), lam)

@@ -1,0 +1,201 @@
+"""Adjoint kernels of the contact term: products of the step residual's derivatives with lam.
+
+g is the contact part of the residual of step i at an evaluation (see
+:mod:`diffsolids.contact.term`): the barrier gradient and the lagged friction force
+-F(X, U^{i-1}, v). Its transposed derivatives w.r.t. the earlier states (friction's lagged
+normal forces and tangent bases, the BDF velocity), the rest positions (the barrier's shape
+derivative with area weights and the 3D edge-edge mollifier correction, friction's rest-position
+Jacobian) and the friction coefficient of each pair of bodies are applied to an adjoint vector
+lam, each rank on its share of the collision set, then summed over the ranks. Obstacles have
+neither shape dofs nor state: only the body rows are kept.
+"""
+
+from typing import TYPE_CHECKING
+
+import ipctk
+import numpy as np
+import scipy.sparse as sp
+from dolfinx import fem
+
+from diffsolids.contact.evaluation import Evaluation
+from diffsolids.contact.friction_adjoint import friction_weight_adjoint
+from diffsolids.contact.lagging import LaggedFriction
+from diffsolids.contact.potential import ContactPotential
+from diffsolids.contact.shape import barrier_shape_adjoint
+
+if TYPE_CHECKING:
+    from diffsolids.model import Model
+
+__all__ = ["ContactAdjoint"]
+
+
+class ContactAdjoint:
+    """Transposed derivatives of the contact residual of a step applied to an adjoint vector.
+
+    Args:
+        model: The Model (its displacement and shape spaces).
+        lagging: The step's lagged friction and its coefficients; its builder builds the
+            collision sets with weight gradients (on its surface, partitioned over the ranks).
+        potential: The barrier (kappa) and the friction potential.
+        eps_v: Friction smoothing velocity.
+    """
+
+    def __init__(
+        self, model: "Model", lagging: LaggedFriction, potential: ContactPotential, eps_v: float
+    ) -> None:
+        self.model = model
+        self.dim = model.dim
+        self.builder = lagging.builder
+        self.surface = self.builder.surface
+        self.partition = self.builder.partition
+        self.area_weighting = self.builder.area_weighting
+        self.lagging = lagging
+        self.potential = potential
+        self.friction_potential = potential.friction_potential
+        self.eps_v = eps_v
+        self.num_pairs = len(lagging.mu)
+
+    def surface_vector(self, lam: fem.Function | np.ndarray) -> np.ndarray:
+        """The collision-dof vector of a local V array or Function (gathered, flat)."""
+        values = lam.x.array if isinstance(lam, fem.Function) else np.asarray(lam)
+        return self.surface.gather(values).ravel()
+
+    def local(self, g: np.ndarray) -> np.ndarray:
+        """A collision-dof vector as a local V array (owned entries)."""
+        return self.surface.to_local(g, len(self.model.fields.u.x.array))
+
+    def friction_jacobian(
+        self,
+        ev: Evaluation,
+        T: ipctk.TangentialCollisions,
+        wrt: ipctk.FrictionPotential.DiffWRT,
+    ) -> sp.csc_matrix:
+        """The friction force's Jacobian w.r.t. ``wrt`` at ev (ipctk; this rank's collisions)."""
+        V = np.asfortranarray(self.lagging.velocity(ev.U))
+        return sp.csc_matrix(
+            self.friction_potential.force_jacobian(
+                T,
+                self.surface.mesh,
+                np.asfortranarray(self.surface.rest_positions),
+                np.asfortranarray(self.lagging.step["lagged"]),
+                V,
+                self.potential.barrier,
+                wrt,
+            )
+        )
+
+    def lagged_jacobian(self, ev: Evaluation) -> sp.csc_matrix:
+        """dF/dU^{i-1} at ev (kept with ev: the history and shape kernels both need it)."""
+        J = ev.extras.get("friction_lagged_jacobian")
+        if J is None:
+            wrt = ipctk.FrictionPotential.DiffWRT.LAGGED_DISPLACEMENTS
+            J = self.friction_jacobian(ev, ev.extras["friction"], wrt)
+            ev.extras["friction_lagged_jacobian"] = J
+        return J
+
+    def history(self, ev: Evaluation, lam: fem.Function | np.ndarray) -> dict[int, np.ndarray]:
+        """(d g / d u^{i-j})^T lam for j = 1..m_i (owned entries of local V arrays).
+
+        g is the contact part of the step residual: friction depends on u^{i-1} through the
+        lagged normal forces and tangent bases and on u^{i-1}..u^{i-m} through the velocity.
+        """
+        T = ev.extras["friction"]
+        alpha, beta_dt = self.lagging.step["alpha"], self.lagging.step["beta_dt"]
+        if T is None:
+            n = len(self.model.fields.u.x.array)
+            return {j: np.zeros(n) for j in range(1, len(alpha) + 1)}
+        lam_c = self.surface_vector(lam)
+        DW = ipctk.FrictionPotential.DiffWRT
+        # g_f = -F(X, U^{i-1}, v):  dg/dU^{i-j} = -dF/dv alpha_j / (beta dt)  (- dF/dU_lag, j = 1)
+        Jv = self.friction_jacobian(ev, T, DW.VELOCITIES)
+        Jl = self.lagged_jacobian(ev)
+        # this rank's collisions: summed over the ranks in one allreduce
+        tv, jl = self.partition.sum(np.stack([-(Jv.T @ lam_c) / beta_dt, Jl.T @ lam_c]))
+        out = {}
+        for j, a in enumerate(alpha, start=1):
+            g = a * tv
+            if j == 1:
+                g = g - jl
+            out[j] = self.local(g)
+        return out
+
+    def shape(self, ev: Evaluation, lam: fem.Function | np.ndarray) -> np.ndarray:
+        """(d g / d X)^T lam over the dofs of the P1 rest-coordinate space (owned entries).
+
+        Includes the barrier shape derivative with area-weight terms and the 3D edge-edge
+        mollifier correction, and the friction force's rest-position Jacobian.
+        """
+        lam_c = self.surface_vector(lam)
+        mesh = self.surface.mesh
+        C = self.builder.build(ev.x, shape_derivatives=True)
+        x = np.asfortranarray(ev.x)
+        g = barrier_shape_adjoint(
+            C, mesh, x, self.potential.barrier, self.potential.stiffness, lam_c
+        )
+        if self.lagging.active:
+            g = g - self.friction_rest(ev, lam_c)
+        g = self.partition.sum(g)  # this rank's collisions: summed over the ranks
+        Sspace = self.model.shape_space
+        smap = self.surface.shape_map(Sspace)
+        bs = Sspace.dofmap.index_map_bs
+        imap = Sspace.dofmap.index_map
+        out = np.zeros((imap.size_local + imap.num_ghosts) * bs)
+        d = self.dim
+        gv = smap.pull_back(g.reshape(-1, d))  # edge/face nodes move with their vertices
+        out.reshape(-1, bs)[smap.blocks, :d] += gv[smap.cv]
+        return out
+
+    def friction_rest(self, ev: Evaluation, lam_c: np.ndarray) -> np.ndarray:
+        """(dF/dX)^T lam: the friction force's rest-position Jacobian at fixed U^{i-1}, transposed.
+
+        This rank's collisions only (the caller sums over the ranks).
+
+        dF/dX = dF/dU^{i-1} + sum_c (F_c / w_c) grad w_c^T (area weights w_c; the force of
+        collision c is proportional to w_c). ipctk's REST_POSITIONS Jacobian adds these outer
+        products to one growing sparse matrix, a cost quadratic in the number of collisions
+        (1 s per step for 2k collisions); applied to lam they are scalars times weight
+        gradients, batched over all collisions by
+        :func:`~diffsolids.contact.friction_adjoint.friction_weight_adjoint`.
+        """
+        out = self.lagged_jacobian(ev).T @ lam_c
+        if not self.area_weighting:
+            return out
+        T = self.lagging.tangential_collisions(
+            self.lagging.mu_table(self.lagging.mu), self.potential.barrier, shape_derivatives=True
+        )
+        x = self.surface.rest_positions + self.lagging.step["lagged"]
+        return out + friction_weight_adjoint(
+            T,
+            self.surface.mesh,
+            x,
+            self.lagging.velocity(ev.U),
+            lam_c,
+            self.potential.barrier,
+            self.potential.stiffness,
+            self.eps_v,
+            self.lagging.mu_table(self.lagging.mu),
+            self.surface.body_index,
+        )
+
+    def friction(self, ev: Evaluation, lam: fem.Function | np.ndarray) -> np.ndarray:
+        """(d g / d mu_p)^T lam for each pair p of bodies (global, the same on all ranks).
+
+        Each rank's collisions give their part, summed over the ranks.
+
+        The friction gradient is linear in each collision's mu (static = kinetic): per pair, its
+        gradient with mu = 1 on that pair and 0 elsewhere (one ipctk call per pair, measured
+        faster than reading every collision's ids and weights for a batched sum with two or
+        three bodies).
+        """
+        lam_c = self.surface_vector(lam)
+        V = np.asfortranarray(self.lagging.velocity(ev.U))
+        out = np.zeros(self.num_pairs)
+        for p in range(self.num_pairs):
+            unit = np.zeros(self.num_pairs)
+            unit[p] = 1.0
+            T = self.lagging.tangential_collisions(
+                self.lagging.mu_table(unit), self.potential.barrier
+            )
+            if len(T):
+                out[p] = self.friction_potential.gradient(T, self.surface.mesh, V) @ lam_c
+        return self.partition.sum(out)

@@ -1,0 +1,96 @@
+"""The collision set of the contact term: this rank's share, built at given positions.
+
+:class:`CollisionBuilder` builds ipctk's NormalCollisions on the whole collision surface (the
+same on every rank) and keeps this rank's share
+(:meth:`~diffsolids.contact.partition.CollisionPartition.keep_share`). The sets with weight
+gradients (shape derivatives) are kept for the last two positions; a set at a point of the
+segment the last CCD swept reuses its candidates (only the narrow phase runs).
+"""
+
+import ipctk
+import numpy as np
+
+from diffsolids.contact.partition import CollisionPartition
+from diffsolids.contact.step_bound import _CCD_REACH
+from diffsolids.contact.surface import CollisionSurface
+
+__all__ = ["CollisionBuilder"]
+
+
+class CollisionBuilder:
+    """This rank's share of the collision set at given positions of a collision surface.
+
+    Args:
+        surface: The collision surface (its mesh and static mask at build time).
+        broad_phase: ipctk broad phase of the builds.
+        partition: Which collisions this rank keeps.
+        dhat: Barrier activation distance.
+        area_weighting: Weight each collision by its surface area.
+
+    Attributes:
+        segment: (U0, dU, candidates, token) of the last CCD step (``ContactTerm.max_step``),
+            or None: the candidates of the segment U0 + t dU, t in [0, ``_CCD_REACH``], valid
+            while the term's evaluation token is ``token``.
+    """
+
+    def __init__(
+        self,
+        surface: CollisionSurface,
+        broad_phase: ipctk.BroadPhase,
+        partition: CollisionPartition,
+        dhat: float,
+        area_weighting: bool,
+    ) -> None:
+        self.surface = surface
+        self.broad_phase = broad_phase
+        self.partition = partition
+        self.dhat = dhat
+        self.area_weighting = area_weighting
+        self.segment: tuple | None = None
+        self._shape_builds: list[tuple] = []
+
+    def build(self, x: np.ndarray, shape_derivatives: bool = False) -> ipctk.NormalCollisions:
+        """This rank's share of the collision set at positions x (weight gradients when asked).
+
+        The whole set is built on every rank (the same on all), then only this rank's
+        collisions are kept (:meth:`CollisionPartition.keep_share`).
+
+        The sets with weight gradients are kept for the last two positions (same collision mesh
+        and static mask): the adjoint of step i builds them at x^i and, for the lagged
+        friction, at x^{i-1}, where the adjoint of step i - 1 needs its own again.
+        """
+        surf = self.surface
+        if shape_derivatives:
+            for mesh, static, xc, C in self._shape_builds:
+                if mesh is surf.mesh and static is surf.static and np.array_equal(xc, x):
+                    return C
+        C = ipctk.NormalCollisions()
+        C.use_area_weighting = self.area_weighting
+        C.enable_shape_derivatives = shape_derivatives
+        C.build(surf.mesh, np.asfortranarray(x), self.dhat, 0.0, self.broad_phase)
+        self.partition.keep_share(C)
+        if shape_derivatives:
+            self._shape_builds = [(surf.mesh, surf.static, np.array(x), C), *self._shape_builds[:1]]
+        return C
+
+    def build_on_segment(self, U: np.ndarray, x: np.ndarray, token: int) -> ipctk.NormalCollisions:
+        """Collision set at x, reusing the CCD candidates when x lies on the last checked step.
+
+        The line search only visits points x0 + t dx, t in [0, 1], of the segment the CCD swept
+        (to 2 dx) with boxes inflated by dhat: its candidates contain every pair within dhat
+        there, so only the narrow phase runs. ``token``: the term's current evaluation token
+        (the segment is reused only if it was swept under the same one).
+        """
+        seg = self.segment
+        if seg is not None:
+            U0, dU, candidates, seg_token = seg
+            if seg_token == token:
+                diff = U - U0
+                t = float(np.vdot(diff, dU) / np.vdot(dU, dU))
+                tol = 1e-10 * (np.abs(U0).max() + np.abs(dU).max())
+                if -1e-12 <= t <= _CCD_REACH and np.abs(diff - t * dU).max() <= tol:
+                    C = ipctk.NormalCollisions()
+                    C.use_area_weighting = self.area_weighting
+                    C.build(candidates, self.surface.mesh, np.asfortranarray(x), self.dhat, 0.0)
+                    return self.partition.keep_share(C)
+        return self.build(x)
