@@ -159,18 +159,19 @@ def plot(path, model, sim, trajectories: dict, result, comm: MPI.Comm) -> None:
         return
     fig, (ax, ax_h) = plt.subplots(1, 2, figsize=(12, 4.5), width_ratios=[2.2, 1])
     ax.plot(pool[:, 0], pool[:, 1], ".", ms=2, color="0.75", label="pool nodes")
-    colors = {"initial": "tab:blue", "final": "tab:red"}
-    for key, color in colors.items():
+    colors = {"final": ("tab:red", 2.0), "initial": ("tab:blue", 1.0)}  # initial on top
+    for key, (color, lw) in colors.items():
         for points, centre, ls in zip(bodies[key], paths[key], ("--", "-"), strict=True):
             ax.plot(points[:, 0], points[:, 1], ".", ms=1.5, color=color, alpha=0.3)
-            ax.plot(centre[:, 0], centre[:, 2], color=color, ls=ls, lw=1.2)
-        ax.plot([], [], ".", color=color, label=f"{key} throw at T (dashed: thrown, solid: hit)")
+            ax.plot(centre[:, 0], centre[:, 2], color=color, ls=ls, lw=lw)
+        ax.plot([], [], ".", color=color, label=f"{key} throw at T; centre paths (dashed: thrown)")
     r = np.sqrt(STOP)
     ax.add_patch(plt.Rectangle((SPOT[0] - r, SPOT[1] - r), 2 * r, 2 * r, fill=False, ls=":"))
     ax.plot(*SPOT, "kx", label="spot (box: the paper's stop test)")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("z [m]")
-    near = np.concatenate([p for parts in bodies.values() for p in parts] + [np.array([SPOT])])
+    near = [p for parts in bodies.values() for p in parts] + [np.array([SPOT])]
+    near = np.concatenate(near + [c[:, [0, 2]] for parts in paths.values() for c in parts])
     lo, hi = near.min(axis=0) - 0.4, near.max(axis=0) + 0.4
     ax.set_xlim(lo[0], hi[0])
     ax.set_ylim(lo[1], hi[1])
