@@ -3,9 +3,10 @@
 The paper's data repository (``Huangzizhou/DiffIPC-data``, folder ``json_scripts/``) holds one
 folder per experiment with the meshes, the PolyFEM scene of the run (``run*.json``), of the
 target (``target*.json``) and the optimisation (``opt.json``: parameters, objective,
-optimiser). The demos take ``--data DIR`` (that folder of a checkout; default: the environment
-variable ``DIFFSOLIDS_DATA`` + ``/diffipc``, else ``../shared/data/diffipc`` next to the
-repository, as the tests do) and never copy the data.
+optimiser). The demos take ``--data DIR`` (a checkout, its ``json_scripts/`` or a folder
+holding ``diffipc/``, the subset the tests use; default: the environment variable
+``DIFFSOLIDS_DATA``, else ``../shared/data`` next to the repository, as the tests do) and
+never copy the data.
 
 Here: the data folder, the scenes of an experiment (run and target must place the same
 meshes), opt.json's objective checked (``paper_functional``) and its ``transient_integral`` of a
@@ -54,7 +55,8 @@ __all__ = [
     "target_objective",
 ]
 
-DEFAULT_DATA = Path(os.environ.get("DIFFSOLIDS_DATA", ROOT.parent / "shared" / "data")) / "diffipc"
+# the folder holding the paper's data (its diffipc/ or json_scripts/, see DATA_LAYOUTS)
+DEFAULT_DATA = Path(os.environ.get("DIFFSOLIDS_DATA", ROOT.parent / "shared" / "data"))
 
 
 class ContinuationSimulation(TargetSimulation):
