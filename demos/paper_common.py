@@ -382,17 +382,22 @@ def recovery_outcome(run, result, sim, trajectories: dict, name: str, values: tu
     return report, figures, errors
 
 
-def finish_paper(run, report, model, result, figures: dict, headline: str, paths, title: str):
+def finish_paper(
+    run, report, model, result, figures: dict, headline: str, paths, title: str, axes=("x", "y")
+):
     """``finish_transient`` with the figure of :func:`plot_paths` (centre paths, objective)."""
 
     def figure(path):
-        plot_paths(path, paths, result, title, run.comm)
+        plot_paths(path, paths, result, title, run.comm, axes)
 
     return finish_transient(run, report, model, result, [], figures, headline, figure)
 
 
-def plot_paths(path, paths: dict, result, title: str, comm) -> None:
-    """Centre-of-mass paths (target, initial, final) and the objective per iteration."""
+def plot_paths(path, paths: dict, result, title: str, comm, axes=("x", "y")) -> None:
+    """Centre-of-mass paths (target, initial, final) and the objective per iteration.
+
+    ``axes`` names the two coordinates of the paths (the axis labels).
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -406,8 +411,8 @@ def plot_paths(path, paths: dict, result, title: str, comm) -> None:
     for key, xy in paths.items():
         color, ls = styles[key]
         ax.plot(xy[:, 0], xy[:, 1], color=color, ls=ls, label=key)
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
+    ax.set_xlabel(f"{axes[0]} [m]")
+    ax.set_ylabel(f"{axes[1]} [m]")
     ax.set_aspect("equal", adjustable="datalim")
     ax.legend(fontsize=8)
     ax.set_title(title, fontsize=9)

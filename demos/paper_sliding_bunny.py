@@ -12,7 +12,10 @@ centre of mass at the final time; L-BFGS, grad_norm 1e-4).
 The control is the logarithm of the friction coefficient of the bunny-slide pair (the paper's
 single friction parameter; self-contact of the bunny never touches).
 The outcome checked (``--check``): mu = 0.1 recovered from 0.5 to 1e-3 relative, and no
-intersection or inverted element in the target, initial and final runs.
+intersection or inverted element in the target, initial and final runs. Measured (default
+size, serial, 2-core AMD EPYC at load 4-10): mu 0.5 -> 0.1000000 (relative error 3.5e-7), J
+7.65 -> 5.3e-15 in 16 iterations and 23 forward solves (line-search trials at mu > 0.25 fail
+in steps 6-10 and are cut back), 772 s CPU.
 
 The barrier stiffness is ``suggest_barrier_stiffness``'s (``--kappa scene``: the scene's 1e4 as
 PolyFEM means it, see ``diffsolids.contact.polyfem``: pairs rest ~2e-9 m apart and the first
@@ -154,7 +157,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
         f"kappa {contact.stiffness:.3g}"
     )
     title = "Fig. 21 sliding bunny: centre-of-mass paths (z, y)"
-    return finish_paper(run, report, model, result, figures, headline, paths, title)
+    return finish_paper(run, report, model, result, figures, headline, paths, title, ("z", "y"))
 
 
 if __name__ == "__main__":
