@@ -14,8 +14,9 @@ single friction parameter; self-contact of the bunny never touches).
 The outcome checked (``--check``): mu = 0.1 recovered from 0.5 to 1e-3 relative, and no
 intersection or inverted element in the target, initial and final runs. Measured (default
 size, serial, 2-core AMD EPYC at load 4-10): mu 0.5 -> 0.1000000 (relative error 3.5e-7), J
-7.65 -> 5.3e-15 in 16 iterations and 23 forward solves (line-search trials at mu > 0.25 fail
-in steps 6-10 and are cut back), 772 s CPU.
+7.65 -> 5.3e-15 in 16 iterations and 23 forward solves (6 line-search trials of the first 4
+iterations, mu 0.5 -> 0.256, failed in a Newton solve of steps 6-10 and were cut back), 772 s
+CPU.
 
 The barrier stiffness is ``suggest_barrier_stiffness``'s (``--kappa scene``: the scene's 1e4 as
 PolyFEM means it, see ``diffsolids.contact.polyfem``: pairs rest ~2e-9 m apart and the first
