@@ -310,16 +310,20 @@ def test_data_folder_of_each_layout_is_found(tmp_path, layout):
         common.experiment(tmp_path, "fig20_kangaroo")
 
 
-@pytest.mark.slow
-def test_paper_throw_bunnies_demo_tiny(tmp_path):
+def _tiny_run(demo: str, folder: str, tmp_path):
+    """The report of ``demos/<demo>.py --tiny`` on the shared data; its figure was drawn."""
     from demo_modules import load_demo
 
-    _scene_file("fig1_bunnies/opt.json")
-    report = load_demo("paper_throw_bunnies").main(
-        ["--tiny", "--out", str(tmp_path), "--data", str(DIFFIPC)]
-    )
+    _scene_file(f"{folder}/opt.json")
+    report = load_demo(demo).main(["--tiny", "--out", str(tmp_path), "--data", str(DIFFIPC)])
     assert report.passed, report.summary()
-    assert (tmp_path / "paper_throw_bunnies.png").stat().st_size > 10_000  # the top view
+    assert (tmp_path / f"{demo}.png").stat().st_size > 10_000
+    return report
+
+
+@pytest.mark.slow
+def test_paper_throw_bunnies_demo_tiny(tmp_path):
+    report = _tiny_run("paper_throw_bunnies", "fig1_bunnies", tmp_path)
     assert report.extra["dofs"] == 6183 and report.extra["steps"] == 2
     # the second bunny (rest centre x = 0.875), hit in the first step, moved along +x, the more
     # with the optimised throw
@@ -328,15 +332,8 @@ def test_paper_throw_bunnies_demo_tiny(tmp_path):
 
 @pytest.mark.slow
 def test_paper_sliding_bunny_demo_tiny(tmp_path):
-    from demo_modules import load_demo
-
-    _scene_file("fig21_friction_bunny/opt.json")
-    report = load_demo("paper_sliding_bunny").main(
-        ["--tiny", "--out", str(tmp_path), "--data", str(DIFFIPC)]
-    )
-    assert report.passed, report.summary()
+    report = _tiny_run("paper_sliding_bunny", "fig21_friction_bunny", tmp_path)
     assert report.extra["dofs"] == 2799 and report.extra["steps"] == 3
     # one L-BFGS iteration moves mu from 0.5 towards the target run's 0.1
     assert report.extra["mu_initial"] == 0.5 and 0.1 < report.extra["mu_final"] < 0.5
     assert report.extra["mu_error_final"] < report.extra["mu_error_initial"] == 4.0
-    assert (tmp_path / "paper_sliding_bunny.png").stat().st_size > 10_000
