@@ -8,8 +8,13 @@ from mpi4py import MPI
 from test_mesh_input import _paper_file
 
 import diffsolids as ds
-from diffsolids.contact.polyfem import polyfem_contact_options, shortest_boundary_edge
-from diffsolids.mesh import boundary_facets, combine_meshes, read_mesh
+from diffsolids.contact import Obstacle
+from diffsolids.contact.polyfem import (
+    polyfem_contact_options,
+    shortest_boundary_edge,
+    shortest_obstacle_edge,
+)
+from diffsolids.mesh import boundary_facets, combine_meshes, read_mesh, simplex_box
 
 COMM = MPI.COMM_WORLD
 
@@ -65,3 +70,35 @@ def test_given_dhat_adaptive_kappa_and_unsupported_options():
         polyfem_contact_options(scene, domain)
     with pytest.raises(ds.ParameterError, match="no contact"):
         polyfem_contact_options({"contact": {"enabled": False}}, domain)
+
+
+def test_dhat_default_sees_obstacle_edges_and_dhat_percentage():
+    """PolyFEM's rule: 0.8 (``dhat_percentage``) x the shortest collision-mesh edge, obstacles'
+    edges included, only when 1e-3 is longer than that edge; a given dhat as written."""
+    scene, domain = _puzzle_scene()
+    edge = shortest_boundary_edge(domain)
+    short = 0.25 * edge  # an obstacle segment shorter than every body edge
+    ground = Obstacle(np.array([[-5.0, -1.0], [-5.0 + short, -1.0], [5.0, -1.0]]))
+    assert shortest_obstacle_edge([ground]) == pytest.approx(short, rel=1e-12)
+    assert shortest_obstacle_edge([]) == np.inf
+    options = polyfem_contact_options(scene, domain, [ground])
+    assert options["dhat"] == pytest.approx(0.8 * short, rel=1e-12)
+    scene["contact"]["dhat_percentage"] = 0.5
+    assert polyfem_contact_options(scene, domain, [ground])["dhat"] == pytest.approx(
+        0.5 * short, rel=1e-12
+    )
+    assert polyfem_contact_options(scene, domain)["dhat"] == pytest.approx(0.5 * edge, rel=1e-12)
+    # every collision-mesh edge longer than 1e-3: the default 1e-3 stays
+    coarse = combine_meshes(COMM, [simplex_box([[0, 0], [1, 1]], [4, 4])], bodies=[1])
+    assert shortest_boundary_edge(coarse) > 1e-3
+    assert polyfem_contact_options(scene, coarse, [ground])["dhat"] == pytest.approx(
+        0.5 * short, rel=1e-12
+    )
+    assert polyfem_contact_options(scene, coarse)["dhat"] == 1e-3
+    scene["contact"]["dhat"] = 2e-3  # given: as written, even above the shortest edge
+    assert polyfem_contact_options(scene, domain, [ground])["dhat"] == 2e-3
+    scene["contact"].pop("dhat")
+    for bad in (0.0, -1.0, float("nan")):
+        scene["contact"]["dhat_percentage"] = bad
+        with pytest.raises(ds.ParameterError, match="dhat_percentage"):
+            polyfem_contact_options(scene, domain)

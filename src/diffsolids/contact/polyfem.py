@@ -11,9 +11,15 @@ default, non-"convergent" formulation). diffsolids' step potential is Pi_P / h^2
 ``"barrier_stiffness": "adaptive"`` means ipctk's initial barrier stiffness, which
 :func:`~diffsolids.contact.suggest_barrier_stiffness` computes in our units.
 
-Defaults (PolyFEM's input spec): ``dhat`` 1e-3, reduced to 0.8 times the shortest boundary edge
-when that edge is shorter than 1e-3 and no dhat is given; ``epsv`` 1e-3; friction coefficient
-0; ``barrier_stiffness`` adaptive. PolyFEM reads ``barrier_stiffness`` from
+Defaults (PolyFEM's input spec): ``dhat`` 1e-3; ``epsv`` 1e-3; friction coefficient 0;
+``barrier_stiffness`` adaptive. When a scene gives no ``dhat`` and the default 1e-3 is longer
+than the shortest edge of the collision mesh at rest (the bodies' boundary edges and the
+obstacles' edges), dhat is ``dhat_percentage`` (default 0.8) times that edge: PolyFEM's
+``NonlinearElasticVarForm::preprocess_contact_parameters``
+(``src/polyfem/varforms/NonlinearElasticVarForm.cpp``, polyfem/polyfem at commit 661588e; the
+same rule in ``legacy/State.cpp``), which takes the minimum over ``collision_mesh.edges()``
+at ``rest_positions()``. A dhat given in the scene is used as written (PolyFEM only warns
+when it exceeds the shortest edge). PolyFEM reads ``barrier_stiffness`` from
 ``solver.contact``, the others from ``contact``. The "convergent formulation" (area weights,
 a collision set with correction pairs, a barrier divided by dhat^3) is not supported.
 
@@ -22,8 +28,8 @@ d ~ 2 kappa dhat^4 / f: the scenes' kappa_P (1e4-1e5 with dhat ~ 1e-3) put pairs
 1e-11..1e-9 m, where every Newton step is cut by the collision check.
 """
 
-from collections.abc import Mapping
-from typing import Any
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 import dolfinx
 import numpy as np
@@ -32,10 +38,14 @@ from mpi4py import MPI
 from diffsolids.errors import ParameterError
 from diffsolids.mesh import Domain
 
-__all__ = ["polyfem_contact_options", "shortest_boundary_edge"]
+if TYPE_CHECKING:
+    from diffsolids.contact.obstacle import Obstacle
+
+__all__ = ["polyfem_contact_options", "shortest_boundary_edge", "shortest_obstacle_edge"]
 
 _DEFAULT_DHAT = 1e-3
 _DEFAULT_EPSV = 1e-3
+_DEFAULT_DHAT_PERCENTAGE = 0.8
 
 
 def shortest_boundary_edge(domain: Domain) -> float:
@@ -54,12 +64,28 @@ def shortest_boundary_edge(domain: Domain) -> float:
     return float(out)
 
 
-def polyfem_contact_options(scene: Mapping[str, Any], domain: Domain) -> dict[str, Any]:
+def shortest_obstacle_edge(obstacles: Sequence["Obstacle"]) -> float:
+    """Length of the shortest edge of the obstacles at rest (inf without obstacles)."""
+    lengths = [
+        np.linalg.norm(o.rest_positions[o.edges[:, 0]] - o.rest_positions[o.edges[:, 1]], axis=1)
+        for o in obstacles
+    ]
+    return min((float(v.min()) for v in lengths if v.size), default=np.inf)
+
+
+def polyfem_contact_options(
+    scene: Mapping[str, Any], domain: Domain, obstacles: Sequence["Obstacle"] = ()
+) -> dict[str, Any]:
     """Keyword arguments of :class:`~diffsolids.contact.ContactTerm` for a PolyFEM scene.
+
+    Without ``contact.dhat``, PolyFEM's rule (module docstring): 1e-3, or
+    ``contact.dhat_percentage`` (0.8) times the shortest collision-mesh edge when 1e-3 is
+    longer than that edge.
 
     Args:
         scene: The scene JSON as a dict (its ``contact`` and ``solver.contact`` sections).
         domain: The Domain the scene's geometry was assembled into (for the dhat default).
+        obstacles: The scene's kinematic obstacles (their edges are collision-mesh edges too).
 
     Returns:
         ``dhat``, ``stiffness`` (None for "adaptive": use ``suggest_barrier_stiffness``),
@@ -79,8 +105,11 @@ def polyfem_contact_options(scene: Mapping[str, Any], domain: Domain) -> dict[st
     if "dhat" in contact:
         dhat = float(contact["dhat"])
     else:
-        edge = shortest_boundary_edge(domain)
-        dhat = 0.8 * edge if edge < _DEFAULT_DHAT else _DEFAULT_DHAT
+        edge = min(shortest_boundary_edge(domain), shortest_obstacle_edge(obstacles))
+        fraction = float(contact.get("dhat_percentage", _DEFAULT_DHAT_PERCENTAGE))
+        if not (np.isfinite(fraction) and fraction > 0):
+            raise ParameterError(f"contact.dhat_percentage = {fraction!r}: a number > 0")
+        dhat = fraction * edge if edge < _DEFAULT_DHAT else _DEFAULT_DHAT
     kappa = scene.get("solver", {}).get("contact", {}).get("barrier_stiffness", "adaptive")
     if kappa == "adaptive":
         stiffness = None

@@ -16,7 +16,9 @@ builds the diffsolids objects from them:
   ``psi``. 2D scenes are plane stress (PolyFEM's 2D convention).
 - ``time``: ``t0`` (0), ``tend``, ``dt`` or ``time_steps``, ``integrator`` ("BDF1".."BDF6",
   "ImplicitEuler", or ``{"type": "BDF", "steps": k}``; default BDF1).
-- ``contact``: ``enabled``, ``dhat``, ``epsv``, ``friction_coefficient``;
+- ``contact``: ``enabled``, ``dhat`` (default: PolyFEM's rule from the shortest collision-mesh
+  edge and ``dhat_percentage``, see :mod:`diffsolids.contact.polyfem`), ``epsv``,
+  ``friction_coefficient``;
   ``solver.contact.barrier_stiffness`` (see :mod:`diffsolids.contact.polyfem` for how PolyFEM's
   kappa maps to ours: as written, with ``area_weighting=False``).
 - ``boundary_conditions``: ``rhs`` (minus the body force per unit mass: ``[0, 9.8]`` is
@@ -126,7 +128,14 @@ _GEOMETRY = {
 }
 _TRANSFORM = {"translation", "rotation", "rotation_mode", "scale"}
 _TIME = {"t0", "tend", "dt", "time_steps", "integrator"}
-_CONTACT = {"enabled", "dhat", "epsv", "friction_coefficient", "use_convergent_formulation"}
+_CONTACT = {
+    "enabled",
+    "dhat",
+    "dhat_percentage",
+    "epsv",
+    "friction_coefficient",
+    "use_convergent_formulation",
+}
 _SOLVER_IGNORED = {"linear", "nonlinear", "max_threads", "advanced"}
 _SOLVER_CONTACT = {"barrier_stiffness", "CCD", "friction_iterations"}
 _BCS = {"rhs", "dirichlet_boundary", "neumann_boundary", "obstacle_displacements"}
@@ -495,11 +504,15 @@ class PolyFEMScene:
 
         if not self.contact_enabled:
             return None
-        options = polyfem_contact_options(self.raw, model.domain)
+        if "obstacles" in kwargs:
+            obstacles = list(kwargs["obstacles"] or [])
+        else:
+            obstacles = self.obstacles(model.dim) if self.obstacle_geometry else []
+        options = polyfem_contact_options(self.raw, model.domain, obstacles)
         if stiffness is not None:
             options["stiffness"] = None if stiffness == "suggest" else float(stiffness)
-        if self.obstacle_geometry:
-            options["obstacles"] = self.obstacles(model.dim)
+        if obstacles:
+            options["obstacles"] = obstacles
         options.update(kwargs)
         if options["stiffness"] is None:
             probe = ContactTerm(model, **{**options, "stiffness": 1.0})
