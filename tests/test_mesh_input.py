@@ -148,6 +148,73 @@ def test_unreadable_and_surface_files_name_the_file_and_the_problem(tmp_path):
         read_mesh(surface, COMM)
 
 
+def _grid(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """An n x n grid of the unit square, 2 n^2 positively oriented triangles."""
+    xs = np.linspace(0.0, 1.0, n + 1)
+    points = np.array([[x, y] for y in xs for x in xs])
+    v = lambda i, j: j * (n + 1) + i  # noqa: E731
+    cells = [
+        c
+        for j in range(n)
+        for i in range(n)
+        for c in ([v(i, j), v(i + 1, j), v(i + 1, j + 1)], [v(i, j), v(i + 1, j + 1), v(i, j + 1)])
+    ]
+    return points, np.array(cells)
+
+
+def _write(tmp_path, name: str, points: np.ndarray, cells: np.ndarray, kind: str) -> Path:
+    path = tmp_path / name
+    if COMM.rank == 0:
+        meshio.write(path, meshio.Mesh(points, [(kind, cells)]), file_format="gmsh22")
+    COMM.barrier()
+    return Path(COMM.bcast(str(path)))
+
+
+def test_inverted_and_degenerate_cells_name_the_file_the_count_and_the_cells(tmp_path):
+    """A folded triangle (vertex moved over its neighbours) and a zero-area one: one MeshError
+    naming the file, how many of each and the first indices, on every rank (the mesh
+    distributed over 2 ranks: each owned cell counted once)."""
+    points, cells = _grid(8)
+    good = _write(tmp_path, "good.msh", points, cells, "triangle")
+    assert read_mesh(good, COMM).mesh.topology.index_map(2).size_global == 128
+    flipped = cells.copy()
+    flipped[[5, 77, 90]] = flipped[[5, 77, 90]][:, [0, 2, 1]]  # three cells ordered backwards
+    path = _write(tmp_path, "folded.msh", points, flipped, "triangle")
+    with pytest.raises(ds.MeshError) as info:
+        read_mesh(path, COMM)
+    text = str(info.value)
+    assert text.startswith(f"{path}: 3 inverted")
+    assert "cells 5, 77, 90 " in text and "of 128 triangle cells" in text
+    # all cells ordered backwards is a valid (consistently oriented) file
+    backwards = _write(tmp_path, "backwards.msh", points, cells[:, [0, 2, 1]], "triangle")
+    assert read_mesh(backwards, COMM).mesh.topology.index_map(2).size_global == 128
+    # a zero-area sliver on the bottom edge: a new vertex at the midpoint of vertices 1, 2
+    sliver = np.vstack([points, 0.5 * (points[1] + points[2])])
+    path = _write(tmp_path, "flat.msh", sliver, np.vstack([cells, [[1, 81, 2]]]), "triangle")
+    with pytest.raises(
+        ds.MeshError, match=r"flat\.msh: 1 degenerate \(zero volume\): cells 128 of"
+    ):
+        read_mesh(path, COMM)
+
+
+def test_an_inverted_tetrahedron_is_named(tmp_path):
+    """3D: one tetrahedron of a box ordered backwards."""
+    box = ds.mesh.simplex_box([[0, 0, 0], [1, 1, 1]], [3, 3, 3])
+    points = box.geometry.x.copy()
+    cells = box.geometry.dofmaps[0].copy()
+    vol = np.linalg.det(points[cells[:, 1:]] - points[cells[:, :1]])
+    cells[vol < 0] = cells[vol < 0][:, [0, 2, 1, 3]]  # all positive
+    cells[17] = cells[17][[1, 0, 2, 3]]
+    path = _write(tmp_path, "box.msh", points, cells, "tetra")
+    with pytest.raises(ds.MeshError, match=r"box\.msh: 1 inverted .*cells 17 of 162 tetrahedron"):
+        read_mesh(path, COMM)
+
+
+def test_the_paper_meshes_pass_the_cell_check():
+    for name, _, dim, _ in PAPER_MESHES:
+        read_mesh(_paper_file(name), COMM, dim)
+
+
 # -- Domains from arrays --------------------------------------------------------------------------
 def test_create_domain_from_arrays_tags_the_boundary_by_default():
     points = [[0, 0], [1, 0], [1, 1], [0, 1], [2, 0], [2, 1]]

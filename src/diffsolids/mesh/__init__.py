@@ -9,7 +9,13 @@ from diffsolids.mesh.quality import (
     min_scaled_jacobian,
     signed_cell_volumes,
 )
-from diffsolids.mesh.readers import from_geo, from_gmsh_model, read_mesh, transform_domain
+from diffsolids.mesh.readers import (
+    check_cells,
+    from_geo,
+    from_gmsh_model,
+    read_mesh,
+    transform_domain,
+)
 from diffsolids.mesh.scene import combine_meshes, simplex_ball, simplex_box
 from diffsolids.mesh.selections import (
     AxisPlaneSelection,
@@ -29,6 +35,7 @@ __all__ = [
     "Selection",
     "SphereSelection",
     "boundary_facets",
+    "check_cells",
     "check_orientation",
     "combine_meshes",
     "create_box",

@@ -20,7 +20,7 @@ if TYPE_CHECKING:
     import gmsh
     import meshio
 
-__all__ = ["from_geo", "from_gmsh_model", "read_mesh", "transform_domain"]
+__all__ = ["check_cells", "from_geo", "from_gmsh_model", "read_mesh", "transform_domain"]
 
 
 def from_gmsh_model(
@@ -140,7 +140,8 @@ def read_mesh(
 
     Raises:
         MeshError: A missing or unreadable file, no volume cells, a surface mesh in 3D space,
-            or a bad transformation.
+            inverted or degenerate cells (:func:`check_cells`: the file, how many, the first
+            indices), or a bad transformation.
     """
     path = Path(path)
     if not path.exists():
@@ -156,8 +157,68 @@ def read_mesh(
         domain = _on_root(comm, open_msh)
     else:
         domain = _read_with_meshio(path, comm, dim)
+    check_cells(domain, path)
     transform_domain(domain, scale, rotation, translation)
     return domain
+
+
+# a cell is degenerate when |volume| <= _DEGENERATE_RTOL h^d (h the mean edge length)
+_DEGENERATE_RTOL = 1e-10
+_SHOWN_CELLS = 5
+
+
+def check_cells(domain: Domain, source: str | os.PathLike = "the mesh") -> None:
+    """Refuse inverted and degenerate cells of a mesh just read (collective).
+
+    A cell is degenerate when its volume (area in 2D) is at most 1e-10 h^d, h the mean edge
+    length, and inverted when its orientation (the sign of its volume in the file's vertex
+    order) is the minority one: a file's cells are all positively or all negatively ordered
+    (both are valid; the elements do not depend on it), and the cells that disagree are folded
+    over their neighbours. Serial and distributed meshes alike: each owned cell is counted
+    once and named by its index in the file's order of cells of its type (0-based; DOLFINx's
+    ``original_cell_index``).
+
+    Args:
+        domain: The Domain read from ``source``.
+        source: The file, for the message.
+
+    Raises:
+        MeshError: Naming the file, the number of bad cells of each kind and the first few
+            indices.
+    """
+    from diffsolids.mesh.quality import _mean_edge_length, signed_cell_volumes
+
+    mesh = domain.mesh
+    tdim = mesh.topology.dim
+    owned = mesh.topology.index_map(tdim).size_local
+    vol = signed_cell_volumes(mesh)[:owned]
+    tiny = np.abs(vol) <= _DEGENERATE_RTOL * _mean_edge_length(mesh) ** mesh.geometry.dim
+    comm = collective_comm(mesh.comm)
+    counts = comm.allreduce(
+        np.array([np.sum(~tiny & (vol > 0)), np.sum(~tiny & (vol < 0)), np.sum(tiny), owned]),
+        op=MPI.SUM,
+    )
+    positive, negative, degenerate, total = (int(c) for c in counts)
+    inverted = ~tiny & ((vol < 0) if positive >= negative else (vol > 0))
+    n_inverted = min(positive, negative)
+    if not (n_inverted or degenerate):
+        return
+    index = np.asarray(mesh.topology.original_cell_index[:owned], dtype=np.int64)
+    problems = []
+    for what, bad, n in (
+        ("inverted (orientation opposite to the other cells: folded)", inverted, n_inverted),
+        ("degenerate (zero volume)", tiny, degenerate),
+    ):
+        if n:
+            local = np.sort(index[bad])[:_SHOWN_CELLS].tolist()
+            first = sorted(i for part in comm.allgather(local) for i in part)[:_SHOWN_CELLS]
+            more = ", ..." if n > len(first) else ""
+            problems.append(f"{n} {what}: cells {', '.join(map(str, first))}{more}")
+    kind = {2: "triangle", 3: "tetrahedron"}.get(tdim, "")
+    raise MeshError(
+        f"{source}: {'; '.join(problems)} of {total} {kind} cells (0-based indices in the "
+        "file's order)"
+    )
 
 
 def _on_rank0[T](comm: MPI.Comm, task: Callable[[], T], share: bool = True) -> T | None:
