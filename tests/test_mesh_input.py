@@ -180,8 +180,10 @@ def test_inverted_and_degenerate_cells_name_the_file_the_count_and_the_cells(tmp
     flipped = cells.copy()
     flipped[[5, 77, 90]] = flipped[[5, 77, 90]][:, [0, 2, 1]]  # three cells ordered backwards
     path = _write(tmp_path, "folded.msh", points, flipped, "triangle")
-    with pytest.raises(ds.MeshError) as info:
+    with pytest.raises(ds.InvertedElementError) as info:
         read_mesh(path, COMM)
+    assert isinstance(info.value, ds.MeshError)
+    assert COMM.allreduce(len(info.value.cells), op=MPI.SUM) == 3
     text = str(info.value)
     assert text.startswith(f"{path}: 3 inverted")
     assert "cells 5, 77, 90 " in text and "of 128 triangle cells" in text

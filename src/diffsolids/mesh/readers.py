@@ -10,7 +10,7 @@ import dolfinx.io.gmsh
 import numpy as np
 from mpi4py import MPI
 
-from diffsolids.errors import MeshError
+from diffsolids.errors import InvertedElementError, MeshError
 from diffsolids.mesh.arrays import MeshArrays, boundary_facets, domain_from_arrays
 from diffsolids.mesh.domain import Domain
 from diffsolids.mesh.gmsh_session import gmsh_session
@@ -183,8 +183,9 @@ def check_cells(domain: Domain, source: str | os.PathLike = "the mesh") -> None:
         source: The file, for the message.
 
     Raises:
-        MeshError: Naming the file, the number of bad cells of each kind and the first few
-            indices.
+        InvertedElementError: A :class:`~diffsolids.errors.MeshError` naming the file, the
+            number of bad cells of each kind and the first few indices (``cells``: this
+            rank's bad local cells).
     """
     from diffsolids.mesh.quality import _mean_edge_length, signed_cell_volumes
 
@@ -215,9 +216,10 @@ def check_cells(domain: Domain, source: str | os.PathLike = "the mesh") -> None:
             more = ", ..." if n > len(first) else ""
             problems.append(f"{n} {what}: cells {', '.join(map(str, first))}{more}")
     kind = {2: "triangle", 3: "tetrahedron"}.get(tdim, "")
-    raise MeshError(
+    raise InvertedElementError(
         f"{source}: {'; '.join(problems)} of {total} {kind} cells (0-based indices in the "
-        "file's order)"
+        "file's order)",
+        cells=np.flatnonzero(inverted | tiny),
     )
 
 
