@@ -194,8 +194,7 @@ def check_cells(domain: Domain, source: str | os.PathLike = "the mesh") -> None:
     owned = mesh.topology.index_map(tdim).size_local
     vol = signed_cell_volumes(mesh)[:owned]
     tiny = np.abs(vol) <= _DEGENERATE_RTOL * _mean_edge_length(mesh) ** mesh.geometry.dim
-    comm = collective_comm(mesh.comm)
-    counts = comm.allreduce(
+    counts = collective_comm(mesh.comm).allreduce(
         np.array([np.sum(~tiny & (vol > 0)), np.sum(~tiny & (vol < 0)), np.sum(tiny), owned]),
         op=MPI.SUM,
     )
@@ -212,7 +211,8 @@ def check_cells(domain: Domain, source: str | os.PathLike = "the mesh") -> None:
     ):
         if n:
             local = np.sort(index[bad])[:_SHOWN_CELLS].tolist()
-            first = sorted(i for part in comm.allgather(local) for i in part)[:_SHOWN_CELLS]
+            parts = collective_comm(mesh.comm).allgather(local)
+            first = sorted(i for part in parts for i in part)[:_SHOWN_CELLS]
             more = ", ..." if n > len(first) else ""
             problems.append(f"{n} {what}: cells {', '.join(map(str, first))}{more}")
     kind = {2: "triangle", 3: "tetrahedron"}.get(tdim, "")
