@@ -9,7 +9,9 @@ collision sets it reads at x0 are this rank's share, and their minimum distance 
 the ranks. In 2D the vertex-edge pairs
 that rest a tiny gap above an edge while they slide along it get the exact bound of
 :func:`_edge_vertex_bounds` instead of ipctk's narrow phase (see
-:meth:`StepBound._near_pairs_2d`).
+:meth:`StepBound._near_pairs_2d`); in 3D the face-vertex and edge-edge pairs as near get the
+plane bound of :func:`_plane_bounds` (see :meth:`StepBound._near_pairs_3d`), vectorised over
+the pairs.
 """
 
 from collections.abc import Callable
@@ -48,7 +50,7 @@ class StepBound:
         partition: Which collisions the cached collision sets hold (default: all of them).
 
     Attributes:
-        floor_held: After a query, the smallest gap floor that held a near pair (2D), or None.
+        floor_held: After a query, the smallest gap floor that held a near pair, or None.
     """
 
     def __init__(
@@ -93,9 +95,98 @@ class StepBound:
         near, far = np.inf, candidates
         if self.surface.dim == 2 and not len(candidates.vv_candidates):
             near, far = self._near_pairs_2d(candidates, x0, x1, cached)
+        elif self.surface.dim == 3:
+            near, far = self._near_pairs_3d(candidates, x0, x1, cached)
         toi = far.compute_collision_free_stepsize(self.surface.mesh, x0, x1, 0.0, self.ccd)
         toi = collective_comm(self.comm).allreduce(min(float(toi), near), op=MPI.MIN)
         return (toi, candidates) if with_candidates else toi
+
+    def _any_near(
+        self,
+        candidates: ipctk.Candidates,
+        x0: np.ndarray,
+        x1: np.ndarray,
+        cached: Callable[[], ipctk.NormalCollisions | None],
+        eta: float,
+    ) -> bool:
+        """Whether a pair can be near (collective: the same answer on all ranks).
+
+        No pair is near if the closest pair at x0 is farther than a near pair can be (the
+        collision set at x0 is usually cached): skips the per-candidate work in most queries.
+        """
+        eps = np.finfo(float).eps
+        motion = 4.0 * float(np.linalg.norm(x1 - x0, axis=1).max())
+        coord = max(float(np.abs(x0).max()), float(np.abs(x1).max()))
+        reach = max(
+            np.sqrt(_DRIFT_ULPS * eps * coord * motion),
+            _NEAR_RATIO * motion,
+            _GAP_FLOOR_ULPS * eps * coord / eta,
+        )
+        if reach < self.dhat:
+            mesh, C = self.surface.mesh, cached()
+            if C is None:  # the whole set, the same on every rank
+                C = ipctk.NormalCollisions()
+                C.build(candidates, mesh, x0, self.dhat, 0.0)
+                d2 = C.compute_minimum_distance(mesh, x0) if len(C) else np.inf
+            else:  # this rank's share (the same decision on all ranks: collective)
+                d2 = self.partition.minimum_distance(C, mesh, x0) ** 2
+            if not np.isfinite(d2) or np.sqrt(d2) > reach:
+                return False
+        return True
+
+    def _near_pairs_3d(
+        self,
+        candidates: ipctk.Candidates,
+        x0: np.ndarray,
+        x1: np.ndarray,
+        cached: Callable[[], ipctk.NormalCollisions | None],
+    ) -> tuple[float, ipctk.Candidates]:
+        """3D counterpart of :meth:`_near_pairs_2d`: near face-vertex and edge-edge pairs.
+
+        A vertex resting ~1e-9 m above a triangle while it slides over it (or two edges as
+        close, sliding across each other) costs AdditiveCCD ~|motion| / d iterations, as in 2D.
+        Such pairs (the same ``_DRIFT_ULPS``, ``_NEAR_RATIO`` and floor criteria, on the
+        distance to the triangle's plane or between the edges' lines) get the bound of
+        :func:`_plane_bounds` (vectorised over pairs): a point meets a triangle only on its
+        plane, two edges meet only where their lines do. A near pair whose plane test gives
+        nothing at x0 (the vertex beside the triangle, close to its plane; nearly parallel
+        edges) keeps ipctk's narrow phase unless it is floored (then only its displacement
+        bound holds it). Conservative where the plane is: a vertex sliding off a triangle
+        over a convex crease is stopped where it would cross that triangle's plane.
+        """
+        eta = 1.0 - float(self.ccd.conservative_rescaling)
+        fv, ee = candidates.fv_candidates, candidates.ee_candidates
+        if not (len(fv) or len(ee)) or not self._any_near(candidates, x0, x1, cached, eta):
+            return np.inf, candidates
+        mesh = self.surface.mesh
+        bound, held = np.inf, np.inf
+        far = ipctk.Candidates()
+        far.ev_candidates = list(candidates.ev_candidates)
+        far.vv_candidates = list(candidates.vv_candidates)
+        lists = []
+        for kind, cands in (("fv", fv), ("ee", ee)):
+            if not len(cands):
+                lists.append([])
+                continue
+            if kind == "fv":
+                ids = np.array([(c.face_id, c.vertex_id) for c in cands], dtype=np.int64)
+                tri = mesh.faces[ids[:, 0]]
+                corners = [ids[:, 1], tri[:, 0], tri[:, 1], tri[:, 2]]
+            else:
+                ids = np.array([(c.edge0_id, c.edge1_id) for c in cands], dtype=np.int64)
+                e0, e1 = mesh.edges[ids[:, 0]], mesh.edges[ids[:, 1]]
+                corners = [e0[:, 0], e0[:, 1], e1[:, 0], e1[:, 1]]
+            b, near, floored, floor = _plane_bounds(x0, x1, corners, kind, eta)
+            if near.any():
+                bound = min(bound, float(b[near].min()))
+            h = floored & near & (b < 1.0)
+            if h.any():
+                held = min(held, float(floor[h].min()))
+            lists.append([cands[int(k)] for k in np.flatnonzero(~near)])
+        far.fv_candidates, far.ee_candidates = lists
+        if np.isfinite(held):
+            self.floor_held = held
+        return bound, far
 
     def _near_pairs_2d(
         self,
@@ -121,26 +212,8 @@ class StepBound:
         an edge a vertex is on.
         """
         eta = 1.0 - float(self.ccd.conservative_rescaling)
-        # no pair is near if the closest pair at x0 is farther than a near pair can be (the
-        # collision set at x0 is usually cached): skips the per-candidate work in most queries
-        eps = np.finfo(float).eps
-        motion = 4.0 * float(np.linalg.norm(x1 - x0, axis=1).max())
-        coord = max(float(np.abs(x0).max()), float(np.abs(x1).max()))
-        reach = max(
-            np.sqrt(_DRIFT_ULPS * eps * coord * motion),
-            _NEAR_RATIO * motion,
-            _GAP_FLOOR_ULPS * eps * coord / eta,
-        )
-        if reach < self.dhat:
-            mesh, C = self.surface.mesh, cached()
-            if C is None:  # the whole set, the same on every rank
-                C = ipctk.NormalCollisions()
-                C.build(candidates, mesh, x0, self.dhat, 0.0)
-                d2 = C.compute_minimum_distance(mesh, x0) if len(C) else np.inf
-            else:  # this rank's share (the same decision on all ranks: collective)
-                d2 = self.partition.minimum_distance(C, mesh, x0) ** 2
-            if not np.isfinite(d2) or np.sqrt(d2) > reach:
-                return np.inf, candidates
+        if not self._any_near(candidates, x0, x1, cached, eta):
+            return np.inf, candidates
         ev = candidates.ev_candidates
         if not len(ev):
             return np.inf, candidates
@@ -227,3 +300,148 @@ def _edge_vertex_bounds(
     drift = d0 * d0 < _DRIFT_ULPS * eps * coord * reach
     near = drift | (d0 < _NEAR_RATIO * reach) | floored
     return bound, near, floored, floor
+
+
+def _plane_bounds(
+    x0: np.ndarray, x1: np.ndarray, corners: list[np.ndarray], kind: str, eta: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per 3D pair: a lower bound of the fraction of x0 -> x1 it stays apart (vectorised).
+
+    ``kind`` "fv": corners (p, a, b, c), a vertex and a triangle; "ee": (a0, a1, b0, b1), two
+    edges. With r, s, w = p - a, b - a, c - a (fv) or b0 - a0, a1 - a0, b1 - b0 (ee), all
+    linear in t, N(t) = r . (s x w) = c0 + c1 t + c2 t^2 + c3 t^3 and |N(t)| / |s x w| is the
+    distance to the triangle's plane (between the edges' lines), a lower bound of the pair's
+    distance. With sigma the sign of c0, |N| >= sigma N: the pair stays farther than the margin
+    m = max(eta d0, floor) (d0 the plane distance at x0, floor ``_GAP_FLOOR_ULPS`` ulps of its
+    largest coordinate) while L(t) = sigma N(t) - (m n_max + err) > 0, n_max bounding |s x w|
+    over the step and err the round-off of N. The first zero of L is bounded from below on 32
+    sub-intervals by L(t_i) + L'(t_i) tau - max|L''| tau^2 / 2. The displacement bound
+    (d0 - m) / (largest relative displacement of the pair's points) holds too; the larger of
+    the two is returned (inf: not within the step). Pairs with L(0) <= 0 (the plane test
+    says nothing) are near only when floored, with the displacement bound alone.
+
+    Returns:
+        (bound, near, floored, floor) as :func:`_edge_vertex_bounds`.
+    """
+    eps = np.finfo(float).eps
+    P0 = [x0[k] for k in corners]
+    D = [x1[k] - q for k, q in zip(corners, P0, strict=True)]
+    if kind == "fv":
+        r0, s0, w0 = P0[0] - P0[1], P0[2] - P0[1], P0[3] - P0[1]
+        dr, ds, dw = D[0] - D[1], D[2] - D[1], D[3] - D[1]
+    else:
+        r0, s0, w0 = P0[2] - P0[0], P0[1] - P0[0], P0[3] - P0[2]
+        dr, ds, dw = D[2] - D[0], D[1] - D[0], D[3] - D[2]
+
+    def dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return np.einsum("ij,ij->i", u, v)
+
+    def norm(u: np.ndarray) -> np.ndarray:
+        return np.sqrt(dot(u, u))
+
+    X0, X1, X2 = np.cross(s0, w0), np.cross(s0, dw) + np.cross(ds, w0), np.cross(ds, dw)
+    c0, c1 = dot(r0, X0), dot(r0, X1) + dot(dr, X0)
+    c2, c3 = dot(r0, X2) + dot(dr, X1), dot(dr, X2)
+    nr, ns, nw = norm(r0) + norm(dr), norm(s0) + norm(ds), norm(w0) + norm(dw)
+    n0 = norm(X0)
+    n_max = np.minimum(ns * nw, n0 + norm(X1) + norm(X2))
+    ends = np.concatenate(P0 + [q + d for q, d in zip(P0, D, strict=True)], axis=1)
+    coord = np.abs(ends).max(axis=1)
+    err = 32.0 * eps * (nr * ns * nw + coord * (ns * nw + nr * nw + nr * ns))
+    floor = _GAP_FLOOR_ULPS * eps * coord
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d0 = np.where(n0 > 0, np.abs(c0) / n0, 0.0)  # to the plane (between the lines)
+    # the pair's distance at x0 decides whether it is near (a vertex beside a triangle, close
+    # to its plane, is not: the plane test would stop it for nothing)
+    dist = _pair_distances(P0, kind)
+    mean = sum(D) / 4.0
+    if kind == "fv":
+        reach = norm(D[0] - mean) + np.max([norm(d - mean) for d in D[1:]], axis=0)
+    else:
+        reach = np.maximum(norm(D[0] - mean), norm(D[1] - mean)) + np.maximum(
+            norm(D[2] - mean), norm(D[3] - mean)
+        )
+    margin = np.maximum(eta * np.minimum(d0, dist), floor)
+    sign = np.where(c0 < 0, -1.0, 1.0)
+    a0 = np.abs(c0) - (margin * n_max + err)
+    a1, a2, a3 = sign * c1, sign * c2, sign * c3
+    curv = np.maximum(np.abs(2.0 * a2), np.abs(2.0 * a2 + 6.0 * a3))  # max |L''| on [0, 1]
+    plane = np.where(a0 > 0, np.inf, 0.0)
+    pieces = 32
+    h = 1.0 / pieces
+    open_ = a0 > 0
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        for i in range(pieces):
+            if not open_.any():
+                break
+            t = i * h
+            value = a0 + t * (a1 + t * (a2 + t * a3))
+            slope = a1 + t * (2.0 * a2 + 3.0 * t * a3)
+            # first tau > 0 with value + slope tau - curv tau^2 / 2 = 0 (value > 0), in the
+            # form without cancellation for either sign of the slope
+            root = np.sqrt(slope * slope + 2.0 * curv * np.maximum(value, 0.0))
+            tau = np.where(slope < 0, 2.0 * value / (root - slope), (slope + root) / curv)
+            tau = np.where(value > 0, np.where(np.isnan(tau), np.inf, tau), 0.0)
+            hit = open_ & (tau < h)
+            plane = np.where(hit, t + np.maximum(tau, 0.0), plane)
+            open_ &= ~hit
+        slack = np.maximum(dist - margin - 4.0 * eps * coord, 0.0)
+        lipschitz = np.where(reach > 0, slack / reach, np.inf)
+    bound = np.maximum(plane, lipschitz)
+    bound = np.where(bound > 1.0, np.inf, bound)
+    floored = eta * dist < floor
+    drift = dist * dist < _DRIFT_ULPS * eps * coord * reach
+    near = (drift | (dist < _NEAR_RATIO * reach) | floored) & ((a0 > 0) | floored)
+    return bound, near, floored, floor
+
+
+def _point_segment_distances(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise distance from p to the segment ab."""
+    e = b - a
+    ee = np.maximum(np.einsum("ij,ij->i", e, e), np.finfo(float).tiny)
+    t = np.clip(np.einsum("ij,ij->i", p - a, e) / ee, 0.0, 1.0)
+    return np.linalg.norm(p - a - t[:, None] * e, axis=1)
+
+
+def _pair_distances(P: list[np.ndarray], kind: str) -> np.ndarray:
+    """Row-wise distance of vertex-triangle ("fv": p, a, b, c) or edge-edge ("ee") pairs.
+
+    The minimum over the boundary features (point-segment distances), and the distance to the
+    plane (between the lines) where the closest point lies inside the triangle (inside both
+    edges).
+    """
+    if kind == "fv":
+        p, a, b, c = P
+        d = np.minimum.reduce(
+            [_point_segment_distances(p, u, v) for u, v in ((a, b), (b, c), (c, a))]
+        )
+        n = np.cross(b - a, c - a)
+        nn = np.einsum("ij,ij->i", n, n)
+        ok = nn > 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            h = np.einsum("ij,ij->i", p - a, n) / nn
+            q = p - h[:, None] * n
+            inside = ok.copy()
+            for u, v in ((a, b), (b, c), (c, a)):
+                inside &= np.einsum("ij,ij->i", np.cross(v - u, q - u), n) >= 0
+            plane = np.abs(h) * np.sqrt(nn)
+        return np.where(inside, np.minimum(d, plane), d)
+    a0, a1, b0, b1 = P
+    d = np.minimum.reduce(
+        [
+            _point_segment_distances(a0, b0, b1),
+            _point_segment_distances(a1, b0, b1),
+            _point_segment_distances(b0, a0, a1),
+            _point_segment_distances(b1, a0, a1),
+        ]
+    )
+    u, v, w = a1 - a0, b1 - b0, a0 - b0
+    uu, uv, vv = (np.einsum("ij,ij->i", x, y) for x, y in ((u, u), (u, v), (v, v)))
+    uw, vw = np.einsum("ij,ij->i", u, w), np.einsum("ij,ij->i", v, w)
+    den = uu * vv - uv * uv
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (uv * vw - vv * uw) / den
+        t = (uu * vw - uv * uw) / den
+        inside = (den > 1e-14 * uu * vv) & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1)
+        gap = np.linalg.norm(w + s[:, None] * u - t[:, None] * v, axis=1)
+    return np.where(inside, np.minimum(d, gap), d)
