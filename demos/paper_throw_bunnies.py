@@ -49,6 +49,7 @@ from diffsolids.controls import RigidVelocity
 from diffsolids.io import PolyFEMScene, read_polyfem_scene
 from diffsolids.objectives import center_of_mass, final_value, series_values
 from diffsolids.optimize import LBFGSOptions, check_trajectories
+from diffsolids.parallel import collective_comm
 from diffsolids.reduced_functional import ReducedFunctional
 
 FOLDER = "fig1_bunnies"
@@ -134,7 +135,7 @@ def top_view(model, body: int, u: np.ndarray, comm: MPI.Comm) -> np.ndarray:
     dofs = np.unique(V.dofmap.list[model.domain.cells_of(body)].ravel())
     dofs = dofs[dofs < V.dofmap.index_map.size_local]
     x = V.tabulate_dof_coordinates()[dofs] + u.reshape(-1, model.dim)[dofs]
-    parts = comm.gather(x[:, [0, 2]], root=0)
+    parts = collective_comm(comm).gather(x[:, [0, 2]], root=0)
     return np.concatenate(parts) if comm.rank == 0 else np.empty((0, 2))
 
 
