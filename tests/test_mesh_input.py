@@ -170,26 +170,44 @@ def _write(tmp_path, name: str, points: np.ndarray, cells: np.ndarray, kind: str
     return Path(COMM.bcast(str(path)))
 
 
+def _named_cells(text: str) -> set[int]:
+    """The cell indices named after "cells " in a check_cells message (first kind)."""
+    listed = text.split("cells ", 1)[1].split(" of ")[0].split(";")[0]
+    return {int(c) for c in listed.replace(", ...", "").split(", ")}
+
+
+def _star(cells: np.ndarray, vertex: int) -> set[int]:
+    """The cells that hold ``vertex`` and their facet neighbours (the region a move folds)."""
+    ring = set(np.flatnonzero((cells == vertex).any(axis=1)).tolist())
+    near = np.unique(cells[sorted(ring)])
+    return ring | set(np.flatnonzero(np.isin(cells, near).sum(axis=1) >= cells.shape[1] - 1))
+
+
 def test_inverted_and_degenerate_cells_name_the_file_the_count_and_the_cells(tmp_path):
-    """A folded triangle (vertex moved over its neighbours) and a zero-area one: one MeshError
-    naming the file, how many of each and the first indices, on every rank (the mesh
-    distributed over 2 ranks: each owned cell counted once)."""
+    """A folded patch (an interior vertex moved over its neighbours) and a zero-area cell: one
+    MeshError naming the file, how many of each and the first indices, on every rank (the mesh
+    distributed over 2 ranks: each owned cell counted once); cells ordered backwards are fine."""
     points, cells = _grid(8)
     good = _write(tmp_path, "good.msh", points, cells, "triangle")
     assert read_mesh(good, COMM).mesh.topology.index_map(2).size_global == 128
-    flipped = cells.copy()
-    flipped[[5, 77, 90]] = flipped[[5, 77, 90]][:, [0, 2, 1]]  # three cells ordered backwards
-    path = _write(tmp_path, "folded.msh", points, flipped, "triangle")
+    moved = points.copy()
+    vertex = 4 * 9 + 4  # the centre of the 8 x 8 grid
+    moved[vertex] += [0.3, 0.05]  # past its right neighbours (cell width 0.125)
+    path = _write(tmp_path, "folded.msh", moved, cells, "triangle")
     with pytest.raises(ds.InvertedElementError) as info:
         read_mesh(path, COMM)
     assert isinstance(info.value, ds.MeshError)
-    assert COMM.allreduce(len(info.value.cells), op=MPI.SUM) == 3
+    assert COMM.allreduce(len(info.value.cells), op=MPI.SUM) >= 2
     text = str(info.value)
-    assert text.startswith(f"{path}: 3 inverted")
-    assert "cells 5, 77, 90 " in text and "of 128 triangle cells" in text
-    # all cells ordered backwards is a valid (consistently oriented) file
-    backwards = _write(tmp_path, "backwards.msh", points, cells[:, [0, 2, 1]], "triangle")
-    assert read_mesh(backwards, COMM).mesh.topology.index_map(2).size_global == 128
+    assert text.startswith(f"{path}: ") and " inverted (folded over a neighbour)" in text
+    assert "of 128 triangle cells" in text
+    assert _named_cells(text) <= _star(cells, vertex), text
+    # cells ordered backwards (some or all) cover the same region: valid files
+    flipped = cells.copy()
+    flipped[[5, 77, 90]] = flipped[[5, 77, 90]][:, [0, 2, 1]]
+    for name, order in (("mixed.msh", flipped), ("backwards.msh", cells[:, [0, 2, 1]])):
+        read = read_mesh(_write(tmp_path, name, points, order, "triangle"), COMM)
+        assert read.mesh.topology.index_map(2).size_global == 128
     # a zero-area sliver on the bottom edge: a new vertex at the midpoint of vertices 1, 2
     sliver = np.vstack([points, 0.5 * (points[1] + points[2])])
     path = _write(tmp_path, "flat.msh", sliver, np.vstack([cells, [[1, 81, 2]]]), "triangle")
@@ -199,17 +217,22 @@ def test_inverted_and_degenerate_cells_name_the_file_the_count_and_the_cells(tmp
         read_mesh(path, COMM)
 
 
-def test_an_inverted_tetrahedron_is_named(tmp_path):
-    """3D: one tetrahedron of a box ordered backwards."""
+def test_a_folded_tetrahedral_mesh_is_named(tmp_path):
+    """3D: an interior vertex of a box moved past its neighbours folds the tetrahedra around it;
+    a tetrahedron ordered backwards does not."""
     box = ds.mesh.simplex_box([[0, 0, 0], [1, 1, 1]], [3, 3, 3])
     points = box.geometry.x.copy()
     cells = box.geometry.dofmaps[0].copy()
-    vol = np.linalg.det(points[cells[:, 1:]] - points[cells[:, :1]])
-    cells[vol < 0] = cells[vol < 0][:, [0, 2, 1, 3]]  # all positive
-    cells[17] = cells[17][[1, 0, 2, 3]]
+    reordered = cells.copy()
+    reordered[17] = reordered[17][[1, 0, 2, 3]]
+    path = _write(tmp_path, "reordered.msh", points, reordered, "tetra")
+    assert read_mesh(path, COMM).mesh.topology.index_map(3).size_global == 162
+    vertex = int(np.flatnonzero(np.all(np.isclose(points, 1 / 3), axis=1))[0])
+    points[vertex, 0] += 0.6  # past the vertices at x = 2/3
     path = _write(tmp_path, "box.msh", points, cells, "tetra")
-    with pytest.raises(ds.MeshError, match=r"box\.msh: 1 inverted .*cells 17 of 162 tetrahedron"):
+    with pytest.raises(ds.MeshError, match=r"box\.msh: \d+ inverted .* of 162 tetrahedron") as info:
         read_mesh(path, COMM)
+    assert _named_cells(str(info.value)) <= _star(cells, vertex), str(info.value)
 
 
 def test_the_paper_meshes_pass_the_cell_check():

@@ -36,8 +36,13 @@ def signed_cell_volumes(mesh: dolfinx.mesh.Mesh, x: np.ndarray | None = None) ->
     return np.linalg.det(edges) / (2.0 if d == 2 else 6.0)
 
 
-def _facet_opposite_orientations(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
-    """For local interior facets, the orientation signs of their two opposite vertices."""
+def _facet_opposite_orientations(mesh: dolfinx.mesh.Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """For local interior facets, the orientation signs of their two opposite vertices.
+
+    Returns:
+        (signs, cells): both of shape (number of local interior facets, 2); the two cells of a
+        facet lie on opposite sides of it where the signs differ.
+    """
     tdim = mesh.topology.dim
     fdim = tdim - 1
     mesh.topology.create_connectivity(fdim, tdim)
@@ -45,7 +50,7 @@ def _facet_opposite_orientations(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
     counts = np.diff(f2c.offsets)
     interior = np.flatnonzero(counts == 2).astype(np.int32)
     if interior.size == 0:
-        return np.zeros((0, 2))
+        return np.zeros((0, 2)), np.zeros((0, 2), dtype=np.int32)
     cells = f2c.array[f2c.offsets[interior][:, None] + np.arange(2)]
     fnodes = dolfinx.mesh.entities_to_geometry(mesh, fdim, interior)
     dofmap = mesh.geometry.dofmaps[0]
@@ -59,7 +64,17 @@ def _facet_opposite_orientations(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
         opposite = cnodes[~on_facet]
         rows = np.concatenate([frame, (x[opposite] - base[:, 0, :])[:, None, :]], axis=1)
         signs[:, k] = np.sign(np.linalg.det(rows))
-    return signs
+    return signs, cells
+
+
+def folded_cells(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
+    """Local cells folded over a neighbour: both cells of an interior facet on the same side.
+
+    Independent of the vertex order of the cells (a cell ordered backwards covers the same
+    region and is not folded).
+    """
+    signs, cells = _facet_opposite_orientations(mesh)
+    return np.unique(cells[signs[:, 0] == signs[:, 1]])
 
 
 def check_orientation(mesh: dolfinx.mesh.Mesh, rtol: float = 1e-10) -> np.ndarray:
@@ -73,7 +88,7 @@ def check_orientation(mesh: dolfinx.mesh.Mesh, rtol: float = 1e-10) -> np.ndarra
     h = _mean_edge_length(mesh)
     degenerate = np.flatnonzero(np.abs(vol) <= rtol * h**mesh.geometry.dim)
     _raise_if_any(mesh, degenerate, "degenerate (zero-volume) cells")
-    signs = _facet_opposite_orientations(mesh)
+    signs, _ = _facet_opposite_orientations(mesh)
     folded = np.flatnonzero(signs[:, 0] == signs[:, 1])
     n_folded = collective_comm(mesh.comm).allreduce(folded.size, op=MPI.SUM)
     if n_folded:

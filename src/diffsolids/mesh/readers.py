@@ -168,13 +168,13 @@ _SHOWN_CELLS = 5
 
 
 def check_cells(domain: Domain, source: str | os.PathLike = "the mesh") -> None:
-    """Refuse inverted and degenerate cells of a mesh just read (collective).
+    """Refuse folded and degenerate cells of a mesh just read (collective).
 
     A cell is degenerate when its volume (area in 2D) is at most 1e-10 h^d, h the mean edge
-    length, and inverted when its orientation (the sign of its volume in the file's vertex
-    order) is the minority one: a file's cells are all positively or all negatively ordered
-    (both are valid; the elements do not depend on it), and the cells that disagree are folded
-    over their neighbours. Serial and distributed meshes alike: each owned cell is counted
+    length, and folded (inverted) when it lies on the same side of a shared facet as its
+    neighbour there (:func:`~diffsolids.mesh.quality.folded_cells`; both cells of such a
+    facet are named). The vertex order of the cells does not matter: a cell ordered backwards
+    covers the same region. Serial and distributed meshes alike: each owned cell is counted
     once and named by its index in the file's order of cells of its type (0-based; DOLFINx's
     ``original_cell_index``).
 
@@ -187,26 +187,27 @@ def check_cells(domain: Domain, source: str | os.PathLike = "the mesh") -> None:
             number of bad cells of each kind and the first few indices (``cells``: this
             rank's bad local cells).
     """
-    from diffsolids.mesh.quality import _mean_edge_length, signed_cell_volumes
+    from diffsolids.mesh.quality import _mean_edge_length, folded_cells, signed_cell_volumes
 
     mesh = domain.mesh
     tdim = mesh.topology.dim
     owned = mesh.topology.index_map(tdim).size_local
     vol = signed_cell_volumes(mesh)[:owned]
     tiny = np.abs(vol) <= _DEGENERATE_RTOL * _mean_edge_length(mesh) ** mesh.geometry.dim
+    folded = np.zeros(owned, dtype=bool)
+    local = folded_cells(mesh)
+    folded[local[local < owned]] = True
+    inverted = folded & ~tiny
     counts = collective_comm(mesh.comm).allreduce(
-        np.array([np.sum(~tiny & (vol > 0)), np.sum(~tiny & (vol < 0)), np.sum(tiny), owned]),
-        op=MPI.SUM,
+        np.array([np.sum(inverted), np.sum(tiny), owned]), op=MPI.SUM
     )
-    positive, negative, degenerate, total = (int(c) for c in counts)
-    inverted = ~tiny & ((vol < 0) if positive >= negative else (vol > 0))
-    n_inverted = min(positive, negative)
+    n_inverted, degenerate, total = (int(c) for c in counts)
     if not (n_inverted or degenerate):
         return
     index = np.asarray(mesh.topology.original_cell_index[:owned], dtype=np.int64)
     problems = []
     for what, bad, n in (
-        ("inverted (orientation opposite to the other cells: folded)", inverted, n_inverted),
+        ("inverted (folded over a neighbour)", inverted, n_inverted),
         ("degenerate (zero volume)", tiny, degenerate),
     ):
         if n:
