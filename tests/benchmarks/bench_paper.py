@@ -11,6 +11,10 @@ Scenes read from their PolyFEM JSON (``diffsolids.io.polyfem_scene``; data in
   velocity; the squared distance of the second bunny's final centre of mass (x, z) to
   (3.67854, 0.137261). ``--throw-steps`` of the paper's 40 (default 8: a partial run; the
   per-Newton-iteration cost is what it measures; 0 skips it).
+- ``sliding_bunny`` (Fig. 21, 3D): run-new.json, the bunny on a slide (a kinematic obstacle),
+  2 799 dofs; log mu of the bunny-slide pair; the demo's objective (``paper_sliding_bunny.
+  friction_problem``: 100 |c(T) - c_target(T)|^2, target at mu = 0.1) over
+  ``--sliding-steps`` of the paper's 40 (default 10, the demo's default; 0 skips it).
 
 Per scene: forward seconds (wall and process CPU: the machine is shared; the objective's
 forward run at the scene's parameters, on a warm JIT cache), Newton iterations, seconds per
@@ -48,16 +52,22 @@ TABLE4 = {  # the paper's Table 4: solve / gradient seconds
     "sliding_bunny": (547.36, 1.6478),
     "throw": (209.30, 4.3731),
 }
-FOLDERS = {"puzzle": "fig14_puzzle_piece", "kangaroo": "fig20_kangaroo", "throw": "fig1_bunnies"}
+FOLDERS = {
+    "puzzle": "fig14_puzzle_piece",
+    "kangaroo": "fig20_kangaroo",
+    "throw": "fig1_bunnies",
+    "sliding_bunny": "fig21_friction_bunny",
+}
 FACTOR_MEMORY_MB = 1000.0  # per rank, for the 2D scenes' stored forward factorisations
 
 
 def _parse(argv):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--scenes", nargs="+", default=["puzzle", "kangaroo", "throw"])
+    p.add_argument("--scenes", nargs="+", default=["puzzle", "kangaroo", "throw", "sliding_bunny"])
     p.add_argument("--data", type=Path, default=None, help="folder of the paper's scene data")
     p.add_argument("--kappa", default="suggest", help="'suggest', 'scene' or a number")
     p.add_argument("--throw-steps", type=int, default=8, help="BDF1 steps of fig1 (paper: 40)")
+    p.add_argument("--sliding-steps", type=int, default=10, help="steps of fig21 (paper: 40)")
     p.add_argument("--profile", action="store_true", help="cProfile forward + gradient")
     p.add_argument("--top", type=int, default=8, help="profile entries printed")
     return p.parse_args(argv)
@@ -72,6 +82,11 @@ def build(name: str, data: Path, kappa, steps: int | None, comm):
     from diffsolids.controls import ParameterControl, RigidVelocity
     from diffsolids.reduced_functional import ReducedFunctional
 
+    if name == "sliding_bunny":
+        from paper_sliding_bunny import friction_problem
+
+        _, _contact, sim, rf, _, _, q0, _ = friction_problem(data, comm, steps, kappa)
+        return rf, np.log(q0), sim
     path, opt = experiment(data, FOLDERS[name])
     run, target = scenes(path, opt)
     if name == "throw":
@@ -109,7 +124,9 @@ def build(name: str, data: Path, kappa, steps: int | None, comm):
 
 def measure(name: str, args, comm) -> dict:
     """Forward and gradient seconds of one scene (after an untimed warm-up of 2 steps)."""
-    steps = args.throw_steps if name == "throw" else None
+    from diffsolids.contact import ContactTerm
+
+    steps = {"throw": args.throw_steps, "sliding_bunny": args.sliding_steps}.get(name)
     warm, q_warm, _ = build(name, args.data, args.kappa, 2, comm)
     warm(q_warm)
     warm.gradient(q_warm)
@@ -124,7 +141,7 @@ def measure(name: str, args, comm) -> dict:
     J = rf(q)
     forward, forward_cpu = time.perf_counter() - t0, time.process_time() - c0
     its = rf.trajectory.newton_iterations()
-    contact = next(t for t in sim.model.numeric_terms if hasattr(t, "timing_summary"))
+    contact = next(t for t in sim.model.numeric_terms if isinstance(t, ContactTerm))
     contact.timings.clear()  # from here: the contact work of the gradient only
     t0, c0 = time.perf_counter(), time.process_time()
     g = rf.gradient(q)
@@ -147,7 +164,7 @@ def measure(name: str, args, comm) -> dict:
     out = {
         "dofs": sim.model.V.dofmap.index_map.size_global * sim.model.dim,
         "steps": sim.integrator.num_steps,
-        "kappa": next(t.stiffness for t in sim.model.numeric_terms),
+        "kappa": contact.stiffness,
         "objective": float(J),
         "gradient_norm": float((g @ g) ** 0.5),
         "forward_s": forward,
@@ -199,7 +216,7 @@ def main(argv=None) -> dict:
     comm = MPI.COMM_WORLD
     results = {}
     for name in args.scenes:
-        if name == "throw" and args.throw_steps == 0:
+        if {"throw": args.throw_steps, "sliding_bunny": args.sliding_steps}.get(name) == 0:
             continue
         results[name] = measure(name, args, comm)
         if comm.rank == 0:
