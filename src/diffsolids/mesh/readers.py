@@ -172,7 +172,7 @@ def check_cells(domain: Domain, source: str | os.PathLike = "the mesh") -> None:
 
     A cell is degenerate when its volume (area in 2D) is at most 1e-10 h^d, h the mean edge
     length, and folded (inverted) when it lies on the same side of a shared facet as its
-    neighbour there (:func:`~diffsolids.mesh.quality.folded_cells`; both cells of such a
+    neighbour there (``mesh.quality.folded_cells``; both cells of such a
     facet are named). The vertex order of the cells does not matter: a cell ordered backwards
     covers the same region. Serial and distributed meshes alike: each owned cell is counted
     once and named by its index in the file's order of cells of its type (0-based; DOLFINx's
