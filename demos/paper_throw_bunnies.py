@@ -29,7 +29,7 @@ deviations of the centre from the spot in x and z <= 0.005 (the paper's 0.005 st
 or inverted element in the initial and final runs. Measured (serial, 2-core AMD EPYC, two
 runs at load 4-10, the same numbers to every digit): 3 iterations, 6 forward solves, CPU 424
 and 478 s; J 0.4007 -> 0.00834, squared deviations 0.00433 and 0.00401, v0 (2, 0.5, 0) ->
-(2.655, 0.485, -0.004). ``make demo`` runs it. ``--tiny``: 2 steps (the bunnies collide in
+(2.655, 0.484, -0.004). ``make demo`` runs it. ``--tiny``: 2 steps (the bunnies collide in
 the first), 1 iteration, objective decreased. The default is the paper's whole run (40 steps;
 the spot is where the second bunny rests at t = 2 s, so there is no shorter version of the
 outcome); ``--steps N`` runs fewer steps against the same spot (no outcome check).
