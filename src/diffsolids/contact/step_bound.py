@@ -93,10 +93,8 @@ class StepBound:
         candidates = ipctk.Candidates()
         candidates.build(self.surface.mesh, x0, x1, self.dhat, self.broad_phase)
         near, far = np.inf, candidates
-        if self.surface.dim == 2 and not len(candidates.vv_candidates):
-            near, far = self._near_pairs_2d(candidates, x0, x1, cached)
-        elif self.surface.dim == 3:
-            near, far = self._near_pairs_3d(candidates, x0, x1, cached)
+        if self.surface.dim == 3 or not len(candidates.vv_candidates):
+            near, far = self._near_pairs(candidates, x0, x1, cached)
         toi = far.compute_collision_free_stepsize(self.surface.mesh, x0, x1, 0.0, self.ccd)
         toi = collective_comm(self.comm).allreduce(min(float(toi), near), op=MPI.MIN)
         return (toi, candidates) if with_candidates else toi
@@ -134,61 +132,7 @@ class StepBound:
                 return False
         return True
 
-    def _near_pairs_3d(
-        self,
-        candidates: ipctk.Candidates,
-        x0: np.ndarray,
-        x1: np.ndarray,
-        cached: Callable[[], ipctk.NormalCollisions | None],
-    ) -> tuple[float, ipctk.Candidates]:
-        """3D counterpart of :meth:`_near_pairs_2d`: near face-vertex and edge-edge pairs.
-
-        A vertex resting ~1e-9 m above a triangle while it slides over it (or two edges as
-        close, sliding across each other) costs AdditiveCCD ~|motion| / d iterations, as in 2D.
-        Such pairs (the same ``_DRIFT_ULPS``, ``_NEAR_RATIO`` and floor criteria, on the
-        distance to the triangle's plane or between the edges' lines) get the bound of
-        :func:`_plane_bounds` (vectorised over pairs): a point meets a triangle only on its
-        plane, two edges meet only where their lines do. A near pair whose plane test gives
-        nothing at x0 (the vertex beside the triangle, close to its plane; nearly parallel
-        edges) keeps ipctk's narrow phase unless it is floored (then only its displacement
-        bound holds it). Conservative where the plane is: a vertex sliding off a triangle
-        over a convex crease is stopped where it would cross that triangle's plane.
-        """
-        eta = 1.0 - float(self.ccd.conservative_rescaling)
-        fv, ee = candidates.fv_candidates, candidates.ee_candidates
-        if not (len(fv) or len(ee)) or not self._any_near(candidates, x0, x1, cached, eta):
-            return np.inf, candidates
-        mesh = self.surface.mesh
-        bound, held = np.inf, np.inf
-        far = ipctk.Candidates()
-        far.ev_candidates = list(candidates.ev_candidates)
-        far.vv_candidates = list(candidates.vv_candidates)
-        lists = []
-        for kind, cands in (("fv", fv), ("ee", ee)):
-            if not len(cands):
-                lists.append([])
-                continue
-            if kind == "fv":
-                ids = np.array([(c.face_id, c.vertex_id) for c in cands], dtype=np.int64)
-                tri = mesh.faces[ids[:, 0]]
-                corners = [ids[:, 1], tri[:, 0], tri[:, 1], tri[:, 2]]
-            else:
-                ids = np.array([(c.edge0_id, c.edge1_id) for c in cands], dtype=np.int64)
-                e0, e1 = mesh.edges[ids[:, 0]], mesh.edges[ids[:, 1]]
-                corners = [e0[:, 0], e0[:, 1], e1[:, 0], e1[:, 1]]
-            b, near, floored, floor = _plane_bounds(x0, x1, corners, kind, eta)
-            if near.any():
-                bound = min(bound, float(b[near].min()))
-            h = floored & near & (b < 1.0)
-            if h.any():
-                held = min(held, float(floor[h].min()))
-            lists.append([cands[int(k)] for k in np.flatnonzero(~near)])
-        far.fv_candidates, far.ee_candidates = lists
-        if np.isfinite(held):
-            self.floor_held = held
-        return bound, far
-
-    def _near_pairs_2d(
+    def _near_pairs(
         self,
         candidates: ipctk.Candidates,
         x0: np.ndarray,
@@ -197,38 +141,79 @@ class StepBound:
     ) -> tuple[float, ipctk.Candidates]:
         """The collision-free fraction of x0 -> x1 for the near pairs, and the other candidates.
 
-        A vertex resting a tiny gap d above an edge while it slides along it (soft barriers:
-        ~1e-11 m apart, sliding ~1e-2 m per step) is beyond ipctk's narrow phases. AdditiveCCD
-        advances by ~0.9 d / |motion| per iteration: at its 1e7-iteration cap (~1 s) it returns
-        the fraction reached, orders of magnitude below the time of impact, and the Newton solve
+        A vertex resting a tiny gap d above an edge (2D) or a triangle (3D) while it slides
+        along it, or two edges as close sliding across each other (soft barriers: ~1e-11 m
+        apart, sliding ~1e-2 m per step), is beyond ipctk's narrow phases. AdditiveCCD advances
+        by ~0.9 d / |motion| per iteration: at its 1e7-iteration cap (~1 s) it returns the
+        fraction reached, orders of magnitude below the time of impact, and the Newton solve
         stalls with every step cut to it; before the cap the round-off of its ~|motion| / d
         position updates can exceed the gap, and it reports no impact where there is one
         (measured: 7e-12 m above an edge, sliding 4e-6 m, crossing at 0.49 of the step: no
         impact). Tight Inclusion refines its interval just as slowly. Such pairs (see
-        ``_DRIFT_ULPS``, ``_NEAR_RATIO``) get the exact bound of :func:`_edge_vertex_bounds`
-        instead: in 2D a vertex meets an edge only on the edge's line. The others keep ipctk's
-        narrow phase (without near pairs, exactly as before). No near pair gets closer than
-        ``_GAP_FLOOR_ULPS`` ulps of its coordinates, where round-off would decide which side of
-        an edge a vertex is on.
+        ``_DRIFT_ULPS``, ``_NEAR_RATIO``) get a closed-form bound vectorised over the pairs: in
+        2D the exact one of :func:`_edge_vertex_bounds` (a vertex meets an edge only on the
+        edge's line), in 3D the plane bound of :func:`_plane_bounds` (a point meets a triangle
+        only on its plane, two edges meet only where their lines do; conservative where the
+        plane is: a vertex sliding off a triangle over a convex crease is stopped where it
+        would cross that triangle's plane). A 3D near pair whose plane test gives nothing at x0
+        (the vertex beside the triangle, close to its plane; nearly parallel edges) keeps
+        ipctk's narrow phase unless it is floored. The others keep ipctk's narrow phase
+        (without near pairs, exactly as before). No near pair gets closer than
+        ``_GAP_FLOOR_ULPS`` ulps of its coordinates, where round-off would decide which side
+        of an edge a vertex is on.
         """
         eta = 1.0 - float(self.ccd.conservative_rescaling)
+        kinds = _near_pair_kinds(candidates, self.surface.mesh)
+        if not any(len(cands) for _, cands, _ in kinds):
+            return np.inf, candidates
         if not self._any_near(candidates, x0, x1, cached, eta):
             return np.inf, candidates
-        ev = candidates.ev_candidates
-        if not len(ev):
-            return np.inf, candidates
-        pairs = np.array([(c.edge_id, c.vertex_id) for c in ev], dtype=np.int64)
-        bound, near, floored, floor = _edge_vertex_bounds(
-            x0, x1, self.surface.mesh.edges, pairs, eta
-        )
-        if not near.any():
-            return np.inf, candidates
-        held = floored & (bound < 1.0)
-        if held.any():  # for failure_report: the floor, not the barrier, holds pairs
-            self.floor_held = float(floor[held].min())
+        bound, held = np.inf, np.inf
         far = ipctk.Candidates()
-        far.ev_candidates = [ev[int(k)] for k in np.flatnonzero(~near)]
-        return float(bound[near].min()), far
+        for name in ("ev_candidates", "vv_candidates", "fv_candidates", "ee_candidates"):
+            setattr(far, name, list(getattr(candidates, name)))
+        for name, cands, pair_bounds in kinds:
+            if not len(cands):
+                continue
+            b, near, floored, floor = pair_bounds(x0, x1, eta)
+            if near.any():
+                bound = min(bound, float(b[near].min()))
+            h = floored & near & (b < 1.0)
+            if h.any():
+                held = min(held, float(floor[h].min()))
+            setattr(far, name, [cands[int(k)] for k in np.flatnonzero(~near)])
+        if np.isfinite(held):  # for failure_report: the floor, not the barrier, holds pairs
+            self.floor_held = held
+        return bound, far
+
+
+def _near_pair_kinds(candidates: ipctk.Candidates, mesh: ipctk.CollisionMesh) -> list[tuple]:
+    """(candidate list name, the candidates, their bounds ``f(x0, x1, eta)``) per pair kind.
+
+    2D: vertex-edge pairs (:func:`_edge_vertex_bounds`); 3D: face-vertex and edge-edge pairs
+    (:func:`_plane_bounds`).
+    """
+    if mesh.dim == 2:
+        ev = candidates.ev_candidates
+
+        def ev_bounds(x0: np.ndarray, x1: np.ndarray, eta: float) -> tuple:
+            pairs = np.array([(c.edge_id, c.vertex_id) for c in ev], dtype=np.int64)
+            return _edge_vertex_bounds(x0, x1, mesh.edges, pairs, eta)
+
+        return [("ev_candidates", ev, ev_bounds)]
+    fv, ee = candidates.fv_candidates, candidates.ee_candidates
+
+    def fv_bounds(x0: np.ndarray, x1: np.ndarray, eta: float) -> tuple:
+        ids = np.array([(c.face_id, c.vertex_id) for c in fv], dtype=np.int64)
+        tri = mesh.faces[ids[:, 0]]
+        return _plane_bounds(x0, x1, [ids[:, 1], tri[:, 0], tri[:, 1], tri[:, 2]], "fv", eta)
+
+    def ee_bounds(x0: np.ndarray, x1: np.ndarray, eta: float) -> tuple:
+        ids = np.array([(c.edge0_id, c.edge1_id) for c in ee], dtype=np.int64)
+        e0, e1 = mesh.edges[ids[:, 0]], mesh.edges[ids[:, 1]]
+        return _plane_bounds(x0, x1, [e0[:, 0], e0[:, 1], e1[:, 0], e1[:, 1]], "ee", eta)
+
+    return [("fv_candidates", fv, fv_bounds), ("ee_candidates", ee, ee_bounds)]
 
 
 def _edge_vertex_bounds(
@@ -292,14 +277,38 @@ def _edge_vertex_bounds(
             (B > 0) & (A < 0), -B / A, np.where((B < 0) | ((B == 0) & (A < 0)), 0.0, np.inf)
         )
         line = np.where(gap > 0, line, turn)
-        slack = np.maximum(d0 - margin - 4.0 * eps * coord, 0.0)
-        lipschitz = np.where(reach > 0, slack / reach, np.inf)
-    bound = np.maximum(line, lipschitz)
-    bound = np.where(bound > 1.0, np.inf, bound)
-    floored = eta * d0 < floor
-    drift = d0 * d0 < _DRIFT_ULPS * eps * coord * reach
-    near = drift | (d0 < _NEAR_RATIO * reach) | floored
+    bound, near, floored = _with_displacement_bound(line, d0, margin, coord, reach, eta, floor)
     return bound, near, floored, floor
+
+
+def _with_displacement_bound(
+    crossing: np.ndarray,
+    gap: np.ndarray,
+    margin: np.ndarray,
+    coord: np.ndarray,
+    reach: np.ndarray,
+    eta: float,
+    floor: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The larger of a crossing bound and AdditiveCCD's displacement bound; the near pairs.
+
+    The displacement bound is (gap - margin) / reach, reach the largest relative displacement
+    of the pair's points. A pair is near where its gap is below sqrt(``_DRIFT_ULPS`` ulp
+    reach) or ``_NEAR_RATIO`` reach, or floored (eta gap below the floor).
+
+    Returns:
+        (bound, near, floored): the bound (inf: not within the step) and the two masks.
+    """
+    eps = np.finfo(float).eps
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slack = np.maximum(gap - margin - 4.0 * eps * coord, 0.0)
+        lipschitz = np.where(reach > 0, slack / reach, np.inf)
+    bound = np.maximum(crossing, lipschitz)
+    bound = np.where(bound > 1.0, np.inf, bound)
+    floored = eta * gap < floor
+    drift = gap * gap < _DRIFT_ULPS * eps * coord * reach
+    near = drift | (gap < _NEAR_RATIO * reach) | floored
+    return bound, near, floored
 
 
 def _plane_bounds(
@@ -385,14 +394,8 @@ def _plane_bounds(
             hit = open_ & (tau < h)
             plane = np.where(hit, t + np.maximum(tau, 0.0), plane)
             open_ &= ~hit
-        slack = np.maximum(dist - margin - 4.0 * eps * coord, 0.0)
-        lipschitz = np.where(reach > 0, slack / reach, np.inf)
-    bound = np.maximum(plane, lipschitz)
-    bound = np.where(bound > 1.0, np.inf, bound)
-    floored = eta * dist < floor
-    drift = dist * dist < _DRIFT_ULPS * eps * coord * reach
-    near = (drift | (dist < _NEAR_RATIO * reach) | floored) & ((a0 > 0) | floored)
-    return bound, near, floored, floor
+    bound, near, floored = _with_displacement_bound(plane, dist, margin, coord, reach, eta, floor)
+    return bound, near & ((a0 > 0) | floored), floored, floor
 
 
 def _point_segment_distances(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
