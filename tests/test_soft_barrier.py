@@ -205,6 +205,7 @@ def test_too_soft_for_double_precision_says_so():
     assert "the barrier is too soft for this load" in text
     assert "ulps of the coordinates" in text and "cannot in double precision" in text
     assert "most Newton steps were cut by a step bound; what to try:" in text
+    assert "then the step again through a stiffness continuation (factors" in text
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -14,6 +14,7 @@ from diffsolids.errors import IntersectionError
 __all__ = [
     "ContactRecord",
     "body_forces",
+    "continuation_schedule",
     "failure_report",
     "obstacle_move_error",
     "step_record",
@@ -97,6 +98,41 @@ def body_forces(
     return normal, friction
 
 
+def settling_gap(stiffness: float, dhat: float, force: float) -> float:
+    """The gap at which a pair carrying ``force`` settles, for gaps far inside dhat."""
+    # kappa b(d^2, dhat^2) with b = -(s - t)^2 ln(s / t) pushes with ~2 kappa dhat^4 / d at
+    # d << dhat: a pair carrying force f settles at d ~ 2 kappa dhat^4 / f
+    return 2.0 * stiffness * dhat**4 / max(force, 1e-300)
+
+
+# a continuation starts where the most loaded pair settles at this fraction of dhat, and
+# divides the stiffness by at most _CONTINUATION_RATIO per stage
+_CONTINUATION_GAP = 1e-2
+_CONTINUATION_RATIO = 100.0
+_CONTINUATION_MAX_FACTOR = 1e10
+
+
+def continuation_schedule(stiffness: float, dhat: float, force: float) -> tuple[float, ...]:
+    """Barrier-stiffness factors, decreasing to (not including) 1, for a too soft barrier.
+
+    A barrier of stiffness kappa holds a pair carrying force f at d ~ 2 kappa dhat^4 / f.
+    Far inside dhat every Newton step is cut by the collision check (the pairs' gaps are
+    orders of magnitude below the tangential motion of the step); the minimiser of the step
+    potential is reached instead from the minimiser for a stiffer barrier, where the pairs
+    rest at ``_CONTINUATION_GAP`` dhat, dividing the stiffness by about
+    ``_CONTINUATION_RATIO`` per stage: each stage starts next to its own minimiser.
+
+    Returns:
+        The factors (empty: the barrier is not too soft for the force).
+    """
+    gap = settling_gap(stiffness, dhat, force)
+    start = min(_CONTINUATION_GAP * dhat / gap, _CONTINUATION_MAX_FACTOR)
+    if not start > _CONTINUATION_RATIO:
+        return ()
+    stages = int(np.ceil(np.log(start) / np.log(_CONTINUATION_RATIO)))
+    return tuple(start ** (k / stages) for k in range(stages, 0, -1))
+
+
 def failure_report(
     stiffness: float,
     dhat: float,
@@ -119,9 +155,7 @@ def failure_report(
     if num_pairs == 0:
         return f"{head}, no pair within dhat at the last iterate"
     d = distance
-    # kappa b(d^2, dhat^2) with b = -(s - t)^2 ln(s / t) pushes with ~2 kappa dhat^4 / d at
-    # d << dhat: a pair carrying force f settles at d ~ 2 kappa dhat^4 / f
-    gap = 2.0 * stiffness * dhat**4 / max(force, 1e-300)
+    gap = settling_gap(stiffness, dhat, force)
     hint = (
         "; the barrier is too soft for this load (pairs settle far inside dhat, where the "
         "collision check cuts every Newton step): raise kappa, e.g. to "

@@ -78,6 +78,10 @@ class ContactPotential:
         self.stiffness = stiffness
         self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness)
 
+    def set_stiffness_factor(self, factor: float) -> None:
+        """Evaluate the barrier with ``factor`` x kappa (1: kappa itself; a continuation stage)."""
+        self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness * factor)
+
     def energy(self, ev: Evaluation) -> float:
         """The contact energy at ev, summed over the ranks (collective once per ev)."""
         if ev.energy is None:

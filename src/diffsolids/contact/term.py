@@ -55,7 +55,12 @@ from petsc4py import PETSc
 from diffsolids.contact.adjoint import ContactAdjoint
 from diffsolids.contact.checks import ConfigurationCheck
 from diffsolids.contact.collisions import CollisionBuilder
-from diffsolids.contact.diagnostics import ContactRecord, failure_report, step_record
+from diffsolids.contact.diagnostics import (
+    ContactRecord,
+    continuation_schedule,
+    failure_report,
+    step_record,
+)
 from diffsolids.contact.evaluation import Evaluation
 from diffsolids.contact.free_dofs import FreeDofs
 from diffsolids.contact.friction_table import body_pairs, coefficients_of
@@ -133,6 +138,7 @@ class ContactTerm(NumericTerm):
     projectable_hessian = True
     has_hessian_action = True
     grows_pattern = True
+    has_stiffness_continuation = True
     parameter_names = ("friction",)
 
     def __init__(
@@ -536,18 +542,52 @@ class ContactTerm(NumericTerm):
         f.x.scatter_forward()
         return rec
 
+    def _largest_force(self, ev: Evaluation) -> float:
+        """The largest contact force on a collision vertex at ev (collective)."""
+        g = self.potential.gradient(ev).reshape(-1, self.dim)
+        return float(np.linalg.norm(g, axis=1).max(initial=0.0))
+
+    def _last_evaluation(self) -> Evaluation | None:
+        """The last evaluated iterate, its values recomputed if the potential changed since."""
+        ev = self._eval
+        if ev is not None and ev.token != self._token:
+            friction = self._friction()
+            ev = Evaluation(ev.U, ev.x, ev.collisions, self._token)
+            ev.extras["friction"] = friction
+            self._eval = ev
+        return ev
+
+    def continuation_factors(self) -> tuple[float, ...]:
+        """Barrier-stiffness factors from which a stalled solve walks down to kappa (collective).
+
+        From the largest contact force at the last evaluated iterate, see
+        ``diffsolids.contact.diagnostics.continuation_schedule``; empty without pairs
+        within dhat or when the barrier is not too soft for that force.
+        """
+        ev = self._last_evaluation()
+        if ev is None or self.stiffness is None or self.partition.count(ev.collisions) == 0:
+            return ()
+        return continuation_schedule(self.stiffness, self.dhat, self._largest_force(ev))
+
+    def set_stiffness_factor(self, factor: float) -> None:
+        """Evaluate the barrier with ``factor`` x kappa until set back to 1 (a continuation).
+
+        The step's lagged friction (normal forces of the previous state) keeps kappa.
+        """
+        self._friction()
+        self.potential.set_stiffness_factor(float(factor))
+        self._token += 1
+
     def failure_report(self) -> str | None:
         """The contact state at the last evaluated iterate (for NewtonConvergenceError)."""
-        ev = self._eval
+        ev = self._last_evaluation()
         if ev is None:
             return failure_report(self.stiffness, self.dhat)
         count = self.partition.count(ev.collisions)  # collective, like the solve
         if count == 0:
             return failure_report(self.stiffness, self.dhat)
         d = self.partition.minimum_distance(ev.collisions, self.surface.mesh, ev.x)
-        force = float(
-            np.linalg.norm(self.potential.gradient(ev).reshape(-1, self.dim), axis=1).max()
-        )
+        force = self._largest_force(ev)
         floor = self.step_bound.floor_held
         floor = self.partition.minimum(np.inf if floor is None else floor)
         return failure_report(

@@ -12,7 +12,9 @@ instances of :class:`NumericTerm` only; the solver and the sweep call nothing el
 Capabilities that change how the solver works are declared as class attributes rather than
 discovered: ``projectable_hessian`` (a PSD-projected Newton matrix exists),
 ``has_hessian_action`` (the exact Hessian can be applied matrix-free), ``grows_pattern`` (the
-Jacobian may need entries outside the finite-element sparsity, see :meth:`matrix_pattern`).
+Jacobian may need entries outside the finite-element sparsity, see :meth:`matrix_pattern`),
+``has_stiffness_continuation`` (a stiffer version of the term exists from which a stalled solve
+may walk down to the term itself, see :meth:`continuation_factors`).
 """
 
 from abc import ABC, abstractmethod
@@ -46,6 +48,7 @@ class NumericTerm(ABC):
     projectable_hessian: ClassVar[bool] = False
     has_hessian_action: ClassVar[bool] = False
     grows_pattern: ClassVar[bool] = False
+    has_stiffness_continuation: ClassVar[bool] = False
     parameter_names: ClassVar[tuple[str, ...]] = ()
 
     # -- the Newton solve ------------------------------------------------------------------
@@ -99,6 +102,18 @@ class NumericTerm(ABC):
     def failure_report(self) -> str | None:
         """What a failed Newton solve should tell the user about this term (None: nothing)."""
         return None
+
+    def continuation_factors(self) -> tuple[float, ...]:
+        """Stiffness factors (> 1, decreasing) for a continuation from the last evaluated iterate.
+
+        Only asked when ``has_stiffness_continuation`` and a step's solve has failed; empty:
+        a continuation would not help (collective).
+        """
+        return ()
+
+    def set_stiffness_factor(self, factor: float) -> None:
+        """Scale the term's stiffness by ``factor`` (1: the term itself) for the next solves."""
+        raise NotImplementedError(f"{self.name} has no stiffness continuation")
 
     # -- per-step hooks --------------------------------------------------------------------
     def begin_step(  # noqa: B027 - optional hook
