@@ -154,12 +154,12 @@ def measure(name: str, args, comm) -> dict:
     # the same again at a neighbouring q (a new forward run): the gradient as in an
     # optimisation, without the sweep's one-time set-up (its adjoint forms, the KSPs)
     q2 = q * (1.0 + 1e-9)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     rf(q2)
-    forward2 = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    rf.gradient(q2)
-    gradient2 = time.perf_counter() - t0
+    forward2, forward2_cpu = time.perf_counter() - t0, time.process_time() - c0
+    t0, c0 = time.perf_counter(), time.process_time()
+    g2 = rf.gradient(q2)
+    gradient2, gradient2_cpu = time.perf_counter() - t0, time.process_time() - c0
     paper_solve, paper_grad = TABLE4[name]
     out = {
         "dofs": sim.model.V.dofmap.index_map.size_global * sim.model.dim,
@@ -167,6 +167,8 @@ def measure(name: str, args, comm) -> dict:
         "kappa": contact.stiffness,
         "objective": float(J),
         "gradient_norm": float((g @ g) ** 0.5),
+        "gradient": [float(x) for x in g],  # to compare gradients before/after a change
+        "repeat_gradient": [float(x) for x in g2],
         "forward_s": forward,
         "forward_cpu_s": forward_cpu,
         "newton_iterations": its,
@@ -174,9 +176,13 @@ def measure(name: str, args, comm) -> dict:
         "gradient_s": gradient,
         "gradient_cpu_s": gradient_cpu,
         "gradient_over_forward": gradient / forward,
+        "gradient_over_forward_cpu": gradient_cpu / forward_cpu,
         "repeat_forward_s": forward2,
+        "repeat_forward_cpu_s": forward2_cpu,
         "repeat_gradient_s": gradient2,
+        "repeat_gradient_cpu_s": gradient2_cpu,
         "repeat_gradient_over_forward": gradient2 / forward2,
+        "repeat_gradient_over_forward_cpu": gradient2_cpu / forward2_cpu,
         "paper_solve_s": paper_solve,
         "paper_gradient_s": paper_grad,
         "forward_over_paper": forward / paper_solve,

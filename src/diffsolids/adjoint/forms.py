@@ -62,12 +62,24 @@ SHAPE_PARTIALS = ("auto", "ufl")
 STATE_FIELDS = ("u", "v", "u_prev", "u_tilde")
 
 
+#: Whether a form is empty after expanding its derivatives, by the form's signature. The
+#: signature names the form up to the numbering of its coefficients, constants and arguments
+#: (it is what FFCx keys its compiled kernels on), so the answer holds for every form with that
+#: signature: the adjoint forms of another model, run or ReducedFunctional with the same
+#: physics and objective skip UFL's derivative expansion (most of their set-up). The form's
+#: signature is cached on it and is the one FFCx computes next.
+_EMPTY_BY_SIGNATURE: dict[str, bool] = {}
+
+
 def _nonempty(form: ufl.Form | None) -> ufl.Form | None:
     """The form, or None when it has no integrals after expanding derivatives."""
     if form is None:
         return None
-    expanded = expand_derivatives(form)
-    return None if expanded.empty() else form
+    signature = form.signature()
+    empty = _EMPTY_BY_SIGNATURE.get(signature)
+    if empty is None:
+        empty = _EMPTY_BY_SIGNATURE[signature] = expand_derivatives(form).empty()
+    return None if empty else form
 
 
 def state_fields_read(form: ufl.Form, fields: "StepFields") -> list[str]:

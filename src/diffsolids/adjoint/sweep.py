@@ -105,6 +105,7 @@ class BackwardSweep:
         self._rhs = simulation.solver.create_matrix().createVecRight()
         self._sol = self._rhs.duplicate()
         self.stats: dict = {}
+        self._vectors: dict[fem.Form, dolfinx.la.Vector] = {}
         self._phases: dict[str, float] = defaultdict(float)
 
     @contextmanager
@@ -118,8 +119,16 @@ class BackwardSweep:
 
     # -- assembly helpers ----------------------------------------------------------------
     def _assemble(self, form: fem.Form) -> np.ndarray:
-        """Owned entries of an assembled vector form (ghost contributions summed)."""
-        vec = fem.assemble_vector(form)
+        """Owned entries of an assembled vector form (ghost contributions summed).
+
+        Each form assembles into a vector of its own, kept for the next step: the result is a
+        view of it, valid until the same form is assembled again.
+        """
+        vec = self._vectors.get(form)
+        if vec is None:
+            vec = self._vectors[form] = fem.create_vector(form.function_spaces[0], form.dtype)
+        vec.array[:] = 0.0
+        fem.assemble_vector(vec.array, form)
         vec.scatter_reverse(dolfinx.la.InsertMode.add)
         n = vec.index_map.size_local * vec.block_size
         return vec.array[:n]

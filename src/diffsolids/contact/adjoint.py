@@ -107,10 +107,16 @@ class ContactAdjoint:
         lam_c = self.surface_vector(lam)
         DW = ipctk.FrictionPotential.DiffWRT
         # g_f = -F(X, U^{i-1}, v):  dg/dU^{i-j} = -dF/dv alpha_j / (beta dt)  (- dF/dU_lag, j = 1)
-        Jv = self.friction_jacobian(ev, T, DW.VELOCITIES)
+        # with -dF/dv = Hess_v D, the friction Hessian of the step's exact Hessian at ev when
+        # the adjoint solve computed it (symmetric), else ipctk's velocity Jacobian
+        Hf = ev.extras.get("friction_hessian")
+        if Hf is not None:
+            tv = (Hf @ lam_c) / beta_dt
+        else:
+            tv = -(self.friction_jacobian(ev, T, DW.VELOCITIES).T @ lam_c) / beta_dt
         Jl = self.lagged_jacobian(ev)
         # this rank's collisions: summed over the ranks in one allreduce
-        tv, jl = self.partition.sum(np.stack([-(Jv.T @ lam_c) / beta_dt, Jl.T @ lam_c]))
+        tv, jl = self.partition.sum(np.stack([tv, Jl.T @ lam_c]))
         out = {}
         for j, a in enumerate(alpha, start=1):
             g = a * tv

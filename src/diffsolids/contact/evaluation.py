@@ -91,10 +91,18 @@ def contact_hessian(
     beta_dt: float,
     method: ipctk.PSDProjectionMethod,
 ) -> sp.csc_matrix:
-    """Hessian of the contact potential at ev (exact for NONE, else PSD-projected per pair)."""
+    """Hessian of the contact potential at ev (exact for NONE, else PSD-projected per pair).
+
+    The exact friction part Hess_v D (this rank's share) is kept in
+    ``ev.extras["friction_hessian"]``: it is minus the friction force's velocity Jacobian that
+    the adjoint's push into the earlier steps needs.
+    """
     H = barrier.hessian(ev.collisions, mesh, np.asfortranarray(ev.x), method)
     T = ev.extras["friction"]
     if T is not None:
         Hf = friction.hessian(T, mesh, np.asfortranarray(V), method)
-        H = H + Hf / beta_dt
-    return sp.csc_matrix(H)
+        if method == ipctk.PSDProjectionMethod.NONE:
+            ev.extras["friction_hessian"] = Hf
+        if Hf.nnz:  # (in 2D the Hessian is zero where the sliding speed is above eps_v)
+            H = H + Hf / beta_dt
+    return H if isinstance(H, sp.csc_matrix) else sp.csc_matrix(H)

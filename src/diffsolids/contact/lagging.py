@@ -5,6 +5,11 @@ and tangent bases of the collision set at x^{i-1} = X + W u^{i-1} (obstacles at 
 each collision's coefficient from the table of the pairs of bodies (see
 :mod:`~diffsolids.contact.friction_table`), and the BDF velocity
 v = U / (beta dt) + sum_j alpha_j U^{i-j} / (beta dt) of the collision vertices.
+
+The step's collision set at x^{i-1} and its TangentialCollisions are kept by step index: the
+adjoint sweep sets up step i again from the same u^{i-1} and reuses what the forward built
+(each entry is checked against everything it was built from: the collision mesh, the static
+mask, the positions x^{i-1}, the coefficients and the barrier; a mismatch rebuilds).
 """
 
 from collections.abc import Sequence
@@ -51,6 +56,9 @@ class LaggedFriction:
         self.step: dict | None = None
         self.tangential: ipctk.TangentialCollisions | None = None
         self._lagged: dict | None = None
+        # step index -> (mesh, static mask, x^{i-1}, collisions at x^{i-1}, tangential
+        # collisions: None or (mu, barrier, T)) of the last set-up of that step
+        self._kept: dict[int, list] = {}
 
     def set_coefficients(self, values: np.ndarray | Sequence[float]) -> None:
         """Set the coefficients of the pairs (checked); the step's friction is rebuilt lazily."""
@@ -78,9 +86,54 @@ class LaggedFriction:
         cached = self._lagged or {}
         if key not in cached:
             x = self.surface.rest_positions + self.step["lagged"]
-            cached[key] = (x, self.builder.build(x, shape_derivatives))
+            kept = None if shape_derivatives else self._kept_entry(x)
+            if kept is not None:
+                cached[key] = (x, kept[3])
+            else:
+                cached[key] = (x, self.builder.build(x, shape_derivatives))
+                if not shape_derivatives:
+                    surf = self.surface
+                    self._kept[self.step["index"]] = [
+                        surf.mesh,
+                        surf.static,
+                        x,
+                        cached[key][1],
+                        None,
+                    ]
             self._lagged = cached
         return cached[key]
+
+    def _kept_entry(self, x: np.ndarray) -> list | None:
+        """The kept entry of the current step if it was built at x on the current surface."""
+        entry = self._kept.get(self.step.get("index"))
+        if entry is None:
+            return None
+        mesh, static, xk = entry[:3]
+        surf = self.surface
+        same_static = static is surf.static or (
+            static is not None and surf.static is not None and np.array_equal(static, surf.static)
+        )
+        if mesh is surf.mesh and same_static and np.array_equal(xk, x):
+            return entry
+        return None
+
+    def _step_tangential(self, barrier: ipctk.BarrierPotential) -> ipctk.TangentialCollisions:
+        """The step's TangentialCollisions with :attr:`mu` (kept from the step's last set-up).
+
+        The kept ones are used when built from the same collision set, coefficients and
+        barrier; else they are built (and kept).
+        """
+        _, C = self.lagged_state()
+        entry = self._kept.get(self.step["index"])
+        own = entry is not None and entry[3] is C  # the kept collision set is this step's
+        if own and entry[4] is not None:
+            mu, kept_barrier, T = entry[4]
+            if kept_barrier is barrier and np.array_equal(mu, self.mu):
+                return T
+        T = self.tangential_collisions(self.mu_table(self.mu), barrier)
+        if own:
+            entry[4] = (self.mu.copy(), barrier, T)
+        return T
 
     def tangential_collisions(
         self,
@@ -104,7 +157,7 @@ class LaggedFriction:
             return None, False
         if self.tangential is None:
             with timed(self.timings, "lagged_friction"):
-                self.tangential = self.tangential_collisions(self.mu_table(self.mu), barrier)
+                self.tangential = self._step_tangential(barrier)
             return self.tangential, True
         return self.tangential, False
 
