@@ -1,10 +1,11 @@
 """What the backward sweep reuses from the forward, and that it never reuses it stale.
 
-The contact term keeps each step's lagged collision set and TangentialCollisions (by step,
-checked against what they were built from); the adjoint forms' emptiness is memoised by UFL
-signature. A gradient after changing the friction coefficient, the shape, the initial velocity
-or the time step of the same model and contact term must equal the gradient of a fresh
-simulation at those values, and the sweep must build no lagged friction of its own.
+The contact term keeps each step's collision set at the converged u^i, its lagged collision
+set and TangentialCollisions (by step, checked against what they were built from); the adjoint
+forms' emptiness is memoised by UFL signature. A gradient after changing the friction
+coefficient, the shape, the initial velocity (also so much that the collision sets change) or
+the time step of the same model and contact term must equal the gradient of a fresh simulation
+at those values, and the sweep must build no collision sets or lagged friction of its own.
 """
 
 import ipctk
@@ -34,10 +35,16 @@ def _problem(order: int = 2, dt: float | None = None):
     return model, contact, sim, ReducedFunctional(sim, objective, controls)
 
 
-def _fresh(q: np.ndarray, dt: float | None = None):
-    """(J, gradient) at q of a new scene (a new model, contact term and simulation)."""
-    _, _, _, rf = _problem(dt=dt)
-    return rf(q), rf.gradient(q)
+def _fresh(q: np.ndarray, dt: float | None = None, sets: list | None = None):
+    """(J, gradient) at q of a new scene (a new model, contact term and simulation).
+
+    ``sets``: a list to append the fresh run's collision sets to.
+    """
+    _, contact, _, rf = _problem(dt=dt)
+    J, g = rf(q), rf.gradient(q)
+    if sets is not None:
+        sets.append(_collision_sets(contact))
+    return J, g
 
 
 def _close(a, b) -> bool:
@@ -63,20 +70,53 @@ def _count_lagged_builds(contact) -> list[int]:
     return calls
 
 
-def test_sweep_reuses_the_forward_friction():
+def _collision_sets(contact) -> list[list]:
+    """The vertex ids of the collisions the forward kept at the end of each step."""
+    mesh = contact.surface.mesh
+    return [
+        sorted(tuple(C[k].vertex_ids(mesh.edges, mesh.faces)) for k in range(len(C)))
+        for *_, C in (contact.adjoint._kept[i] for i in sorted(contact.adjoint._kept))
+    ]
+
+
+def _count_collision_builds(contact) -> list[int]:
+    """Count the builds of collision sets without weight gradients (patched on the instance)."""
+    builder = contact.builder
+    calls = [0]
+    original = builder.build
+
+    def counted(x, shape_derivatives=False):
+        if not shape_derivatives:
+            calls[0] += 1
+        return original(x, shape_derivatives)
+
+    builder.build = counted
+    return calls
+
+
+def test_sweep_reuses_the_forward_friction_and_collisions():
     _, contact, _, rf = _problem()
     q = rf.initial_parameters()
     rf(q)
     calls = _count_lagged_builds(contact)
+    builds = _count_collision_builds(contact)
     g = rf.gradient(q)  # no new forward: the sweep of the run above
     assert contact.lagging.active
     assert calls[0] == 0, f"the sweep built {calls[0]} lagged TangentialCollisions"
+    # the collision sets at u^i (kept at the forward's end of step) and at u^{i-1} (lagged)
+    assert builds[0] == 0, f"the sweep built {builds[0]} collision sets"
+    step = contact._step  # the last step: its kept set is for its U^N only
+    U = contact.adjoint._kept[step["index"]][2]
+    assert contact.adjoint.kept_collisions(step, U) is not None
+    assert contact.adjoint.kept_collisions(step, U + 1e-12) is None
     assert _close(g, _fresh(q)[1])
 
 
-@pytest.mark.parametrize("change", ["friction", "shape", "friction_and_shape", "velocity"])
+@pytest.mark.parametrize(
+    "change", ["friction", "shape", "friction_and_shape", "velocity", "faster"]
+)
 def test_changed_parameters_match_a_fresh_simulation(change):
-    _, _, _, rf = _problem()
+    model, contact, _, rf = _problem()
     q0 = rf.initial_parameters()
     rf(q0)
     rf.gradient(q0)
@@ -87,8 +127,15 @@ def test_changed_parameters_match_a_fresh_simulation(change):
         q[1:-2] += 1e-4 * np.random.default_rng(1).standard_normal(len(q) - 3)
     if change == "velocity":
         q[-2:] += [0.05, -0.02]  # the states from step 1 on change, x^0 does not
+    if change == "faster":  # the block slides past slab vertices: other collision sets
+        a, b = rf.controls.offsets[2:4]
+        nodes = np.unique(model.V.dofmap.list[model.domain.cells_of("block")])
+        q[a:b].reshape(-1, 2)[nodes, 0] += 3.0
+    sets = [_collision_sets(contact)]
     J, g = rf(q), rf.gradient(q)
-    J_fresh, g_fresh = _fresh(q)
+    J_fresh, g_fresh = _fresh(q, sets=sets)
+    if change == "faster":  # what was kept at q0 would be wrong at q
+        assert sets[0] != sets[1]
     assert abs(J - J_fresh) <= RTOL * abs(J_fresh)
     assert _close(g, g_fresh)
     # and back: what q kept does not leak into q0

@@ -362,8 +362,10 @@ class ContactTerm(NumericTerm):
         if ev is not None and ev.token == self._token and np.array_equal(ev.U, U):
             return ev
         x = self.surface.rest_positions + U
-        with self._timed("build"):
-            C = self.builder.build_on_segment(U, x, self._token)
+        C = self.adjoint.kept_collisions(self._step, U)  # the forward's at a converged u^i
+        if C is None:
+            with self._timed("build"):
+                C = self.builder.build_on_segment(U, x, self._token)
         ev = Evaluation(U, x, C, self._token)
         ev.extras["friction"] = T
         self._eval = ev
@@ -532,6 +534,7 @@ class ContactTerm(NumericTerm):
     def end_step(self, i: int, traj: "StateHistory") -> ContactRecord:
         """Record and log contact forces and the minimum distance of the converged step ``i``."""
         ev = self._evaluate(traj.u[i])
+        self.adjoint.keep_collisions(self._step, ev)
         g = self.potential.gradient(ev)
         gb = self.potential.barrier_gradient(ev)
         rec = step_record(i, self.partition, self.surface, len(self.body_ids), ev, g, gb)
