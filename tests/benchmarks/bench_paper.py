@@ -20,7 +20,8 @@ Per scene: forward seconds (wall and process CPU: the machine is shared; the obj
 forward run at the scene's parameters, on a warm JIT cache), Newton iterations, seconds per
 Newton iteration, gradient seconds (the adjoint sweep; its first call, and ``repeat_*``: forward
 and gradient again at a neighbouring q, as in an optimisation, without the sweep's one-time
-set-up), gradient / forward, the paper's Table 4
+set-up; wall and CPU seconds), gradient / forward (wall and CPU), the gradients themselves (to
+compare two versions), the paper's Table 4
 solve and gradient seconds, where the gradient goes (``gradient_phases_s``: the sweep's
 objective partials, linear solves, pushes into earlier steps, parameter partials and the rest;
 its Krylov iterations and factorisations; ``gradient_contact_s``: the contact term's timers in
