@@ -26,7 +26,8 @@ a collision set with correction pairs, a barrier divided by dhat^3) is not suppo
 With ipctk's squared-distance barrier a pair carrying a contact force f settles at a distance
 d ~ 2 kappa dhat^4 / f: the scenes' kappa_P (1e4-1e5 with dhat ~ 1e-3) put pairs at gaps of
 1e-11..1e-9 m, where every Newton step is cut by the collision check; the Newton solver then
-reaches the step's minimiser through a stiffness continuation (``SolverOptions.continuation_after``).
+reaches the step's minimiser through a stiffness continuation
+(``SolverOptions.continuation_after``).
 """
 
 from collections.abc import Mapping, Sequence

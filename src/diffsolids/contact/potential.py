@@ -76,11 +76,18 @@ class ContactPotential:
     def set_stiffness(self, stiffness: float) -> None:
         """Fix the barrier stiffness kappa."""
         self.stiffness = stiffness
-        self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness)
+        self.barrier = self._own_barrier = ipctk.BarrierPotential(self.dhat, self.stiffness)
 
     def set_stiffness_factor(self, factor: float) -> None:
-        """Evaluate the barrier with ``factor`` x kappa (1: kappa itself; a continuation stage)."""
-        self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness * factor)
+        """Evaluate the barrier with ``factor`` x kappa (1: kappa itself; a continuation stage).
+
+        At 1 the term's own BarrierPotential object is back (what was built with it, e.g. the
+        kept lagged friction, stays valid).
+        """
+        if factor == 1.0:
+            self.barrier = self._own_barrier
+        else:
+            self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness * factor)
 
     def energy(self, ev: Evaluation) -> float:
         """The contact energy at ev, summed over the ranks (collective once per ev)."""
