@@ -97,13 +97,15 @@ def _material(law: str, damping: bool = False):
     return ds.Material(law, E=10.0, nu=0.3, density=3.0, **extra)
 
 
-def _prepare_dynamic(probe: Probe) -> None:
-    """Non-trivial history: u_prev, u_tilde, dt and beta dt of a BDF2 step."""
+def _dynamic_probe(model: ds.Model) -> Probe:
+    """A dynamic Probe with a non-trivial history: u_prev, u_tilde, dt and beta dt of BDF2."""
+    probe = Probe(model, dynamic=True)
     f = probe.model.fields
     _set_field(probe, f.u_prev, _random(probe, 101, 0.05))
     _set_field(probe, f.u_tilde, _random(probe, 102, 0.05))
     f.dt.value = 0.3
     f.beta_dt.value = 0.2
+    return probe
 
 
 def _check_consistency(probe: Probe, u: np.ndarray, direction: np.ndarray, quadratic: bool):
@@ -186,9 +188,7 @@ def inertia_probe():
     """A BDF step with inertia only (the elastic terms removed)."""
     model = ds.Model(_domain(2), _material("linear"))
     model.terms = []
-    probe = Probe(model, dynamic=True)
-    _prepare_dynamic(probe)
-    return probe
+    return _dynamic_probe(model)
 
 
 @pytest.fixture(scope="module")
@@ -197,9 +197,7 @@ def damping_probe():
     model = ds.Model(_domain(2), _material("linear", damping=True))
     model.terms = [t for t in model.terms if isinstance(t, Damping)]
     assert model.terms, "the damped material must add a damping term"
-    probe = Probe(model, dynamic=True)
-    _prepare_dynamic(probe)
-    return probe
+    return _dynamic_probe(model)
 
 
 @pytest.mark.parametrize("direction", ["random", "residual"])
@@ -257,9 +255,7 @@ def full_dynamic_probe():
     model.add_gravity(9.81)
     model.add_traction(2, [0.3, -0.2, 0.1])
     model.add_dirichlet(1, 0.0)
-    probe = Probe(model, dynamic=True)
-    _prepare_dynamic(probe)
-    return probe
+    return _dynamic_probe(model)
 
 
 @pytest.mark.parametrize("direction", ["random", "residual"])
