@@ -327,15 +327,23 @@ def _merge(*dicts: dict) -> dict:
     return out
 
 
-class ConstantObjective(Objective):
-    """A constant."""
-
-    def __init__(self, value: float) -> None:
-        self.c = value
+class _TrajectoryFree(Objective):
+    """Base of the scalar objectives that read no step: no integrals, no steps to evaluate."""
 
     @override
     def leaves(self) -> list["Integral | NumericIntegral"]:
         return []
+
+    @override
+    def requirements(self, grid: TimeGrid) -> dict:
+        return {}
+
+
+class ConstantObjective(_TrajectoryFree):
+    """A constant."""
+
+    def __init__(self, value: float) -> None:
+        self.c = value
 
     @override
     def regularisers(self) -> list["Regulariser"]:
@@ -344,10 +352,6 @@ class ConstantObjective(Objective):
     @override
     def value(self, table: dict, reg: dict, grid: TimeGrid) -> float:
         return self.c
-
-    @override
-    def requirements(self, grid: TimeGrid) -> dict:
-        return {}
 
     @override
     def backward(
@@ -526,7 +530,7 @@ def final_value(series: Series) -> Objective:
     return TimeIntegral(series, "final")
 
 
-class Regulariser(Objective):
+class Regulariser(_TrajectoryFree):
     """A discrete term of the rest shape and/or parameter fields (not of the trajectory).
 
     Subclasses implement :meth:`evaluate` returning the value and :meth:`gradient` returning a
@@ -535,20 +539,12 @@ class Regulariser(Objective):
     """
 
     @override
-    def leaves(self) -> list["Integral | NumericIntegral"]:
-        return []
-
-    @override
     def regularisers(self) -> list["Regulariser"]:
         return [self]
 
     @override
     def value(self, table: dict, reg: dict, grid: TimeGrid) -> float:
         return reg[self]
-
-    @override
-    def requirements(self, grid: TimeGrid) -> dict:
-        return {}
 
     @override
     def backward(
