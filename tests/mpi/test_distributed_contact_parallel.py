@@ -17,6 +17,7 @@ import ufl
 from contact_checks import crate_on_incline
 from dolfinx import fem
 from mpi4py import MPI
+from parallel_checks import assert_world_equals_self, value_and_gradient
 
 import diffsolids as ds
 from diffsolids.contact import ContactTerm
@@ -207,18 +208,5 @@ def _rf(build, comm):
 def test_gradient_equals_serial(scene):
     comm = MPI.COMM_WORLD
     assert comm.size > 1, "run with mpiexec -n 2 (or 3)"
-    results = []
-    for c in (comm, MPI.COMM_SELF):
-        rf = _rf(SCENES[scene], c)
-        q = rf.initial_parameters()
-        results.append((q, *rf.value_and_gradient(q)))
-    (q_par, J_par, g_par), (q_ser, J_ser, g_ser) = results
-    assert np.array_equal(q_par, q_ser)
-    assert abs(J_par - J_ser) <= RTOL * abs(J_ser)
-    assert np.abs(g_ser).max() > 0
-    diff = np.abs(g_par - g_ser).max() / np.abs(g_ser).max()
-    if comm.rank == 0:
-        print(f"{scene}: value {abs(J_par / J_ser - 1):.1e}, gradient {diff:.1e}")
-    assert diff <= RTOL
-    for gradient in comm.allgather(g_par):
-        assert np.array_equal(gradient, g_par)
+    world, serial = (value_and_gradient(_rf(SCENES[scene], c)) for c in (comm, MPI.COMM_SELF))
+    assert_world_equals_self(world, serial, RTOL, scene)

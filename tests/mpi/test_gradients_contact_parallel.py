@@ -5,9 +5,9 @@ on COMM_SELF in the same process; collision counts, continuation substeps, value
 (parameters in canonical order) must agree.
 """
 
-import numpy as np
 import pytest
 from mpi4py import MPI
+from parallel_checks import assert_world_equals_self, value_and_gradient
 from test_contact_indenter import _indenter_scene
 from test_gradients_contact import incline_scene, static_scene
 
@@ -46,11 +46,10 @@ def _indenter(comm):
 
 def _value_and_gradient(build, comm):
     rf, contact = build(comm)
-    q = rf.initial_parameters()
-    value, gradient = rf.value_and_gradient(q)
+    result = value_and_gradient(rf)
     counts = [r.num_collisions for r in contact.records]
     counts.append(dict(rf.simulation.substeps))
-    return q, value, gradient, counts
+    return result, counts
 
 
 @pytest.mark.parametrize(
@@ -59,19 +58,7 @@ def _value_and_gradient(build, comm):
 def test_contact_gradient_world_equals_self(build):
     comm = MPI.COMM_WORLD
     assert comm.size > 1, "run with mpiexec -n 2"
-    q_par, J_par, g_par, counts_par = _value_and_gradient(build, comm)
-    q_ser, J_ser, g_ser, counts_ser = _value_and_gradient(build, MPI.COMM_SELF)
+    world, counts_par = _value_and_gradient(build, comm)
+    serial, counts_ser = _value_and_gradient(build, MPI.COMM_SELF)
     assert counts_par == counts_ser and min(counts_ser[:-1]) > 0
-    assert np.array_equal(q_par, q_ser)  # canonical parameter order
-    assert J_par == pytest.approx(J_ser, rel=RTOL)
-    assert np.abs(g_ser).max() > 0
-    diff = np.abs(g_par - g_ser).max() / np.abs(g_ser).max()
-    print(
-        f"largest relative world-vs-self difference: value {abs(J_par / J_ser - 1):.1e}, "
-        f"gradient {diff:.1e}"
-    )
-    assert diff <= RTOL
-    for value in comm.allgather(J_par):
-        assert value == J_par
-    for gradient in comm.allgather(g_par):
-        assert np.array_equal(gradient, g_par)
+    assert_world_equals_self(world, serial, RTOL, "largest relative world-vs-self difference")
