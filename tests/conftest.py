@@ -39,3 +39,23 @@ def cantilever():
     model.add_gravity(9.81)
     model.add_dirichlet(1, 0.0)
     return model
+
+
+@pytest.fixture
+def file_from_rank_0(tmp_path):
+    """``write(name, text) -> path``: rank 0 writes a file that every rank then reads.
+
+    The path is in rank 0's ``tmp_path``, broadcast; every rank returns after the file exists.
+    """
+    from pathlib import Path
+
+    from mpi4py import MPI
+
+    def write(name: str, text: str) -> str:
+        path = MPI.COMM_WORLD.bcast(str(tmp_path / name))
+        if MPI.COMM_WORLD.rank == 0:
+            Path(path).write_text(text)
+        MPI.COMM_WORLD.barrier()
+        return path
+
+    return write

@@ -266,12 +266,9 @@ def test_meshio_without_volume_cells(tmp_path):
         read_mesh(path, MPI.COMM_WORLD)
 
 
-def test_a_broken_geo_file_is_named_with_gmsh_error(tmp_path):
+def test_a_broken_geo_file_is_named_with_gmsh_error(file_from_rank_0):
     """A syntax error used to surface as DOLFINx's "No 'physical groups' in gmsh mesh"."""
-    path = MPI.COMM_WORLD.bcast(str(tmp_path / "broken.geo"))
-    if MPI.COMM_WORLD.rank == 0:
-        Path(path).write_text("Point(1) = {0, 0, 0;\nthis is not gmsh\n")
-    MPI.COMM_WORLD.barrier()
+    path = file_from_rank_0("broken.geo", "Point(1) = {0, 0, 0;\nthis is not gmsh\n")
     with pytest.raises(ds.MeshError, match=r"broken\.geo.*syntax error"):
         from_geo(path)
     # a later mesh in the same process is unaffected

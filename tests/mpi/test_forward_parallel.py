@@ -109,15 +109,10 @@ def test_world_equals_self(dim, degree, integrator):
     assert all(e == energies[0] for e in energies)
 
 
-def test_a_gmsh_failure_on_rank_0_raises_on_every_rank(tmp_path):
+def test_a_gmsh_failure_on_rank_0_raises_on_every_rank(file_from_rank_0):
     """Rank 0 meshes; the other ranks wait in a broadcast and must not hang when it fails."""
-    from pathlib import Path
-
     from diffsolids.mesh import from_geo
 
-    path = MPI.COMM_WORLD.bcast(str(tmp_path / "broken.geo"))
-    if MPI.COMM_WORLD.rank == 0:
-        Path(path).write_text("Point(1) = {0, 0, 0;\n")
-    MPI.COMM_WORLD.barrier()
+    path = file_from_rank_0("broken.geo", "Point(1) = {0, 0, 0;\n")
     with pytest.raises(ds.MeshError, match=r"broken\.geo"):
         from_geo(path)
