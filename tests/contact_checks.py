@@ -1,4 +1,5 @@
-"""Checks shared by the contact tests: every Newton iterate watched for intersections."""
+"""Scenes and checks shared by the contact tests: stacked boxes, a crate on an incline, every
+Newton iterate watched for intersections."""
 
 import ipctk
 import numpy as np
@@ -7,7 +8,33 @@ import diffsolids as ds
 from diffsolids.contact import ContactTerm
 from diffsolids.mesh.scene import combine_meshes, simplex_box
 
-__all__ = ["IntersectionMonitor", "crate_on_incline"]
+__all__ = ["IntersectionMonitor", "crate_on_incline", "stacked_boxes", "turn_about_vertical"]
+
+
+def turn_about_vertical(mesh, degrees: float, shift=(0.0, 0.0)) -> None:
+    """Turns a 3D mesh in place about the vertical through (0.5, 0.5), then shifts it in x, y."""
+    th = np.deg2rad(degrees)
+    rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    xy = mesh.geometry.x[:, :2] - 0.5
+    mesh.geometry.x[:, :2] = xy @ rot.T + 0.5 + np.asarray(shift)
+
+
+def stacked_boxes(dim: int, gap: float, upper_cells_2d: list[int]) -> tuple:
+    """A lower box [0, 1]^(dim - 1) x [0, 0.3] and an upper box 0.3 high, ``gap`` above it.
+
+    2D: the upper box spans [0.3137, 0.7137] (``upper_cells_2d`` cells), off the lower box's
+    vertices. 3D: it spans [0.25, 0.75]^2, turned by 1 degree and shifted by (0.0137, 0.0291),
+    so that its bottom edges are near-parallel to the top edges of the lower box (mollified
+    edge-edge pairs active). Returns the two meshes (to combine).
+    """
+    if dim == 2:
+        lower = simplex_box([[0, 0], [1, 0.3]], [4, 2])
+        upper = simplex_box([[0.3137, 0.3 + gap], [0.7137, 0.6 + gap]], upper_cells_2d)
+    else:
+        lower = simplex_box([[0, 0, 0], [1, 1, 0.3]], [2, 2, 1])
+        upper = simplex_box([[0.25, 0.25, 0.3 + gap], [0.75, 0.75, 0.6 + gap]], [2, 2, 1])
+        turn_about_vertical(upper, 1.0, shift=(0.0137, 0.0291))
+    return lower, upper
 
 
 def crate_on_incline(

@@ -11,6 +11,7 @@ import dolfinx.fem.petsc as fem_petsc
 import numpy as np
 import pytest
 import ufl
+from contact_checks import stacked_boxes
 from dolfinx import fem
 from mpi4py import MPI
 
@@ -18,7 +19,7 @@ import diffsolids as ds
 from diffsolids.contact import ContactTerm
 from diffsolids.contact.shape import _mollified_pairs
 from diffsolids.contact.surface import _vertex_blocks
-from diffsolids.mesh.scene import combine_meshes, simplex_box
+from diffsolids.mesh.scene import combine_meshes
 from diffsolids.simulation import Trajectory
 from diffsolids.solvers.sparsity import matrix_with_pattern
 
@@ -28,17 +29,7 @@ GAP = 0.02
 
 
 def _scene(dim: int, degree: int, order: int, eps_v: float = 100.0, comm=MPI.COMM_WORLD):
-    if dim == 2:
-        lower = simplex_box([[0, 0], [1, 0.3]], [4, 2])
-        upper = simplex_box([[0.3137, 0.3 + GAP], [0.7137, 0.6 + GAP]], [2, 2])
-    else:
-        lower = simplex_box([[0, 0, 0], [1, 1, 0.3]], [2, 2, 1])
-        upper = simplex_box([[0.25, 0.25, 0.3 + GAP], [0.75, 0.75, 0.6 + GAP]], [2, 2, 1])
-        th = np.deg2rad(1.0)
-        rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
-        xy = upper.geometry.x[:, :2] - 0.5
-        upper.geometry.x[:, :2] = xy @ rot.T + 0.5 + np.array([0.0137, 0.0291])
-    dom = combine_meshes(comm, [lower, upper])
+    dom = combine_meshes(comm, stacked_boxes(dim, GAP, [2, 2]))
     model = ds.Model(dom, ds.NeoHookean(E=1e4, nu=0.3, density=10.0), degree=degree)
     model.add_dirichlet(lambda x: x[dim - 1] < 1e-9, 0.0)
     contact = ContactTerm(model, dhat=0.05, stiffness=1e3, friction=0.4, eps_v=eps_v)

@@ -26,6 +26,7 @@ import itertools
 import numpy as np
 import pytest
 import ufl
+from contact_checks import stacked_boxes
 from mpi4py import MPI
 
 import diffsolids as ds
@@ -61,17 +62,7 @@ INCLINE_SHIFT = 0.0137
 def static_scene(dim: int, comm=MPI.COMM_SELF):
     """Hanging box pulled onto a lower box; returns (model, contact, simulation, objective)."""
     gap = 0.5 * STATIC_DHAT
-    if dim == 2:
-        lower = simplex_box([[0, 0], [1, 0.3]], [4, 2])
-        upper = simplex_box([[0.3137, 0.3 + gap], [0.7137, 0.6 + gap]], [3, 2])
-    else:
-        lower = simplex_box([[0, 0, 0], [1, 1, 0.3]], [2, 2, 1])
-        upper = simplex_box([[0.25, 0.25, 0.3 + gap], [0.75, 0.75, 0.6 + gap]], [2, 2, 1])
-        th = np.deg2rad(1.0)
-        rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
-        xy = upper.geometry.x[:, :2] - 0.5
-        upper.geometry.x[:, :2] = xy @ rot.T + 0.5 + np.array([0.0137, 0.0291])
-    dom = combine_meshes(comm, [lower, upper])
+    dom = combine_meshes(comm, stacked_boxes(dim, gap, [3, 2]))
     model = ds.Model(dom, {1: ds.NeoHookean(E=2e4, nu=0.3), 2: ds.NeoHookean(E=1e4, nu=0.35)})
     load = np.zeros(dim)
     load[-1] = -4000.0
