@@ -1,5 +1,5 @@
-"""Scenes and checks shared by the contact tests: stacked boxes, a crate on an incline, every
-Newton iterate watched for intersections."""
+"""Scenes and checks shared by the contact tests: stacked boxes, a box falling on a box, a crate
+on an incline, every Newton iterate watched for intersections."""
 
 import ipctk
 import numpy as np
@@ -8,7 +8,13 @@ import diffsolids as ds
 from diffsolids.contact import ContactTerm
 from diffsolids.mesh.scene import combine_meshes, simplex_box
 
-__all__ = ["IntersectionMonitor", "crate_on_incline", "stacked_boxes", "turn_about_vertical"]
+__all__ = [
+    "IntersectionMonitor",
+    "box_falling_on_box",
+    "crate_on_incline",
+    "stacked_boxes",
+    "turn_about_vertical",
+]
 
 
 def turn_about_vertical(mesh, degrees: float, shift=(0.0, 0.0)) -> None:
@@ -35,6 +41,39 @@ def stacked_boxes(dim: int, gap: float, upper_cells_2d: list[int]) -> tuple:
         upper = simplex_box([[0.25, 0.25, 0.3 + gap], [0.75, 0.75, 0.6 + gap]], [2, 2, 1])
         turn_about_vertical(upper, 1.0, shift=(0.0137, 0.0291))
     return lower, upper
+
+
+def box_falling_on_box(
+    comm,
+    dhat: float,
+    lower_cells: list[int],
+    upper_cells: list[int],
+    stiffness: float,
+    velocity: list[float],
+    degrees: float = 0.0,
+) -> tuple[ds.Model, ContactTerm, np.ndarray]:
+    """A free box thrown with ``velocity`` onto a box [0, 1]^2 x [0, 0.25] clamped at its bottom.
+
+    The free box is [0.25, 0.75]^2 x [0.25, 0.5] lifted by dhat / 2 and turned by ``degrees``
+    about the vertical; both Neo-Hookean (E 1e6, nu 0.3, density 1000) under gravity, friction
+    0.3 (eps_v 1e-3). Returns the model, its contact term and the initial velocity (dofs).
+    """
+    lower = simplex_box([[0, 0, 0], [1, 1, 0.25]], lower_cells)
+    upper = simplex_box(
+        [[0.25, 0.25, 0.25 + 0.5 * dhat], [0.75, 0.75, 0.5 + 0.5 * dhat]], upper_cells
+    )
+    if degrees:
+        turn_about_vertical(upper, degrees)
+    dom = combine_meshes(comm, [lower, upper])
+    model = ds.Model(dom, ds.NeoHookean(E=1e6, nu=0.3, density=1000.0))
+    model.add_gravity(9.81)
+    model.add_dirichlet(lambda x: x[2] < 1e-9, 0.0)
+    contact = ContactTerm(model, dhat=dhat, stiffness=stiffness, friction=0.3, eps_v=1e-3)
+    model.add_numeric_term(contact)
+    X = model.V.tabulate_dof_coordinates()
+    v0 = np.zeros((len(X), 3))
+    v0[X[:, 2] > 0.25 + 1e-9] = velocity
+    return model, contact, v0.ravel()
 
 
 def crate_on_incline(

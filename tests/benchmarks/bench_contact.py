@@ -302,31 +302,21 @@ def main(argv=None) -> dict:
     from petsc4py import PETSc
 
     import diffsolids as ds
-    from diffsolids.contact import ContactTerm
     from diffsolids.controls import FrictionControl, ParameterControl, ShapeControl
-    from diffsolids.mesh.scene import combine_meshes, simplex_box
     from diffsolids.objectives import Integral, final_value, time_integral
     from diffsolids.reduced_functional import ReducedFunctional
     from diffsolids.solvers.sparsity import matrix_with_pattern
 
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: contact_checks
+    from contact_checks import box_falling_on_box
+
     comm = MPI.COMM_WORLD
     n = args.cells
     dhat = 1e-3
-    lower = simplex_box([[0, 0, 0], [1, 1, 0.25]], [2 * n, 2 * n, max(2, n // 4)])
-    upper = simplex_box(
-        [[0.25, 0.25, 0.25 + 0.5 * dhat], [0.75, 0.75, 0.5 + 0.5 * dhat]], [n, n, max(2, n // 2)]
-    )
-    dom = combine_meshes(comm, [lower, upper])
-    model = ds.Model(dom, ds.NeoHookean(E=1e6, nu=0.3, density=1000.0))
-    model.add_gravity(9.81)
-    model.add_dirichlet(lambda x: x[2] < 1e-9, 0.0)
-    contact = ContactTerm(model, dhat=dhat, stiffness=1e12, friction=0.3, eps_v=1e-3)
-    model.add_numeric_term(contact)
-    X = model.V.tabulate_dof_coordinates()
-    v0 = np.zeros((len(X), 3))
-    v0[X[:, 2] > 0.25 + 1e-9, 2] = -0.5
+    cells = ([2 * n, 2 * n, max(2, n // 4)], [n, n, max(2, n // 2)])
+    model, contact, v0 = box_falling_on_box(comm, dhat, *cells, 1e12, [0.0, 0.0, -0.5])
     integ = ds.BDF(2, args.dt, args.steps)
-    sim = ds.Simulation(model, integ, ds.SolverOptions(rtol=1e-8), v0=v0.ravel())
+    sim = ds.Simulation(model, integ, ds.SolverOptions(rtol=1e-8), v0=v0)
     solver = sim.solver
     density = model.coefficients["density"]
     objective = final_value(Integral(lambda f: (f.X[2] + f.u[2]) * f.dx(2), "height")) + (

@@ -14,16 +14,14 @@ import dolfinx.fem.petsc as fem_petsc
 import numpy as np
 import pytest
 import ufl
-from contact_checks import crate_on_incline
+from contact_checks import box_falling_on_box, crate_on_incline
 from dolfinx import fem
 from mpi4py import MPI
 from parallel_checks import assert_world_equals_self, value_and_gradient
 
 import diffsolids as ds
-from diffsolids.contact import ContactTerm
 from diffsolids.contact.partition import collision_keys
 from diffsolids.controls import FrictionControl, InitialCondition, ShapeControl
-from diffsolids.mesh.scene import combine_meshes, simplex_box
 from diffsolids.objectives import Integral, final_value, time_integral
 from diffsolids.reduced_functional import ReducedFunctional
 from diffsolids.solvers.sparsity import matrix_with_pattern, sorted_unique
@@ -38,25 +36,11 @@ def _scene_2d(comm, steps: int = 4):
 
 def _scene_3d(comm, steps: int = 3):
     """A free box falling flat (slightly turned) onto a clamped box, friction 0.3."""
-    dhat = 1e-3
-    lower = simplex_box([[0, 0, 0], [1, 1, 0.25]], [4, 4, 1])
-    upper = simplex_box(
-        [[0.25, 0.25, 0.25 + 0.5 * dhat], [0.75, 0.75, 0.5 + 0.5 * dhat]], [3, 3, 1]
+    model, contact, v0 = box_falling_on_box(
+        comm, 1e-3, [4, 4, 1], [3, 3, 1], 1e11, [0.05, 0.0, -0.3], degrees=2.0
     )
-    th = np.deg2rad(2.0)
-    rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
-    upper.geometry.x[:, :2] = (upper.geometry.x[:, :2] - 0.5) @ rot.T + 0.5
-    dom = combine_meshes(comm, [lower, upper])
-    model = ds.Model(dom, ds.NeoHookean(E=1e6, nu=0.3, density=1000.0))
-    model.add_gravity(9.81)
-    model.add_dirichlet(lambda x: x[2] < 1e-9, 0.0)
-    contact = ContactTerm(model, dhat=dhat, stiffness=1e11, friction=0.3, eps_v=1e-3)
-    model.add_numeric_term(contact)
-    X = model.V.tabulate_dof_coordinates()
-    v0 = np.zeros((len(X), 3))
-    v0[X[:, 2] > 0.25 + 1e-9] = [0.05, 0.0, -0.3]
     integ = ds.BDF(2, 0.004, steps)
-    sim = ds.Simulation(model, integ, ds.SolverOptions(rtol=1e-10), v0=v0.ravel(), progress=False)
+    sim = ds.Simulation(model, integ, ds.SolverOptions(rtol=1e-10), v0=v0, progress=False)
     return model, contact, sim
 
 
