@@ -33,6 +33,11 @@ def _measure(dom: Domain, kind: str, tag: int | None = None) -> float:
     return dom.comm.allreduce(fem.assemble_scalar(form), op=MPI.SUM)
 
 
+def _check_measures(dom: Domain, expected: dict[tuple[str, int], float]) -> None:
+    """``{(kind, tag): value}``: areas/volumes of bodies ("dx"), measures of facet tags ("ds")."""
+    assert {key: _measure(dom, *key) for key in expected} == pytest.approx(expected)
+
+
 def _num_tagged(dom: Domain, tag: int, facets: bool = True) -> int:
     """Global number of owned entities carrying a tag."""
     tags = dom.facet_tags if facets else dom.cell_tags
@@ -57,10 +62,7 @@ def test_rectangle_tags():
     # later markers win: the right edge is 2, the rest of the boundary 1
     assert _num_tagged(dom, 2) == 3
     assert _num_tagged(dom, 1) == 2 * 4 + 3
-    assert _measure(dom, "ds", 2) == pytest.approx(1.0)
-    assert _measure(dom, "ds", 1) == pytest.approx(5.0)
-    assert _measure(dom, "dx", 7) == pytest.approx(1.0)
-    assert _measure(dom, "dx", 1) == pytest.approx(1.0)
+    _check_measures(dom, {("ds", 2): 1.0, ("ds", 1): 5.0, ("dx", 7): 1.0, ("dx", 1): 1.0})
     midpoints = dolfinx.mesh.compute_midpoints(dom.mesh, 2, dom.cells_of("stiff"))
     assert np.all(midpoints[:, 0] > 1.0)
     assert dom.facet_id("right") == 2
@@ -81,10 +83,7 @@ def test_box_tags():
     assert dom.facet_ids == [3, 4]
     assert dom.body_ids == [1, 2]
     assert _num_tagged(dom, 3) == 2 * 2 * 2  # two triangles per square
-    assert _measure(dom, "ds", 3) == pytest.approx(2.0)
-    assert _measure(dom, "ds", 4) == pytest.approx(1.0)
-    assert _measure(dom, "dx", 2) == pytest.approx(1.0)
-    assert _measure(dom, "dx", 1) == pytest.approx(1.0)
+    _check_measures(dom, {("ds", 3): 2.0, ("ds", 4): 1.0, ("dx", 2): 1.0, ("dx", 1): 1.0})
     with pytest.raises(ds.TagError, match=r"unknown facet tag 5; the mesh has facet tags \[3, 4\]"):
         dom.facets_of(5)
 
@@ -114,11 +113,14 @@ def _check_two_squares(dom: Domain) -> None:
     assert {"left_body": 1, "right_body": 2, "clamp": 11, "load": 12, "bottom": 13}.items() <= (
         dom.names.items()
     )
-    assert _measure(dom, "dx", dom.body_id("left_body")) == pytest.approx(1.0)
-    assert _measure(dom, "dx", dom.body_id("right_body")) == pytest.approx(1.0)
-    assert _measure(dom, "ds", dom.facet_id("clamp")) == pytest.approx(1.0)
-    assert _measure(dom, "ds", dom.facet_id("load")) == pytest.approx(1.0)
-    assert _measure(dom, "ds", dom.facet_id("bottom")) == pytest.approx(2.0)
+    expected = {
+        ("dx", dom.body_id("left_body")): 1.0,
+        ("dx", dom.body_id("right_body")): 1.0,
+        ("ds", dom.facet_id("clamp")): 1.0,
+        ("ds", dom.facet_id("load")): 1.0,
+        ("ds", dom.facet_id("bottom")): 2.0,
+    }
+    _check_measures(dom, expected)
     mid = dolfinx.mesh.compute_midpoints(dom.mesh, 2, dom.cells_of("right_body"))
     assert np.all(mid[:, 0] > 1.0)
     fmid = dolfinx.mesh.compute_midpoints(dom.mesh, 1, dom.facets_of("clamp"))
@@ -146,10 +148,7 @@ def _check_two_boxes(dom: Domain) -> None:
     assert dom.body_ids == [1, 2]
     assert dom.facet_ids == [5, 6]
     assert dom.body_id("cap") == 2 and dom.facet_id("roof") == 6
-    assert _measure(dom, "dx", 1) == pytest.approx(1.0)
-    assert _measure(dom, "dx", 2) == pytest.approx(0.5)
-    assert _measure(dom, "ds", 5) == pytest.approx(1.0)
-    assert _measure(dom, "ds", 6) == pytest.approx(1.0)
+    _check_measures(dom, {("dx", 1): 1.0, ("dx", 2): 0.5, ("ds", 5): 1.0, ("ds", 6): 1.0})
     mid = dolfinx.mesh.compute_midpoints(dom.mesh, 3, dom.cells_of("cap"))
     assert np.all(mid[:, 2] > 1.0)
 
@@ -245,9 +244,8 @@ def test_meshio_tags_and_measures(tmp_path, suffix, case):
     dom = _write_and_read(tmp_path / f"mesh{suffix}", make())
     assert dom.dim == dim
     assert dom.body_ids == bodies and dom.facet_ids == facets
-    for body, volume in zip(bodies, volumes, strict=True):
-        assert _measure(dom, "dx", body) == pytest.approx(volume)
-    assert _measure(dom, "ds", facets[0]) == pytest.approx(area)
+    expected = {("dx", body): volume for body, volume in zip(bodies, volumes, strict=True)}
+    _check_measures(dom, {**expected, ("ds", facets[0]): area})
     if dim == 2:
         fmid = dolfinx.mesh.compute_midpoints(dom.mesh, 1, dom.facets_of(4))
         assert np.allclose(fmid[:, 0], 0.0)
