@@ -35,6 +35,11 @@ def _paper_file(name: str) -> Path:
     return path
 
 
+def _paper_mesh(name: str, **placement):
+    """A mesh of the paper's data on one process, scaled and translated as its scene places it."""
+    return read_mesh(_paper_file(name), MPI.COMM_SELF, **placement)
+
+
 def _integrate(domain, integrand, measure="dx", tag=None) -> float:
     if measure == "dx":
         dm = ufl.dx(domain=domain.mesh)
@@ -338,12 +343,9 @@ def test_later_selections_win_and_bad_tags_are_refused():
 
 def test_a_paper_scene_assembled_from_its_files():
     """fig20: the ground square.obj and the kangaroo, placed as the scene JSON places them."""
-    ground = read_mesh(_paper_file("fig20_kangaroo/square.obj"), MPI.COMM_SELF, scale=[3, 0.02])
-    kangaroo = read_mesh(
-        _paper_file("fig20_kangaroo/kangaroo-coarse.msh"),
-        MPI.COMM_SELF,
-        scale=0.25,
-        translation=[-1.5, 0.1],
+    ground = _paper_mesh("fig20_kangaroo/square.obj", scale=[3, 0.02])
+    kangaroo = _paper_mesh(
+        "fig20_kangaroo/kangaroo-coarse.msh", scale=0.25, translation=[-1.5, 0.1]
     )
     domain = ds.mesh.combine_meshes(COMM, [ground, kangaroo], names={"ground": 1, "kangaroo": 2})
     assert domain.body_ids == [1, 2] and domain.body_id("kangaroo") == 2

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 from mpi4py import MPI
-from test_mesh_input import _paper_file
+from test_mesh_input import _paper_file, _paper_mesh
 
 import diffsolids as ds
 from diffsolids.contact import Obstacle
@@ -14,20 +14,15 @@ from diffsolids.contact.polyfem import (
     shortest_boundary_edge,
     shortest_obstacle_edge,
 )
-from diffsolids.mesh import boundary_facets, combine_meshes, read_mesh, simplex_box
+from diffsolids.mesh import boundary_facets, combine_meshes, simplex_box
 
 COMM = MPI.COMM_WORLD
 
 
 def _puzzle_scene():
     scene = json.loads(_paper_file("fig14_puzzle_piece/run-new.json").read_text())
-    wave = read_mesh(_paper_file("fig14_puzzle_piece/wave.msh"), MPI.COMM_SELF, scale=[2, 1])
-    piece = read_mesh(
-        _paper_file("fig14_puzzle_piece/puzzle.msh"),
-        MPI.COMM_SELF,
-        scale=0.001,
-        translation=[-1, 0.2],
-    )
+    wave = _paper_mesh("fig14_puzzle_piece/wave.msh", scale=[2, 1])
+    piece = _paper_mesh("fig14_puzzle_piece/puzzle.msh", scale=0.001, translation=[-1, 0.2])
     return scene, combine_meshes(COMM, [wave, piece], bodies=[3, 1])
 
 
