@@ -29,7 +29,7 @@ import diffsolids as ds
 from diffsolids.contact import ContactTerm
 from diffsolids.errors import IntersectionError
 from diffsolids.io.polyfem_scene import PolyFEMScene, read_polyfem_scene
-from diffsolids.objectives import target_displacement, time_integral
+from diffsolids.objectives import center_of_mass, series_values, target_displacement, time_integral
 from diffsolids.optimize import LBFGSOptions, check_trajectories
 from diffsolids.parallel import collective_comm
 from diffsolids.simulation import Trajectory
@@ -383,14 +383,34 @@ def recovery_outcome(run, result, sim, trajectories: dict, name: str, values: tu
 
 
 def finish_paper(
-    run, report, model, result, figures: dict, headline: str, paths, title: str, axes=("x", "y")
+    run,
+    report,
+    sim,
+    result,
+    figures: dict,
+    headline: str,
+    trajectories: dict,
+    body: int,
+    name: str,
+    axes=("x", "y"),
 ):
-    """``finish_transient`` with the figure of :func:`plot_paths` (centre paths, objective)."""
+    """``finish_transient`` with the figure of :func:`plot_paths`: a body's centre-of-mass paths.
+
+    The paths of the centre of mass of ``body`` in ``trajectories`` (target, initial, final, as
+    :func:`optimise_paths` returns them), coordinates ``axes``, titled ``"<name>: centre-of-mass
+    paths"`` (with the axes when they are not x, y), next to the objective per iteration.
+    """
+    com = center_of_mass(sim.model, body)
+    columns = ["xyz".index(a) for a in axes]
+    paths = {k: series_values(sim, com, t)[:, columns] for k, t in trajectories.items()}
+    title = f"{name}: centre-of-mass paths"
+    if tuple(axes) != ("x", "y"):
+        title += f" ({', '.join(axes)})"
 
     def figure(path):
         plot_paths(path, paths, result, title, run.comm, axes)
 
-    return finish_transient(run, report, model, result, [], figures, headline, figure)
+    return finish_transient(run, report, sim.model, result, [], figures, headline, figure)
 
 
 def plot_paths(path, paths: dict, result, title: str, comm, axes=("x", "y")) -> None:

@@ -45,7 +45,6 @@ from paper_common import (
 )
 
 from diffsolids.controls import RigidVelocity
-from diffsolids.objectives import center_of_mass, series_values
 from diffsolids.reduced_functional import ReducedFunctional
 
 FOLDER = "fig14_puzzle_piece"
@@ -87,11 +86,9 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     """Recover the piece's initial velocity; returns the report (printed on rank 0)."""
     run = parse_args(argv, comm)
     args = run.args
-    model, contact, sim, rf, target, true, q0, opt = paper_setup(run, setup)
+    _, contact, sim, rf, target, true, q0, opt = paper_setup(run, setup)
     options = gradient_stop_options(opt, args.iterations, max_change=2.0)
     result, _, trajs = optimise_paths(run, rf, q0, options, target)
-    com = center_of_mass(model, PIECE)
-    paths = {k: series_values(sim, com, t) for k, t in trajs.items()}
     values = (true, q0, result.q, contact)
     report, figures, (error0, error1) = recovery_outcome(
         run, result, sim, trajs, "v0", values, RECOVERY_RTOL
@@ -101,8 +98,8 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
         f"(true {true.tolist()}); relative error {error0:.3f} -> {error1:.2e}; "
         f"kappa {contact.stiffness:.3g}"
     )
-    title = "Fig. 14 puzzle piece: centre-of-mass paths"
-    return finish_paper(run, report, model, result, figures, headline, paths, title)
+    figure = "Fig. 14 puzzle piece"
+    return finish_paper(run, report, sim, result, figures, headline, trajs, PIECE, figure)
 
 
 if __name__ == "__main__":
