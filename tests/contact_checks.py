@@ -1,5 +1,9 @@
 """Scenes and checks shared by the contact tests: stacked boxes, a box falling on a box, a crate
-on an incline, every Newton iterate watched for intersections."""
+on an incline, every Newton iterate watched for intersections, central differences that record
+the contact pairs of each run."""
+
+from collections.abc import Callable
+from typing import NamedTuple
 
 import ipctk
 import numpy as np
@@ -9,8 +13,10 @@ from diffsolids.contact import ContactTerm
 from diffsolids.mesh.scene import combine_meshes, simplex_box
 
 __all__ = [
+    "CentralDifference",
     "IntersectionMonitor",
     "box_falling_on_box",
+    "central_differences",
     "crate_on_incline",
     "stacked_boxes",
     "turn_about_vertical",
@@ -119,3 +125,61 @@ class IntersectionMonitor:
         self.checked += 1
         if ipctk.has_intersections(s.mesh, np.asfortranarray(x)):
             self.bad.append(it)
+
+
+class CentralDifference(NamedTuple):
+    """A central difference of J at q along a unit direction, against the adjoint's g . dq."""
+
+    direction: str  # "random" or "gradient"
+    h: float
+    adjoint: float
+    fd: float
+    error: float  # |fd - adjoint| / |adjoint|
+    pairs: tuple[list[int], list[int]]  # collisions per step of the runs at q + h dq, q - h dq
+
+
+def central_differences(
+    rf,
+    q: np.ndarray,
+    g: np.ndarray,
+    contact: ContactTerm,
+    steps,
+    seed: int,
+    before_run: Callable[[], None] | None = None,
+) -> tuple[list[CentralDifference], str]:
+    """Central differences of ``rf`` at q along a random and the gradient's unit direction.
+
+    Args:
+        rf: The reduced functional; its last run (the base run) was at q.
+        q: The parameters.
+        g: The adjoint gradient at q.
+        contact: The contact term whose collision counts per step each run records.
+        steps: The steps h.
+        seed: Seed of the random direction.
+        before_run: Called before each perturbed run (e.g. to set a warm start).
+
+    Returns:
+        One :class:`CentralDifference` per direction and step, and a report (one line each,
+        with the base run's pairs per step) for assertion messages.
+    """
+    base = [r.num_collisions for r in contact.records]
+    d = np.random.default_rng(seed).normal(size=q.size)
+    rows = []
+    for name, dq in (("random", d / np.linalg.norm(d)), ("gradient", g / np.linalg.norm(g))):
+        adjoint = float(g @ dq)
+        for h in steps:
+            values, pairs = [], []
+            for sign in (1.0, -1.0):
+                if before_run is not None:
+                    before_run()
+                values.append(rf(q + sign * h * dq))
+                pairs.append([r.num_collisions for r in contact.records])
+            fd = (values[0] - values[1]) / (2 * h)
+            error = abs(fd - adjoint) / abs(adjoint)
+            rows.append(CentralDifference(name, h, adjoint, fd, error, tuple(pairs)))
+    report = "\n".join(
+        f"{r.direction} h={r.h:g}: adjoint {r.adjoint:.12e} central differences {r.fd:.12e} "
+        f"rel. error {r.error:.2e} (pairs per step {base}, +h {r.pairs[0]}, -h {r.pairs[1]})"
+        for r in rows
+    )
+    return rows, report

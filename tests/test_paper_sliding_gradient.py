@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from contact_checks import central_differences
 from mpi4py import MPI
 
 COMM = MPI.COMM_WORLD
@@ -57,32 +58,20 @@ def test_sliding_friction_gradient_against_central_differences():
     base = rf.trajectory
     pairs0 = [r.num_collisions for r in contact.records]
     assert max(pairs0) > 0 and abs(g[0]) > 0, f"pairs per step {pairs0}, gradient {g}"
-    d = np.random.default_rng(21).normal(size=q.size)
-    results = []
-    for name, dq in (("random", d / np.linalg.norm(d)), ("gradient", g / np.linalg.norm(g))):
-        adjoint = float(g @ dq)
-        for h in (TRUNCATION_H, *SMALL_H):
-            values, patterns = [], []
-            for sign in (1.0, -1.0):
-                sim.warm_start = base  # continuation: stay on the base run's branch
-                values.append(rf(q + sign * h * dq))
-                patterns.append([r.num_collisions for r in contact.records])
-            sim.warm_start = None
-            fd = (values[0] - values[1]) / (2 * h)
-            error = abs(fd - adjoint) / abs(adjoint)
-            results.append((name, h, adjoint, fd, error, patterns))
-    report = "\n".join(
-        f"{n} h={h:g}: adjoint {a:.12e} central differences {f:.12e} rel. error {e:.2e} "
-        f"(pairs per step {pairs0}, +h {p[0]}, -h {p[1]})"
-        for n, h, a, f, e, p in results
-    )
-    errors = {(n, h): e for n, h, _, _, e, _ in results}
+
+    def warm_start():  # continuation: stay on the base run's branch
+        sim.warm_start = base
+
+    steps = (TRUNCATION_H, *SMALL_H)
+    results, report = central_differences(rf, q, g, contact, steps, 21, warm_start)
+    sim.warm_start = None
+    errors = {(r.direction, r.h): r.error for r in results}
     for name in ("random", "gradient"):
         for h in SMALL_H:
             assert errors[name, h] <= TOLERANCE, report
         assert errors[name, TRUNCATION_H] >= 30 * errors[name, SMALL_H[0]], report
-    for *_, patterns in results:
-        assert patterns[0] == pairs0 and patterns[1] == pairs0, report
+    for r in results:
+        assert r.pairs == (pairs0, pairs0), report
     # the base parameters again from scratch (no warm start; the last run was at q - h dq)
     J_again = rf(q)
     assert J_again == pytest.approx(J0, rel=1e-12, abs=0.0), (J_again, J0)
