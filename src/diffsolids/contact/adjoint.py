@@ -54,7 +54,7 @@ class ContactAdjoint:
         self.friction_potential = potential.friction_potential
         self.eps_v = eps_v
         self.num_pairs = len(lagging.mu)
-        # step index -> (collision mesh, static mask, U^i, collisions) of the converged forward
+        # step index -> (surface state key, U^i, collisions) of the converged forward
         self._kept: dict[int, tuple] = {}
 
     def keep_collisions(self, step: dict | None, ev: Evaluation) -> None:
@@ -66,22 +66,15 @@ class ContactAdjoint:
         """
         if step is None:
             return
-        static = self.surface.static
-        static = None if static is None else static.copy()
-        self._kept[step["index"]] = (self.surface.mesh, static, ev.U.copy(), ev.collisions)
+        self._kept[step["index"]] = (self.surface.state_key(), ev.U.copy(), ev.collisions)
 
     def kept_collisions(self, step: dict | None, U: np.ndarray) -> ipctk.NormalCollisions | None:
         """The kept collision set of ``step`` if it was built at U on the current surface."""
         entry = None if step is None else self._kept.get(step["index"])
         if entry is None:
             return None
-        mesh, static, Uk, C = entry
-        current = self.surface.static
-        if mesh is not self.surface.mesh or (static is None) != (current is None):
-            return None
-        if static is not None and not np.array_equal(static, current):
-            return None
-        return C if np.array_equal(Uk, U) else None
+        state, Uk, C = entry
+        return C if self.surface.has_state(state) and np.array_equal(Uk, U) else None
 
     def surface_vector(self, lam: fem.Function | np.ndarray) -> np.ndarray:
         """The collision-dof vector of a local V array or Function (gathered, flat)."""

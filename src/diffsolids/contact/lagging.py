@@ -56,8 +56,8 @@ class LaggedFriction:
         self.step: dict | None = None
         self.tangential: ipctk.TangentialCollisions | None = None
         self._lagged: dict | None = None
-        # step index -> (mesh, static mask, x^{i-1}, collisions at x^{i-1}, tangential
-        # collisions: None or (mu, barrier, T)) of the last set-up of that step
+        # step index -> [surface state key, x^{i-1}, collisions at x^{i-1}, tangential
+        # collisions: None or (mu, barrier, T)] of the last set-up of that step
         self._kept: dict[int, list] = {}
 
     def set_coefficients(self, values: np.ndarray | Sequence[float]) -> None:
@@ -88,18 +88,12 @@ class LaggedFriction:
             x = self.surface.rest_positions + self.step["lagged"]
             kept = None if shape_derivatives else self._kept_entry(x)
             if kept is not None:
-                cached[key] = (x, kept[3])
+                cached[key] = (x, kept[2])
             else:
                 cached[key] = (x, self.builder.build(x, shape_derivatives))
                 if not shape_derivatives:
-                    surf = self.surface
-                    self._kept[self.step["index"]] = [
-                        surf.mesh,
-                        surf.static,
-                        x,
-                        cached[key][1],
-                        None,
-                    ]
+                    state = self.surface.state_key()
+                    self._kept[self.step["index"]] = [state, x, cached[key][1], None]
             self._lagged = cached
         return cached[key]
 
@@ -108,14 +102,8 @@ class LaggedFriction:
         entry = self._kept.get(self.step.get("index"))
         if entry is None:
             return None
-        mesh, static, xk = entry[:3]
-        surf = self.surface
-        same_static = static is surf.static or (
-            static is not None and surf.static is not None and np.array_equal(static, surf.static)
-        )
-        if mesh is surf.mesh and same_static and np.array_equal(xk, x):
-            return entry
-        return None
+        state, xk = entry[:2]
+        return entry if self.surface.has_state(state) and np.array_equal(xk, x) else None
 
     def _step_tangential(self, barrier: ipctk.BarrierPotential) -> ipctk.TangentialCollisions:
         """The step's TangentialCollisions with :attr:`mu` (kept from the step's last set-up).
@@ -125,14 +113,14 @@ class LaggedFriction:
         """
         _, C = self.lagged_state()
         entry = self._kept.get(self.step["index"])
-        own = entry is not None and entry[3] is C  # the kept collision set is this step's
-        if own and entry[4] is not None:
-            mu, kept_barrier, T = entry[4]
+        own = entry is not None and entry[2] is C  # the kept collision set is this step's
+        if own and entry[3] is not None:
+            mu, kept_barrier, T = entry[3]
             if kept_barrier is barrier and np.array_equal(mu, self.mu):
                 return T
         T = self.tangential_collisions(self.mu_table(self.mu), barrier)
         if own:
-            entry[4] = (self.mu.copy(), barrier, T)
+            entry[3] = (self.mu.copy(), barrier, T)
         return T
 
     def tangential_collisions(

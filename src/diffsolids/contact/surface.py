@@ -446,6 +446,21 @@ class CollisionSurface:
         """Boolean mask of static (fully prescribed) vertices, None before :meth:`set_static`."""
         return self._static
 
+    def state_key(self) -> tuple:
+        """What a collision set built on the surface depends on besides the positions.
+
+        The ipctk mesh (replaced when the rest shape changes) and a copy of the static mask
+        (which pairs may collide); compare with :meth:`has_state`.
+        """
+        return (self.mesh, None if self._static is None else self._static.copy())
+
+    def has_state(self, key: tuple) -> bool:
+        """Whether the surface is still in the state of :meth:`state_key` ``key``."""
+        mesh, static = key
+        if mesh is not self.mesh or (static is None) != (self._static is None):
+            return False
+        return static is None or np.array_equal(static, self._static)
+
     def set_static(self, static: np.ndarray) -> None:
         """Exclude pairs of primitives whose vertices are all static (fully prescribed)."""
         self._static = np.asarray(static, dtype=bool)

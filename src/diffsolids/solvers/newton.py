@@ -340,6 +340,12 @@ class NewtonSolver:
         self._energy_cache = (cached[0], e)
         return e
 
+    def _forget_energy(self) -> None:
+        """Drop the remembered potential (the potential itself has changed)."""
+        if self._energy_cache is not None:
+            self._energy_cache[0].destroy()
+            self._energy_cache = None
+
     def _objective(self, snes: PETSc.SNES, x: PETSc.Vec) -> float:
         e = self._energy_at(x)
         ls = self._line_search
@@ -513,8 +519,7 @@ class NewtonSolver:
         n = self.options.continuation_after
         if self._continuation or n <= 0 or self._cut_streak < n or self._cut_streak % n:
             return False
-        terms = [t for t in self.numeric_terms if t.has_stiffness_continuation]
-        return any(t.continuation_factors() for t in terms)
+        return any(t.continuation_factors() for t in self._continuable_terms())
 
     def _hybrid(self) -> bool:
         """Projected steps above ``exact_hessian_below * f_char``, exact below (first attempt)."""
@@ -719,6 +724,10 @@ class NewtonSolver:
         converged = self._roundoff_converged or (reason > 0 and self._fnorm <= self._tolerance())
         return its, reason, converged
 
+    def _continuable_terms(self) -> list:
+        """The numeric terms that offer a stiffness continuation."""
+        return [t for t in self.numeric_terms if t.has_stiffness_continuation]
+
     def _continued_attempt(self, step: int, x0: PETSc.Vec) -> tuple[int, int, bool]:
         """The step again from ``x0`` through stiffer versions of the numeric terms (collective).
 
@@ -734,7 +743,7 @@ class NewtonSolver:
             (iterations, SNES converged reason, converged); (0, DIVERGED_MAX_IT, False) when no
             term offers a continuation.
         """
-        terms = [t for t in self.numeric_terms if t.has_stiffness_continuation]
+        terms = self._continuable_terms()
         schedules = [t.continuation_factors() for t in terms]
         stages = max((len(s) for s in schedules), default=0)
         if not stages:
@@ -754,18 +763,14 @@ class NewtonSolver:
             for k in range(stages + 1):
                 for term, schedule in zip(terms, schedules, strict=True):
                     term.set_stiffness_factor(schedule[k] if k < len(schedule) else 1.0)
-                if self._energy_cache is not None:  # the potential has changed
-                    self._energy_cache[0].destroy()
-                    self._energy_cache = None
+                self._forget_energy()  # the potential has changed
                 its, reason, converged = self._attempt()
                 total += its
                 logger.debug("step %d: continuation stage %d: %d Newton iterations", step, k, its)
         finally:
             for term in terms:
                 term.set_stiffness_factor(1.0)
-            if self._energy_cache is not None:
-                self._energy_cache[0].destroy()
-                self._energy_cache = None
+            self._forget_energy()
         if converged:
             self.continued_steps += 1
         return total, reason, converged
@@ -778,9 +783,7 @@ class NewtonSolver:
         """
         self._drop_line_search()
         self._fnorm = self._f_char = float("nan")  # PETSc may stop before the first test
-        if self._energy_cache is not None:  # loads, history or parameters may have changed
-            self._energy_cache[0].destroy()
-            self._energy_cache = None
+        self._forget_energy()  # loads, history or parameters may have changed
         self._roundoff_converged = False
         self._exact_factors = True
         self.fallbacks = 0
