@@ -212,7 +212,7 @@ def test_solve_is_the_same_with_a_full_or_an_empty_reach(monkeypatch):
 
 
 FIG1 = (
-    Path(os.environ.get("DIFFSOLIDS_DATA", Path(__file__).parents[2] / "shared" / "data"))
+    Path(os.environ.get("DIFFSOLIDS_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
     / "diffipc"
     / "fig1_bunnies"
 )

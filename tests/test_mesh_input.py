@@ -14,7 +14,9 @@ import diffsolids as ds
 from diffsolids.mesh import create_domain, read_mesh, transform_domain
 
 COMM = MPI.COMM_WORLD
-DATA = Path(os.environ.get("DIFFSOLIDS_DATA", Path(__file__).parents[2] / "shared" / "data"))
+DATA = Path(
+    os.environ.get("DIFFSOLIDS_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")
+)
 DIFFIPC = DATA / "diffipc"
 
 # file, format, dimension, cells

@@ -22,7 +22,9 @@ from diffsolids.io.polyfem_scene import read_polyfem_scene
 from diffsolids.mesh import read_mesh
 
 COMM = MPI.COMM_WORLD
-DATA = Path(os.environ.get("DIFFSOLIDS_DATA", Path(__file__).parents[2] / "shared" / "data"))
+DATA = Path(
+    os.environ.get("DIFFSOLIDS_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")
+)
 DIFFIPC = DATA / "diffipc"
 
 SCENES = {

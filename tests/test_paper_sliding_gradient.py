@@ -31,7 +31,9 @@ from contact_checks import central_differences
 from mpi4py import MPI
 
 COMM = MPI.COMM_WORLD
-DATA = Path(os.environ.get("DIFFSOLIDS_DATA", Path(__file__).parents[2] / "shared" / "data"))
+DATA = Path(
+    os.environ.get("DIFFSOLIDS_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")
+)
 DIFFIPC = DATA / "diffipc"
 
 STEPS = 5  # landing, friction, the impact step with two local minima, sliding

@@ -34,7 +34,9 @@ from contact_checks import central_differences
 from mpi4py import MPI
 
 COMM = MPI.COMM_WORLD
-DATA = Path(os.environ.get("DIFFSOLIDS_DATA", Path(__file__).parents[2] / "shared" / "data"))
+DATA = Path(
+    os.environ.get("DIFFSOLIDS_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")
+)
 DIFFIPC = DATA / "diffipc"
 
 STEPS = 3  # contact in steps 2 and 3

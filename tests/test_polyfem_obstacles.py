@@ -23,7 +23,7 @@ from diffsolids.verification import finite_difference_check
 
 COMM = MPI.COMM_WORLD
 DIFFIPC = (
-    Path(os.environ.get("DIFFSOLIDS_DATA", Path(__file__).parents[2] / "shared" / "data"))
+    Path(os.environ.get("DIFFSOLIDS_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
     / "diffipc"
 )
 PUZZLE = DIFFIPC / "fig14_puzzle_piece" / "run-new.json"

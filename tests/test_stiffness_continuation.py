@@ -29,7 +29,9 @@ from diffsolids.objectives import center_of_mass, final_value
 from diffsolids.reduced_functional import ReducedFunctional
 
 COMM = MPI.COMM_WORLD
-DATA = Path(os.environ.get("DIFFSOLIDS_DATA", Path(__file__).parents[2] / "shared" / "data"))
+DATA = Path(
+    os.environ.get("DIFFSOLIDS_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")
+)
 DHAT = 1e-3
 # the block rests ~5e-8 m (5e-5 dhat) above the slab: soft enough for a continuation to be
 # offered (below 1e-4 dhat), stiff enough for finite differences (coordinate ulps ~1e-17 m)

@@ -74,7 +74,7 @@ def _parse(argv):
 
 
 FIG1 = (
-    Path(os.environ.get("DIFFSOLIDS_DATA", Path(__file__).parents[3] / "shared" / "data"))
+    Path(os.environ.get("DIFFSOLIDS_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
     / "diffipc"
     / "fig1_bunnies"
 )

@@ -32,7 +32,7 @@ from pathlib import Path
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 FIG21 = (
-    Path(os.environ.get("DIFFSOLIDS_DATA", Path(__file__).parents[3] / "shared" / "data"))
+    Path(os.environ.get("DIFFSOLIDS_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
     / "diffipc"
     / "fig21_friction_bunny"
 )
