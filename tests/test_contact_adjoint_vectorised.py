@@ -130,16 +130,17 @@ def test_vectorised_contact_adjoint_equals_the_loops(dim, degree, order, eps_v, 
         loop = list(_reference_mollified_pairs(C, mesh, mesh.rest_positions, ev.x))
         assert len(mollified) == len(loop) > 0
         args = (C, mesh, x, contact.barrier, contact.stiffness)
-        A = contact_shape._ee_correction(*args)
+        ee = C.ee_collisions
+        A = contact_shape._ee_correction(*args, ee)
         B = _reference_ee_correction(*args)
         assert abs(A - B).max() <= TOL * abs(B).max()
-        product = contact_shape._ee_correction_adjoint(*args, lam_c)
+        product = contact_shape._ee_correction_adjoint(*args, lam_c, ee)
         assert _rel(product, B.T @ lam_c) <= TOL
     gX = contact.adjoint_shape(u, lam)
     monkeypatch.setattr(
         contact_shape,
         "_ee_correction_adjoint",
-        lambda C, mesh, x, b, k, lam: _reference_ee_correction(C, mesh, x, b, k).T @ lam,
+        lambda C, mesh, x, b, k, lam, ee: _reference_ee_correction(C, mesh, x, b, k).T @ lam,
     )
     monkeypatch.setattr(ContactAdjoint, "friction_rest", _reference_friction_rest_adjoint)
     assert _rel(gX, contact.adjoint_shape(u, lam)) <= TOL

@@ -65,7 +65,11 @@ class _MollifiedPairs:
 
 
 def _mollified_pairs(
-    collisions: ipctk.NormalCollisions, mesh: ipctk.CollisionMesh, rest: np.ndarray, x: np.ndarray
+    collisions: ipctk.NormalCollisions,
+    mesh: ipctk.CollisionMesh,
+    rest: np.ndarray,
+    x: np.ndarray,
+    ee: list | None = None,
 ) -> _MollifiedPairs:
     """Edge-edge collisions whose cross squared norm is below the mollifier threshold.
 
@@ -74,8 +78,9 @@ def _mollified_pairs(
         mesh: Its collision mesh.
         rest: (num_vertices, 3) rest positions.
         x: (num_vertices, 3) positions.
+        ee: ``collisions.ee_collisions`` if already converted (each conversion copies them).
     """
-    ee = collisions.ee_collisions
+    ee = collisions.ee_collisions if ee is None else ee
     edges = np.asarray(mesh.edges)
     pairs = np.array([(c.edge0_id, c.edge1_id) for c in ee], dtype=np.int64).reshape(-1, 2)
     ids = edges[pairs].reshape(-1, 4)
@@ -171,12 +176,15 @@ def _ee_terms(
     x: np.ndarray,
     barrier: ipctk.BarrierPotential,
     stiffness: float,
+    ee: list,
 ) -> _Terms | None:
-    """The correction's ingredients for every mollified pair (None: no mollified pair)."""
-    pairs = _mollified_pairs(collisions, mesh, mesh.rest_positions, x)
+    """The correction's ingredients for every mollified pair (None: no mollified pair).
+
+    ``ee`` is ``collisions.ee_collisions``, converted once by the caller.
+    """
+    pairs = _mollified_pairs(collisions, mesh, mesh.rest_positions, x, ee)
     if not len(pairs):
         return None
-    ee = collisions.ee_collisions
     dtype = np.array([ee[k].dtype.value for k in pairs.index], dtype=np.int64)
     if collisions.use_area_weighting:  # normal_collisions_builder.cpp: 1/4 of both edge areas
         w = 0.25 * np.asarray(mesh.edge_areas()).ravel()[pairs.edge_ids].sum(axis=1)
@@ -212,10 +220,11 @@ def _ee_correction(
     x: np.ndarray,
     barrier: ipctk.BarrierPotential,
     stiffness: float,
+    ee: list,
 ) -> sp.csc_matrix:
     """The sum over mollified edge-edge pairs of the difference in the module docstring."""
     n = x.size
-    t = _ee_terms(collisions, mesh, x, barrier, stiffness)
+    t = _ee_terms(collisions, mesh, x, barrier, stiffness, ee)
     if t is None:
         return sp.csc_matrix((n, n))
 
@@ -237,6 +246,7 @@ def _ee_correction_adjoint(
     barrier: ipctk.BarrierPotential,
     stiffness: float,
     lam: np.ndarray,
+    ee: list,
 ) -> np.ndarray:
     """The correction's transpose times lam, pair by pair without forming the 12 x 12 blocks.
 
@@ -244,7 +254,7 @@ def _ee_correction_adjoint(
     - gf (gxm.l) per pair, with l the pair's entries of lam.
     """
     out = np.zeros(x.size)
-    t = _ee_terms(collisions, mesh, x, barrier, stiffness)
+    t = _ee_terms(collisions, mesh, x, barrier, stiffness, ee)
     if t is None:
         return out
     lc = lam[t.dofs]
@@ -275,8 +285,9 @@ def barrier_shape_derivative(
         stiffness: Its stiffness kappa.
     """
     S = barrier.shape_derivative(collisions, mesh, x)
-    if x.shape[1] == 3 and len(collisions.ee_collisions):
-        S = S + _ee_correction(collisions, mesh, x, barrier, stiffness)
+    ee = collisions.ee_collisions if x.shape[1] == 3 else []
+    if ee:
+        S = S + _ee_correction(collisions, mesh, x, barrier, stiffness, ee)
     return sp.csc_matrix(S)
 
 
@@ -299,6 +310,7 @@ def barrier_shape_adjoint(
         lam: (num_vertices * dim,) the vector.
     """
     g = sp.csc_matrix(barrier.shape_derivative(collisions, mesh, x)).T @ lam
-    if x.shape[1] == 3 and len(collisions.ee_collisions):
-        g = g + _ee_correction_adjoint(collisions, mesh, x, barrier, stiffness, lam)
+    ee = collisions.ee_collisions if x.shape[1] == 3 else []
+    if ee:
+        g = g + _ee_correction_adjoint(collisions, mesh, x, barrier, stiffness, lam, ee)
     return g
