@@ -40,6 +40,7 @@ from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.integrators import TimeStep
 from diffsolids.io.progress import ProgressBar, progress_bar
 from diffsolids.parallel import collective_comm
+from diffsolids.solvers.packing import CoefficientGathers, FormPacker
 
 if TYPE_CHECKING:
     from diffsolids.adjoint.checkpointing import CheckpointedRun
@@ -106,6 +107,9 @@ class BackwardSweep:
         self._sol = self._rhs.duplicate()
         self.stats: dict = {}
         self._vectors: dict[fem.Form, dolfinx.la.Vector] = {}
+        # the step's forms share the packing of their fields (u^i, history, lambda, materials)
+        self._gathers = CoefficientGathers()
+        self._packers: dict[fem.Form, FormPacker] = {}
         self._phases: dict[str, float] = defaultdict(float)
 
     @contextmanager
@@ -127,8 +131,9 @@ class BackwardSweep:
         vec = self._vectors.get(form)
         if vec is None:
             vec = self._vectors[form] = fem.create_vector(form.function_spaces[0], form.dtype)
+            self._packers[form] = FormPacker(form, self._gathers)
         vec.array[:] = 0.0
-        fem.assemble_vector(vec.array, form)
+        fem.assemble_vector(vec.array, form, coeffs=self._packers[form].pack())
         vec.scatter_reverse(dolfinx.la.InsertMode.add)
         n = vec.index_map.size_local * vec.block_size
         return vec.array[:n]
