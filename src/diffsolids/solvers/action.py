@@ -13,13 +13,13 @@ from typing import TYPE_CHECKING
 
 import dolfinx.fem.petsc as fem_petsc
 import dolfinx.la.petsc
-import numpy as np
 import ufl
 from dolfinx import fem
 from petsc4py import PETSc
 
 from diffsolids.solvers.callbacks import WeakContext
 from diffsolids.solvers.forms import compile_form
+from diffsolids.solvers.packing import coefficient_layout
 
 if TYPE_CHECKING:
     from diffsolids.solvers.newton import NewtonSolver
@@ -64,22 +64,17 @@ class JacobianAction:
         coefficients.
         """
         cpp = self.form._cpp_object
-        V = self.direction.function_space
-        cell_only = set(cpp.integral_types) == {fem.IntegralType.cell}
-        if V.element.needs_dof_transformations or not cell_only:
+        if set(cpp.integral_types) != {fem.IntegralType.cell}:
             return None
-        found = [i for i, c in enumerate(cpp.coefficients) if c is self.direction._cpp_object]
-        if len(found) != 1:
+        layout = coefficient_layout(self.form)
+        if layout is None:
             return None
-        k = found[0]
-        widths = [c.function_space.element.space_dimension for c in cpp.coefficients]
-        columns = slice(int(np.sum(widths[:k])), int(np.sum(widths[: k + 1])))
-        bs = V.dofmap.index_map_bs
         gather = {}
-        for i in range(cpp.num_integrals(fem.IntegralType.cell, 0)):
-            cells = np.asarray(cpp.domains(fem.IntegralType.cell, i))
-            dofs = V.dofmap.list[cells][:, :, None] * bs + np.arange(bs)
-            gather[(fem.IntegralType.cell, i)] = (columns, dofs.reshape(len(cells), -1))
+        for key, parts in layout.items():
+            found = [(cols, dofs) for c, cols, dofs in parts if c is self.direction._cpp_object]
+            if len(found) != 1:
+                return None
+            gather[key] = found[0]
         return gather
 
     @contextmanager

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from dolfinx import fem
 
-__all__ = ["CoefficientGathers", "FormPacker"]
+__all__ = ["CoefficientGathers", "FormPacker", "coefficient_layout"]
 
 _SUPPORTED = (fem.IntegralType.cell, fem.IntegralType.exterior_facet)
 
@@ -78,7 +78,7 @@ class FormPacker:
         self._gathers = gathers
         self._blocks: dict[tuple, list[_Block]] | None = None
         self._packed: dict[tuple, np.ndarray] = {}
-        layout = _layout(form)
+        layout = coefficient_layout(form)
         checked = None if layout is None else _checked(form, layout)
         if checked is not None:
             self._blocks = {
@@ -129,8 +129,13 @@ def _coefficient_dofs(coefficient: object, cells: np.ndarray) -> np.ndarray | No
     return dofs.reshape(len(cells), V.element.space_dimension)
 
 
-def _layout(form: fem.Form) -> dict[tuple, list] | None:
-    """Per packed key, (coefficient, columns, dofs) of each coefficient; None if unsupported."""
+def coefficient_layout(form: fem.Form) -> dict[tuple, list] | None:
+    """Per packed key, (coefficient, columns, dofs) of each coefficient; None if unsupported.
+
+    ``columns`` are the coefficient's columns in DOLFINx's packed array of that integral and
+    ``dofs`` (num_entities, width) the dof of each entry, for cell and exterior-facet integrals
+    over the form's mesh with elements needing no DOF transformations.
+    """
     cpp = form._cpp_object
     if not cpp.coefficients or any(k not in _SUPPORTED for k in cpp.integral_types):
         return None
