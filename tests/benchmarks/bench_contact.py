@@ -65,6 +65,12 @@ def _parse(argv):
     p.add_argument("--cells", type=int, default=12, help="cells per side of the upper box")
     p.add_argument("--steps", type=int, default=8, help="BDF2 steps")
     p.add_argument("--dt", type=float, default=0.004, help="time step")
+    p.add_argument(
+        "--pc",
+        choices=["lu", "gamg"],
+        default="lu",
+        help="Newton steps: MUMPS LU (adjoint: stored factors) or GMRES + GAMG (adjoint: GMRES)",
+    )
     p.add_argument("--scene-steps", type=int, default=3, help="fig1 BDF1 steps (0: skip)")
     p.add_argument("--ranks", default=None, help="e.g. 1,2: one mpiexec run per rank count")
     p.add_argument("--project", type=int, default=64, help="ranks of the projection")
@@ -316,7 +322,10 @@ def main(argv=None) -> dict:
     cells = ([2 * n, 2 * n, max(2, n // 4)], [n, n, max(2, n // 2)])
     model, contact, v0 = box_falling_on_box(comm, dhat, *cells, 1e12, [0.0, 0.0, -0.5])
     integ = ds.BDF(2, args.dt, args.steps)
-    sim = ds.Simulation(model, integ, ds.SolverOptions(rtol=1e-8), v0=v0)
+    petsc_options = {} if args.pc == "lu" else {"pc_type": args.pc}
+    sim = ds.Simulation(
+        model, integ, ds.SolverOptions(rtol=1e-8, petsc_options=petsc_options), v0=v0
+    )
     solver = sim.solver
     density = model.coefficients["density"]
     objective = final_value(Integral(lambda f: (f.X[2] + f.u[2]) * f.dx(2), "height")) + (
@@ -411,6 +420,7 @@ def main(argv=None) -> dict:
     result = {
         "benchmark": "contact",
         "ranks": comm.size,
+        "pc": args.pc,
         "dofs": model.V.dofmap.index_map.size_global * 3,
         "surface_vertices": surf.num_vertices,
         "active_pairs_last": contact.records[-1].num_collisions,

@@ -9,7 +9,9 @@ are reused where that stays exact:
   when the forward kept it, else the latest one) preconditions flexible GMRES on the exact K
   applied matrix-free (a couple of iterations, converged to round-off; FGMRES keeps the
   preconditioned directions, so no extra LU solve forms the solution); when it does not converge
-  quickly, K is assembled and factorised and preconditions the following steps.
+  quickly, K is assembled and factorised and preconditions the following steps;
+* when the forward's steps are Krylov solves (a ``pc_type`` such as ``gamg``, no factors), K is
+  assembled and solved by GMRES with the same preconditioner to ``rtol`` in the true residual.
 """
 
 from contextlib import nullcontext
@@ -18,8 +20,10 @@ from typing import TYPE_CHECKING
 
 from petsc4py import PETSc
 
+from diffsolids.errors import ConvergenceError
 from diffsolids.solvers.action import JacobianAction
 from diffsolids.solvers.factor_store import lu_solver
+from diffsolids.solvers.linear_options import FACTORISATIONS, krylov_solver
 
 if TYPE_CHECKING:
     from diffsolids.solvers.newton import NewtonSolver
@@ -34,6 +38,8 @@ class AdjointSolverOptions:
     Attributes:
         rtol: Relative residual tolerance of the Krylov solves.
         max_krylov: GMRES iterations before the matrix is refactorised.
+        max_iterative: GMRES iterations of a solve preconditioned like a Krylov forward
+            (``pc_type`` not a factorisation) before it fails.
         refactor_above: Refactorise for the next steps when a solve needed more iterations.
         shape_partials: How the shape partials of the residual and the objective are formed:
             "auto" (the explicit energy-momentum forms of the built-in terms where they apply,
@@ -43,6 +49,7 @@ class AdjointSolverOptions:
 
     rtol: float = 1e-12
     max_krylov: int = 30
+    max_iterative: int = 2000
     refactor_above: int = 12
     shape_partials: str = "auto"
 
@@ -82,6 +89,17 @@ class AdjointLinearSolver:
         self._gmres.setGMRESRestart(self.options.max_krylov)
         self._gmres.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
         self._gmres.getPC().setType("python")
+        self._iterative = None
+        if newton.pc_type not in FACTORISATIONS:  # the forward solved without factors
+            pc_options = {k: v for k, v in newton.options.petsc_options.items() if k[:3] == "pc_"}
+            self._iterative = krylov_solver(
+                self.comm,
+                newton.pc_type,
+                pc_options,
+                self.options.rtol,
+                self.options.max_iterative,
+                newton.options.prefix + "adjoint_",
+            )
 
     def begin(self) -> None:
         """Start a sweep right after a forward run: the forward's last factors are current."""
@@ -107,6 +125,8 @@ class AdjointLinearSolver:
         Returns:
             Krylov iterations (0 for a direct solve).
         """
+        if self._iterative is not None:
+            return self._solve_iterative(b, x, step)
         if self.newton.quadratic:
             return self._solve_quadratic(b, x)
         if step in self._stored:  # the forward's own last factors of this step
@@ -154,6 +174,25 @@ class AdjointLinearSolver:
         self.stats["direct_solves"] += 1
         return 0
 
+    def _solve_iterative(self, b: PETSc.Vec, x: PETSc.Vec, step: int) -> int:
+        """GMRES on the assembled exact K, preconditioned like the forward (no factors)."""
+        ksp = self._iterative
+        ksp.setOperators(self._assembled(0))
+        ksp.solve(b, x)
+        its = ksp.getIterationNumber()
+        self.stats["krylov_iterations"] += its
+        if ksp.getConvergedReason() <= 0:
+            pc, reason = self.newton.pc_type, ksp.getConvergedReason()
+            why = {v: k for k, v in vars(PETSc.KSP.ConvergedReason).items() if isinstance(v, int)}
+            raise ConvergenceError(
+                f"adjoint linear solve of step {step}: GMRES preconditioned by {pc!r} stopped "
+                f"after {its} iterations ({why.get(reason, reason)}) at relative residual "
+                f"{ksp.getResidualNorm() / max(b.norm(), 1e-300):.3g} (tolerance "
+                f"{self.options.rtol:g}); raise AdjointSolverOptions.max_iterative or solve the "
+                "steps with a factorisation (petsc_options pc_type 'lu')"
+            )
+        return its
+
     def _krylov(self, A: PETSc.Mat, pc: PETSc.PC, b: PETSc.Vec, x: PETSc.Vec) -> int | None:
         ksp = self._gmres
         ksp.setOperators(A)
@@ -184,3 +223,5 @@ class AdjointLinearSolver:
         for ksp in [*self._factor_ksps.values(), *getattr(self, "_quadratic_cache", {}).values()]:
             ksp.destroy()
         self._gmres.destroy()
+        if self._iterative is not None:
+            self._iterative.destroy()

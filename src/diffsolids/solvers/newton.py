@@ -24,6 +24,7 @@ from diffsolids.solvers.callbacks import weak_callback
 from diffsolids.solvers.factor_store import FactorStore
 from diffsolids.solvers.forms import compile_form
 from diffsolids.solvers.inversion import InversionGuard
+from diffsolids.solvers.linear_options import rigid_body_modes, step_petsc_options
 from diffsolids.solvers.sparsity import GrowingPattern
 
 if TYPE_CHECKING:
@@ -36,13 +37,7 @@ __all__ = ["INITIAL_GUESSES", "NewtonResult", "NewtonSolver", "SolverOptions"]
 #: The choices of :attr:`SolverOptions.initial_guess`.
 INITIAL_GUESSES = ("predictor", "previous", "zero")
 
-_DEFAULT_PETSC = {
-    "snes_type": "newtonls",
-    "snes_linesearch_type": "bt",
-    "ksp_type": "preonly",
-    "pc_type": "lu",
-    "pc_factor_mat_solver_type": "mumps",
-}
+_DEFAULT_PETSC = {"snes_type": "newtonls", "snes_linesearch_type": "bt"}
 
 
 @dataclass
@@ -58,7 +53,9 @@ class SolverOptions:
             only the relative test.
         max_iterations: Newton iteration limit per step.
         petsc_options: PETSc options under the solver prefix (override the defaults: newtonls,
-            bt line search, preonly + MUMPS LU).
+            bt line search, preonly + MUMPS LU; with another ``pc_type``, e.g. ``"gamg"``, the
+            steps are GMRES solves to ``ksp_rtol`` 1e-8 on a scalar matrix, see
+            :mod:`~diffsolids.solvers.linear_options`).
         prefix: PETSc options prefix; command-line options with this prefix also apply.
         prevent_inversion: Bound every step so that no element inverts.
         step_safety: Fraction of the largest safe step actually taken when a bound is active.
@@ -188,6 +185,10 @@ class NewtonSolver:
         self.magnitude_form = compile_form(model.magnitude(dynamic))
         self.numeric_terms = model.numeric_terms
         self.quadratic = model.is_quadratic(dynamic)
+        self._linear_defaults, self.pc_type = step_petsc_options(
+            self.options.petsc_options, self.options.prefix
+        )
+        self._near_null_space = rigid_body_modes(V) if self.pc_type == "gamg" else None
         self.A = self.create_matrix()
         self.b = fem_petsc.create_vector(V)
         self.x = fem_petsc.create_vector(V)
@@ -224,9 +225,8 @@ class NewtonSolver:
     def _make_snes(self) -> None:
         snes = PETSc.SNES().create(self.comm)
         snes.setOptionsPrefix(self.options.prefix)
-        opts = PETSc.Options()
-        opts.prefixPush(self.options.prefix)
-        pushed = {**_DEFAULT_PETSC, **self.options.petsc_options}
+        opts = PETSc.Options(self.options.prefix)  # its names carry the prefix (set and delete)
+        pushed = {**_DEFAULT_PETSC, **self._linear_defaults, **self.options.petsc_options}
         previous = {k: opts[k] if opts.hasName(k) else None for k in pushed}
         for k, v in pushed.items():
             if previous[k] is None or k in self.options.petsc_options:
@@ -243,7 +243,6 @@ class NewtonSolver:
         for k, v in previous.items():  # leave the global options database as we found it
             if v is None:
                 opts.delValue(k)
-        opts.prefixPop()
         self.snes = snes
 
     # -- evaluation helpers ----------------------------------------------------------------
@@ -268,12 +267,19 @@ class NewtonSolver:
         dolfinx.la.petsc._ghost_update(b, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
 
     def create_matrix(self) -> PETSc.Mat:
-        """A new block (BAIJ) matrix with the sparsity of the step Jacobian.
+        """A new matrix with the sparsity of the step Jacobian.
 
-        Blocks of the vector dofs of a node make assembly about 3x faster than scalar AIJ
-        (fewer index lookups per inserted entry); MUMPS factorises either.
+        Block (BAIJ) for the LU factorisation: blocks of the vector dofs of a node make
+        assembly about 3x faster than scalar AIJ (fewer index lookups per inserted entry).
+        Scalar (AIJ) for every other preconditioner (multigrid and MUMPS' Cholesky need it),
+        with the rigid body modes as near-null space for ``gamg``.
         """
-        return fem_petsc.create_matrix(self.jacobian_form, kind="baij")
+        A = fem_petsc.create_matrix(
+            self.jacobian_form, kind="baij" if self.pc_type == "lu" else "aij"
+        )
+        if self._near_null_space is not None:
+            A.setNearNullSpace(self._near_null_space)
+        return A
 
     def assemble_jacobian(self, A: PETSc.Mat, exact: bool = False) -> None:
         """Jacobian at the current ``u`` with identity Dirichlet rows and columns.

@@ -71,6 +71,9 @@ def matrix_with_pattern(like: PETSc.Mat, keys: np.ndarray) -> PETSc.Mat:
     B.setPreallocationCSR((indptr.astype(PETSc.IntType), cols.astype(PETSc.IntType)))
     B.setLGMap(*like.getLGMap())
     B.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
+    near_null_space = like.getNearNullSpace()
+    if near_null_space.handle:
+        B.setNearNullSpace(near_null_space)
     return B
 
 

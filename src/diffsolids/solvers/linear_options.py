@@ -1,0 +1,108 @@
+"""The linear solver of the Newton steps: a factorisation (default) or a Krylov method.
+
+A factorisation (``pc_type`` ``lu``, MUMPS) solves each Newton system exactly and its factors
+precondition the adjoint. Any other ``pc_type`` (``gamg`` above all: algebraic multigrid, whose
+cost grows linearly with the unknowns and which runs on many ranks) makes the step a Krylov
+solve; the Jacobian is then a scalar (AIJ) matrix, which multigrid needs, with the rigid body
+modes as its near-null space, and the adjoint solves its systems with the same preconditioner.
+"""
+
+from dolfinx import fem, la
+from mpi4py import MPI
+from petsc4py import PETSc
+
+__all__ = [
+    "FACTORISATIONS",
+    "KRYLOV_DEFAULTS",
+    "krylov_solver",
+    "rigid_body_modes",
+    "step_petsc_options",
+]
+
+#: The ``pc_type`` values that factorise the Newton matrix.
+FACTORISATIONS = ("lu", "cholesky")
+
+_FACTORISATION_DEFAULTS = {
+    "ksp_type": "preonly",
+    "pc_type": "lu",
+    "pc_factor_mat_solver_type": "mumps",
+}
+
+#: Krylov defaults when ``pc_type`` is not a factorisation (each overridable).
+KRYLOV_DEFAULTS = {
+    "ksp_type": "gmres",
+    "ksp_rtol": 1e-8,
+    "ksp_max_it": 1000,
+    "ksp_gmres_restart": 200,
+}
+
+
+def step_petsc_options(user: dict, prefix: str) -> tuple[dict, str]:
+    """The linear-solver defaults for ``user``'s options and the ``pc_type`` they select.
+
+    Args:
+        user: The options of :attr:`SolverOptions.petsc_options`.
+        prefix: The solver's options prefix (command-line options under it count too).
+
+    Returns:
+        (defaults, pc_type): factorisation defaults (MUMPS LU) unless ``pc_type`` (given in
+        ``user`` or on the command line) is something else, then :data:`KRYLOV_DEFAULTS`.
+    """
+    opts = PETSc.Options(prefix)
+    pc_type = user.get("pc_type") or (
+        opts.getString("pc_type") if opts.hasName("pc_type") else "lu"
+    )
+    if pc_type in FACTORISATIONS:
+        return dict(_FACTORISATION_DEFAULTS), pc_type
+    return dict(KRYLOV_DEFAULTS), pc_type
+
+
+def rigid_body_modes(V: fem.FunctionSpace) -> PETSc.NullSpace:
+    """Orthonormal translations and rotations of the vector space ``V`` (AMG's near-null space)."""
+    index_map, bs = V.dofmap.index_map, V.dofmap.index_map_bs
+    x = V.tabulate_dof_coordinates()[: index_map.size_local]
+    n_modes = 3 if bs == 2 else 6
+    basis = [la.vector(index_map, bs=bs, dtype=PETSc.ScalarType) for _ in range(n_modes)]
+    modes = [b.array[: index_map.size_local * bs].reshape(-1, bs) for b in basis]
+    for k in range(bs):  # translations
+        modes[k][:, k] = 1.0
+    if bs == 2:
+        modes[2][:, 0], modes[2][:, 1] = -x[:, 1], x[:, 0]
+    else:
+        for m, (i, j) in zip(modes[3:], [(0, 1), (1, 2), (2, 0)], strict=True):
+            m[:, i], m[:, j] = -x[:, j], x[:, i]
+    la.orthonormalize(basis)
+    vecs = [la.petsc.create_vector_wrap(b) for b in basis]
+    return PETSc.NullSpace().create(vectors=vecs, comm=V.mesh.comm)  # vecs own their arrays
+
+
+def krylov_solver(
+    comm: MPI.Comm, pc_type: str, pc_options: dict, rtol: float, max_it: int, prefix: str
+) -> PETSc.KSP:
+    """Right-preconditioned GMRES to ``rtol`` in the true residual norm, with ``pc_type``.
+
+    Args:
+        comm: The communicator.
+        pc_type: The preconditioner (e.g. ``"gamg"``).
+        pc_options: Options of the preconditioner (keys without the prefix, e.g. the
+            ``pc_gamg_*`` entries of :attr:`SolverOptions.petsc_options`).
+        rtol: Relative tolerance on ||b - A x|| / ||b||.
+        max_it: Iteration limit (restart every 200 iterations).
+        prefix: Options prefix of the KSP (command-line options under it apply).
+    """
+    ksp = PETSc.KSP().create(comm)
+    ksp.setOptionsPrefix(prefix)
+    ksp.setType("gmres")
+    ksp.setGMRESRestart(200)
+    ksp.setPCSide(PETSc.PC.Side.RIGHT)
+    ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
+    ksp.setTolerances(rtol=rtol, atol=0.0, max_it=max_it)
+    ksp.getPC().setType(pc_type)
+    opts = PETSc.Options(prefix)
+    pushed = [k for k in pc_options if not opts.hasName(k)]
+    for k in pushed:
+        opts[k] = pc_options[k]
+    ksp.setFromOptions()
+    for k in pushed:  # leave the options database as it was
+        opts.delValue(k)
+    return ksp
