@@ -9,6 +9,8 @@ central differences in a random direction and along the gradient, and the failur
 adjoint solve as a clear error (in this process and in a child process).
 """
 
+import gc
+import re
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +50,27 @@ def test_gamg_matrix_and_defaults(monkeypatch):
     assert ksp.getTolerances()[0] == pytest.approx(1e-8)
     lu = _incline(monkeypatch, {})[0].simulation.solver
     assert lu.A.getType() == PETSc.Mat.Type.SEQBAIJ and lu.snes.getKSP().getType() == "preonly"
+
+
+def test_options_reach_the_solvers_and_leave_the_database(monkeypatch):
+    options = {**GAMG, "pc_gamg_threshold": 0.02, "mg_levels_ksp_max_it": 3}
+    rf, _ = _incline(monkeypatch, options)
+    rf(rf.initial_parameters())
+    rf.derivative()
+    forward, adjoint = rf.simulation.solver.snes.getKSP(), rf._sweep.linear._iterative
+    assert forward.getTolerances()[0] == pytest.approx(1e-12)
+    for ksp in (forward, adjoint):  # mg_levels_ksp_max_it reached both multigrid hierarchies
+        assert ksp.getPC().getType() == "gamg"
+        assert ksp.getPC().getMGSmoother(1).getTolerances()[3] == 3
+    prefix = rf.simulation.solver.prefix
+    assert prefix.startswith("diffsolids_s")
+    names = PETSc.Options().getAll()
+    assert names[f"{prefix}mg_levels_ksp_max_it"] == "3"  # kept while the solver lives
+    assert not [k for k in names if re.match(r"diffsolids_(?!s\d+_)", k)]  # none for others
+    del rf, forward, adjoint, ksp
+    gc.collect()
+    leftovers = [k for k in PETSc.Options().getAll() if k.startswith(prefix)]
+    assert not leftovers, leftovers  # removed with the solver
 
 
 def test_gamg_value_and_gradient_equal_lu(monkeypatch):

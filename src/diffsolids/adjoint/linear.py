@@ -91,14 +91,8 @@ class AdjointLinearSolver:
         self._gmres.getPC().setType("python")
         self._iterative = None
         if newton.pc_type not in FACTORISATIONS:  # the forward solved without factors
-            pc_options = {k: v for k, v in newton.options.petsc_options.items() if k[:3] == "pc_"}
             self._iterative = krylov_solver(
-                self.comm,
-                newton.pc_type,
-                pc_options,
-                self.options.rtol,
-                self.options.max_iterative,
-                newton.options.prefix + "adjoint_",
+                self.comm, newton.prefix, self.options.rtol, self.options.max_iterative
             )
 
     def begin(self) -> None:

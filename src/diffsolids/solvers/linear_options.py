@@ -7,6 +7,10 @@ solve; the Jacobian is then a scalar (AIJ) matrix, which multigrid needs, with t
 modes as its near-null space, and the adjoint solves its systems with the same preconditioner.
 """
 
+import itertools
+import re
+import weakref
+
 from dolfinx import fem, la
 from mpi4py import MPI
 from petsc4py import PETSc
@@ -16,8 +20,11 @@ __all__ = [
     "KRYLOV_DEFAULTS",
     "krylov_solver",
     "rigid_body_modes",
+    "solver_prefix",
     "step_petsc_options",
 ]
+
+_SOLVER_IDS = itertools.count()
 
 #: The ``pc_type`` values that factorise the Newton matrix.
 FACTORISATIONS = ("lu", "cholesky")
@@ -57,6 +64,44 @@ def step_petsc_options(user: dict, prefix: str) -> tuple[dict, str]:
     return dict(KRYLOV_DEFAULTS), pc_type
 
 
+def solver_prefix(owner: object, base: str, defaults: dict, user: dict) -> str:
+    """A new options prefix for ``owner``'s PETSc objects, holding its own copy of the options.
+
+    The options are ``defaults``, then those in the database under ``base`` (the command line),
+    then ``user``. They stay in the database while ``owner`` lives, so that options read at
+    set-up (multigrid levels are made then) find them, and no other solver sees them; they are
+    removed when ``owner`` is collected.
+
+    Args:
+        owner: The solver whose lifetime the options share.
+        base: The user's prefix (e.g. ``"diffsolids_"``).
+        defaults: Options below the command line's.
+        user: Options above it (:attr:`SolverOptions.petsc_options`).
+    """
+    prefix = f"{base}s{next(_SOLVER_IDS)}_"
+    solvers_own = re.compile(rf"{re.escape(base)}s\d+_")
+    given = {
+        k[len(base) :]: v
+        for k, v in PETSc.Options().getAll().items()
+        if k.startswith(base) and not solvers_own.match(k)
+    }
+    merged = {**defaults, **given, **user}
+    opts = PETSc.Options(prefix)
+    for k, v in merged.items():
+        opts[k] = v
+    weakref.finalize(owner, _delete_options, prefix, list(merged))
+    return prefix
+
+
+def _delete_options(prefix: str, names: list[str]) -> None:
+    if PETSc.Sys.isFinalized():
+        return
+    opts = PETSc.Options(prefix)
+    for k in names:
+        if opts.hasName(k):
+            opts.delValue(k)
+
+
 def rigid_body_modes(V: fem.FunctionSpace) -> PETSc.NullSpace:
     """Orthonormal translations and rotations of the vector space ``V`` (AMG's near-null space)."""
     index_map, bs = V.dofmap.index_map, V.dofmap.index_map_bs
@@ -76,33 +121,25 @@ def rigid_body_modes(V: fem.FunctionSpace) -> PETSc.NullSpace:
     return PETSc.NullSpace().create(vectors=vecs, comm=V.mesh.comm)  # vecs own their arrays
 
 
-def krylov_solver(
-    comm: MPI.Comm, pc_type: str, pc_options: dict, rtol: float, max_it: int, prefix: str
-) -> PETSc.KSP:
-    """Right-preconditioned GMRES to ``rtol`` in the true residual norm, with ``pc_type``.
+def krylov_solver(comm: MPI.Comm, prefix: str, rtol: float, max_it: int) -> PETSc.KSP:
+    """Right-preconditioned GMRES to ``rtol`` in the true residual norm.
+
+    The preconditioner (type and options: ``pc_*``, ``mg_levels_*``, ...) is the one of the
+    options under ``prefix`` (a Newton solver's, :func:`solver_prefix`); the Krylov method and
+    its tolerances are set here, whatever ``ksp_*`` options the prefix holds.
 
     Args:
         comm: The communicator.
-        pc_type: The preconditioner (e.g. ``"gamg"``).
-        pc_options: Options of the preconditioner (keys without the prefix, e.g. the
-            ``pc_gamg_*`` entries of :attr:`SolverOptions.petsc_options`).
+        prefix: Options prefix of the KSP.
         rtol: Relative tolerance on ||b - A x|| / ||b||.
         max_it: Iteration limit (restart every 200 iterations).
-        prefix: Options prefix of the KSP (command-line options under it apply).
     """
     ksp = PETSc.KSP().create(comm)
     ksp.setOptionsPrefix(prefix)
+    ksp.setFromOptions()
     ksp.setType("gmres")
     ksp.setGMRESRestart(200)
     ksp.setPCSide(PETSc.PC.Side.RIGHT)
     ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
     ksp.setTolerances(rtol=rtol, atol=0.0, max_it=max_it)
-    ksp.getPC().setType(pc_type)
-    opts = PETSc.Options(prefix)
-    pushed = [k for k in pc_options if not opts.hasName(k)]
-    for k in pushed:
-        opts[k] = pc_options[k]
-    ksp.setFromOptions()
-    for k in pushed:  # leave the options database as it was
-        opts.delValue(k)
     return ksp

@@ -24,7 +24,11 @@ from diffsolids.solvers.callbacks import weak_callback
 from diffsolids.solvers.factor_store import FactorStore
 from diffsolids.solvers.forms import compile_form
 from diffsolids.solvers.inversion import InversionGuard
-from diffsolids.solvers.linear_options import rigid_body_modes, step_petsc_options
+from diffsolids.solvers.linear_options import (
+    rigid_body_modes,
+    solver_prefix,
+    step_petsc_options,
+)
 from diffsolids.solvers.sparsity import GrowingPattern
 
 if TYPE_CHECKING:
@@ -224,13 +228,13 @@ class NewtonSolver:
     # -- PETSc setup ---------------------------------------------------------------------
     def _make_snes(self) -> None:
         snes = PETSc.SNES().create(self.comm)
-        snes.setOptionsPrefix(self.options.prefix)
-        opts = PETSc.Options(self.options.prefix)  # its names carry the prefix (set and delete)
-        pushed = {**_DEFAULT_PETSC, **self._linear_defaults, **self.options.petsc_options}
-        previous = {k: opts[k] if opts.hasName(k) else None for k in pushed}
-        for k, v in pushed.items():
-            if previous[k] is None or k in self.options.petsc_options:
-                opts[k] = v
+        self.prefix = solver_prefix(
+            self,
+            self.options.prefix,
+            {**_DEFAULT_PETSC, **self._linear_defaults},
+            self.options.petsc_options,
+        )
+        snes.setOptionsPrefix(self.prefix)
         # weak callbacks: the SNES must not keep this solver (and its factorisations) alive
         snes.setFunction(weak_callback(self._residual), self.b)
         snes.setJacobian(weak_callback(self._jacobian), self.A)
@@ -240,9 +244,6 @@ class NewtonSolver:
         # stol = 0: a step shortened to nothing by a step bound must not count as convergence
         snes.setTolerances(stol=0.0, max_it=self.options.max_iterations)
         snes.setFromOptions()
-        for k, v in previous.items():  # leave the global options database as we found it
-            if v is None:
-                opts.delValue(k)
         self.snes = snes
 
     # -- evaluation helpers ----------------------------------------------------------------
