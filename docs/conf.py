@@ -75,6 +75,7 @@ API_MODULES = {
     "diffsolids.simulation": "Simulation and trajectories",
     "diffsolids.solvers": "Newton solver",
     "diffsolids.solvers.factor_store": "Factorisations kept for the adjoint",
+    "diffsolids.solvers.linear_options": "Linear solvers of the Newton steps (LU or multigrid)",
     "diffsolids.contact": "Contact (IPC barrier and friction)",
     "diffsolids.contact.polyfem": "PolyFEM contact parameters",
     "diffsolids.objectives": "Objectives",

@@ -48,7 +48,7 @@ def step_petsc_options(user: dict, prefix: str) -> tuple[dict, str]:
     """The linear-solver defaults for ``user``'s options and the ``pc_type`` they select.
 
     Args:
-        user: The options of :attr:`SolverOptions.petsc_options`.
+        user: The ``petsc_options`` of :class:`~diffsolids.solvers.SolverOptions`.
         prefix: The solver's options prefix (command-line options under it count too).
 
     Returns:
@@ -76,7 +76,7 @@ def solver_prefix(owner: object, base: str, defaults: dict, user: dict) -> str:
         owner: The solver whose lifetime the options share.
         base: The user's prefix (e.g. ``"diffsolids_"``).
         defaults: Options below the command line's.
-        user: Options above it (:attr:`SolverOptions.petsc_options`).
+        user: Options above it (``petsc_options`` of :class:`~diffsolids.solvers.SolverOptions`).
     """
     prefix = f"{base}s{next(_SOLVER_IDS)}_"
     solvers_own = re.compile(rf"{re.escape(base)}s\d+_")
