@@ -16,13 +16,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 import test_gradients_contact as scenes
+import ufl
 from child_process import assert_child_raises
+from gradient_scenes import SCENES, build_model
 from petsc4py import PETSc
 
 import diffsolids as ds
 from diffsolids.adjoint.linear import AdjointSolverOptions
-from diffsolids.controls import FrictionControl, ParameterControl
+from diffsolids.controls import FrictionControl, ParameterControl, ShapeControl
 from diffsolids.errors import ConvergenceError
+from diffsolids.objectives import Integral, final_value
 from diffsolids.reduced_functional import ReducedFunctional
 
 GAMG = {"pc_type": "gamg", "ksp_rtol": 1e-12}
@@ -73,18 +76,56 @@ def test_options_reach_the_solvers_and_leave_the_database(monkeypatch):
     assert not leftovers, leftovers  # removed with the solver
 
 
-def test_gamg_value_and_gradient_equal_lu(monkeypatch):
-    results = []
+def _lu_and_gamg(build) -> list[tuple]:
+    """(J, gradient, adjoint stats, solver) of ``build(petsc_options)`` with LU, then GAMG."""
+    out = []
     for options in ({}, GAMG):
-        rf, contact = _incline(monkeypatch, options)
+        rf = build(options)
         q = rf.initial_parameters()
-        results.append((rf(q), rf.derivative(), dict(rf.adjoint_stats)))
-        assert min(r.num_collisions for r in contact.records) > 0
-    (J_lu, g_lu, _), (J_mg, g_mg, stats) = results
-    assert stats["factorisations"] == 0 and stats["direct_solves"] == 0
-    assert stats["krylov_iterations"] >= 4  # every adjoint solve was a GMRES solve
-    assert abs(J_mg - J_lu) <= 1e-10 * abs(J_lu)
-    assert np.linalg.norm(g_mg - g_lu) <= 1e-8 * np.linalg.norm(g_lu)
+        out.append((rf(q), rf.derivative(), dict(rf.adjoint_stats), rf.simulation.solver))
+    return out
+
+
+def _assert_equal(lu: tuple, mg: tuple) -> None:
+    """Both solved to 1e-12: measured differences up to 1e-15 (value) and 1e-12 (gradient); an
+    adjoint solved to the forward's 1e-8 misses the gradient tolerance by 100x."""
+    assert mg[2]["factorisations"] == 0 and mg[2]["direct_solves"] == 0
+    assert mg[2]["krylov_iterations"] > 0
+    assert abs(mg[0] - lu[0]) <= 1e-12 * abs(lu[0])
+    assert np.linalg.norm(mg[1] - lu[1]) <= 1e-10 * np.linalg.norm(lu[1])
+
+
+def test_gamg_value_and_gradient_equal_lu(monkeypatch):
+    lu, mg = _lu_and_gamg(lambda options: _incline(monkeypatch, options)[0])
+    assert mg[2]["krylov_iterations"] >= 4  # every adjoint solve (4 steps) was a GMRES solve
+    _assert_equal(lu, mg)
+
+
+def test_gamg_static_contact_3d_shape(monkeypatch):
+    def build(options):
+        monkeypatch.setattr(scenes, "NEWTON", ds.SolverOptions(rtol=1e-12, petsc_options=options))
+        model, _, sim, objective = scenes.static_scene(3)
+        return ReducedFunctional(sim, objective, ShapeControl(model, "all"))
+
+    lu, mg = _lu_and_gamg(build)
+    assert len(mg[3].A.getNearNullSpace().getVecs()) == 6  # 3D: three translations, rotations
+    _assert_equal(lu, mg)
+
+
+def test_gamg_linear_elasticity_3d_p2(monkeypatch):
+    """A quadratic potential: the adjoint must not reuse the forward's (1e-8) Krylov solver."""
+
+    def build(options):
+        model = build_model(SCENES["3d-p2-lin-lame"])
+        opts = ds.SolverOptions(rtol=1e-12, petsc_options={**options, "ksp_rtol": 1e-8})
+        sim = ds.Simulation(model, ds.BDF(2, 0.05, 3), opts, v0=[0.0, 0.0, 0.3], progress=False)
+        objective = final_value(Integral(lambda f: ufl.dot(f.u, f.u) * f.dx, "u2"))
+        controls = [ShapeControl(model, "all"), ParameterControl(model, "mu", "bodies")]
+        return ReducedFunctional(sim, objective, controls)
+
+    lu, mg = _lu_and_gamg(build)
+    assert mg[3].quadratic
+    _assert_equal(lu, mg)
 
 
 def test_gamg_gradient_against_finite_differences(monkeypatch):
