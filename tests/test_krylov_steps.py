@@ -4,9 +4,12 @@ The forward with ``petsc_options={"pc_type": "gamg"}`` assembles a scalar (AIJ) 
 rigid body modes as near-null space and solves each Newton system by GMRES; the adjoint then
 solves its systems by GMRES with the same preconditioner on the assembled exact Jacobian (no
 factorisation anywhere). Checked on the incline scene of test_gradients_contact.py (damped
-Neo-Hookean, IPC contact with lagged friction, BDF2): value and gradient equal to the LU ones,
-central differences in a random direction and along the gradient, and the failure of a Krylov
-adjoint solve as a clear error (in this process and in a child process).
+Neo-Hookean, IPC contact with lagged friction, BDF2, 2D), on its static 3D contact scene (shape
+gradient) and on a 3D P2 linear-elastic bar (a quadratic potential, whose LU adjoint reuses the
+forward's factors): values and gradients equal to the LU ones, central differences in a random
+direction and along the gradient, the solver options reaching the multigrid levels and leaving
+the options database, and the failure of a Krylov adjoint solve as a clear error (in this
+process and in a child process).
 """
 
 import gc
