@@ -13,7 +13,10 @@ process and in a child process).
 """
 
 import gc
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -161,3 +164,27 @@ def test_krylov_adjoint_failure_in_a_child_process(tmp_path):
     script = _SCRIPT.format(tests=str(Path(__file__).parent))
     error = "diffsolids.errors.ConvergenceError: adjoint linear solve of step"
     assert_child_raises(script, error, tmp_path)
+
+
+_COMMAND_LINE = """
+import sys
+sys.path.insert(0, {tests!r})
+import test_gradients_contact as scenes
+import diffsolids as ds
+scenes.NEWTON = ds.SolverOptions(rtol=1e-10)
+model, contact, sim, objective = scenes.incline_scene(1, 2, num_steps=1)
+print("line search", sim.solver.snes.getLineSearch().getType())
+sim.run()
+"""
+
+
+def test_command_line_options_reach_the_solver_and_count_as_used(tmp_path):
+    """``-diffsolids_*`` options are copied to the solver's own prefix and read there."""
+    script = _COMMAND_LINE.format(tests=str(Path(__file__).parent))
+    env = {**os.environ, "PETSC_OPTIONS": "-diffsolids_snes_linesearch_type basic"}
+    child = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300
+    )
+    assert child.returncode == 0, child.stderr
+    assert "line search basic" in child.stdout, child.stdout  # above the default (bt)
+    assert "not used" not in child.stderr + child.stdout, child.stderr + child.stdout

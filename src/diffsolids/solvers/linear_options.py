@@ -85,6 +85,9 @@ def solver_prefix(owner: object, base: str, defaults: dict, user: dict) -> str:
         for k, v in PETSc.Options().getAll().items()
         if k.startswith(base) and not solvers_own.match(k)
     }
+    from_base = PETSc.Options(base)
+    for k in given:  # read: the originals are used (PETSc reports unused options at exit)
+        from_base.getString(k, "")
     merged = {**defaults, **given, **user}
     opts = PETSc.Options(prefix)
     for k, v in merged.items():
