@@ -23,7 +23,7 @@ from petsc4py import PETSc
 from diffsolids.errors import ConvergenceError
 from diffsolids.solvers.action import JacobianAction
 from diffsolids.solvers.factor_store import lu_solver
-from diffsolids.solvers.linear_options import FACTORISATIONS, krylov_solver
+from diffsolids.solvers.linear_options import FACTORISATIONS, krylov_solver, reason_name
 
 if TYPE_CHECKING:
     from diffsolids.solvers.newton import NewtonSolver
@@ -176,11 +176,11 @@ class AdjointLinearSolver:
         its = ksp.getIterationNumber()
         self.stats["krylov_iterations"] += its
         if ksp.getConvergedReason() <= 0:
-            pc, reason = self.newton.pc_type, ksp.getConvergedReason()
-            why = {v: k for k, v in vars(PETSc.KSP.ConvergedReason).items() if isinstance(v, int)}
+            pc = self.newton.pc_type
+            why = reason_name(PETSc.KSP.ConvergedReason, ksp.getConvergedReason())
             raise ConvergenceError(
                 f"adjoint linear solve of step {step}: GMRES preconditioned by {pc!r} stopped "
-                f"after {its} iterations ({why.get(reason, reason)}) at relative residual "
+                f"after {its} iterations ({why}) at relative residual "
                 f"{ksp.getResidualNorm() / max(b.norm(), 1e-300):.3g} (tolerance "
                 f"{self.options.rtol:g}); raise AdjointSolverOptions.max_iterative or solve the "
                 "steps with a factorisation (petsc_options pc_type 'lu')"

@@ -19,6 +19,7 @@ __all__ = [
     "FACTORISATIONS",
     "KRYLOV_DEFAULTS",
     "krylov_solver",
+    "reason_name",
     "rigid_body_modes",
     "solver_prefix",
     "step_petsc_options",
@@ -146,3 +147,9 @@ def krylov_solver(comm: MPI.Comm, prefix: str, rtol: float, max_it: int) -> PETS
     ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
     ksp.setTolerances(rtol=rtol, atol=0.0, max_it=max_it)
     return ksp
+
+
+def reason_name(reasons: type, reason: int) -> str | int:
+    """The name of a converged reason (``PETSc.SNES.ConvergedReason``, ``PETSc.KSP...``)."""
+    names = {v: k for k, v in vars(reasons).items() if isinstance(v, int)}
+    return names.get(reason, reason)

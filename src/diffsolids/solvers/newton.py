@@ -25,6 +25,7 @@ from diffsolids.solvers.factor_store import FactorStore
 from diffsolids.solvers.forms import compile_form
 from diffsolids.solvers.inversion import InversionGuard
 from diffsolids.solvers.linear_options import (
+    reason_name,
     rigid_body_modes,
     solver_prefix,
     step_petsc_options,
@@ -838,10 +839,7 @@ class NewtonSolver:
         if keep and self.factor_store is not None:  # the adjoint needs the exact Jacobian's
             self.factor_store.keep(step, self.snes)
         if not converged:
-            names = {
-                v: k for k, v in vars(PETSc.SNES.ConvergedReason).items() if isinstance(v, int)
-            }
-            why = names.get(reason, reason)
+            why = reason_name(PETSc.SNES.ConvergedReason, reason)
             if reason > 0:
                 why = f"{why} with the residual above tolerance (a step bound blocked progress?)"
             raise NewtonConvergenceError(
