@@ -16,19 +16,19 @@ Scenes read from their PolyFEM JSON (``diffsolids.io.polyfem_scene``; data in
   friction_problem``: 100 |c(T) - c_target(T)|^2, target at mu = 0.1) over
   ``--sliding-steps`` of the paper's 40 (default 10, the demo's default; 0 skips it).
 
-Per scene: forward seconds (wall and process CPU: the machine is shared; the objective's
-forward run at the scene's parameters, on a warm JIT cache), Newton iterations, seconds per
-Newton iteration, gradient seconds (the adjoint sweep; its first call, and ``repeat_*``: forward
-and gradient again at a neighbouring q, as in an optimisation, without the sweep's one-time
-set-up; wall and CPU seconds), gradient / forward (wall and CPU), the gradients themselves (to
-compare two versions), the paper's Table 4
-solve and gradient seconds, where the gradient goes (``gradient_phases_s``: the sweep's
-objective partials, linear solves, pushes into earlier steps, parameter partials and the rest;
-its Krylov iterations and factorisations; ``gradient_contact_s``: the contact term's timers in
-the sweep, (wall s, CPU s, calls)), and the top entries of a cProfile of forward + gradient
-(``--profile``; clocked by the thread's CPU time, so work in other threads, e.g. TBB's in
-ipctk, is not in it). The barrier stiffness is ``suggest_barrier_stiffness``'s (``--kappa
-scene``: the scenes' 1e5 as PolyFEM means it).
+Per scene: forward seconds (wall and process CPU: the machine is shared; the objective's forward
+run at the scene's parameters, on a warm JIT cache), Newton iterations, seconds per Newton
+iteration, the Newton matrix's entries (the contact pattern's size), its rebuilds and the Newton
+solves restarted for missing entries, gradient seconds (the adjoint sweep; its first call, and
+``repeat_*``: forward and gradient again at a neighbouring q, as in an optimisation, without the
+sweep's one-time set-up; wall and CPU seconds), gradient / forward (wall and CPU), the gradients
+themselves (to compare two versions), the paper's Table 4 solve and gradient seconds, where the
+gradient goes (``gradient_phases_s``: the sweep's objective partials, linear solves, pushes into
+earlier steps, parameter partials and the rest; its Krylov iterations and factorisations;
+``gradient_contact_s``: the contact term's timers in the sweep, (wall s, CPU s, calls)), and the
+top entries of a cProfile of forward + gradient (``--profile``; clocked by the thread's CPU
+time, so work in other threads, e.g. TBB's in ipctk, is not in it). The barrier stiffness is
+``suggest_barrier_stiffness``'s (``--kappa scene``: the scenes' 1e5 as PolyFEM means it).
 
 Run ``python tests/benchmarks/bench_paper.py [--scenes puzzle kangaroo throw]``. The last line
 printed is a JSON object with the numbers.
@@ -193,6 +193,11 @@ def measure(name: str, args, comm) -> dict:
         "gradient_krylov_iterations": stats.get("krylov_iterations"),
         "gradient_factorisations": stats.get("factorisations"),
         "forward_factors_kept": None if store is None else len(store.factors),
+        # the Newton matrix at the end of the run: its entries (the contact pattern's size),
+        # its rebuilds and the Newton solves restarted for missing entries
+        "matrix_nonzeros": int(sim.solver.A.getInfo()["nz_used"]),
+        "pattern_rebuilds": sim.solver.patterns.rebuilds,
+        "pattern_misses": sim.solver.patterns.misses,
         "gradient_contact_s": {
             k: (round(v["seconds"], 4), round(v["cpu_seconds"], 4), v["calls"])
             for k, v in sorted(timers.items(), key=lambda kv: -kv[1]["seconds"])

@@ -2,10 +2,9 @@
 
 The contact Hessian of a pair of primitives couples all the vertices of its stencil (3D: a
 vertex and a face, or two edges; 2D: a vertex and an edge). The Newton matrix of a step must hold
-the stencils of every pair that can come within dhat during the step. :func:`reach_blocks`
-finds the pairs of primitives whose boxes, each inflated by a margin plus the distance its own
-vertices can travel in the step, overlap at the start of the step, and returns the vertex blocks
-of their stencils (how far a step may move each vertex: :func:`step_motion`). The cost follows
+the stencils of the pairs that are within dhat. :func:`reach_blocks` finds the pairs of
+primitives whose boxes, each inflated by a margin (and optionally by a bound on how far its own
+vertices can travel), overlap, and returns the vertex blocks of their stencils. The cost follows
 the number of such pairs, not the size of the primitives: a coarse obstacle face (metres long)
 couples only to the vertices that are near it.
 
@@ -24,20 +23,14 @@ Hessian entries that other ranks' collisions add; see
 :mod:`diffsolids.contact.partition`).
 """
 
-import itertools
 from collections.abc import Mapping
-from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from diffsolids.contact.surface import CollisionSurface
 from diffsolids.solvers.sparsity import sorted_unique
 
-if TYPE_CHECKING:
-    from diffsolids.simulation import StateHistory
-
-__all__ = ["box_overlaps", "reach_blocks", "step_motion"]
+__all__ = ["box_overlaps", "reach_blocks"]
 
 
 def _size_classes(half: np.ndarray) -> list[tuple[np.ndarray, float]]:
@@ -178,8 +171,8 @@ def reach_blocks(
     faces: np.ndarray,
     body: np.ndarray,
     margin: float,
-    motion: np.ndarray,
-    deformation: np.ndarray,
+    motion: np.ndarray | None = None,
+    deformation: np.ndarray | None = None,
     static: np.ndarray | None = None,
 ) -> np.ndarray:
     """Vertex blocks of the stencils of all pairs of primitives that can meet within a step.
@@ -202,8 +195,9 @@ def reach_blocks(
         faces: (num_faces, 3) surface faces (3D; ignored in 2D).
         body: (num_vertices,) body label of every vertex (a primitive takes the smallest).
         margin: Growth of every box (half the distance within which pairs are wanted).
-        motion: (num_vertices,) bound on each vertex's motion in the step.
-        deformation: (num_vertices,) bound on each vertex's motion relative to its body.
+        motion: (num_vertices,) bound on each vertex's motion in the step (default 0).
+        deformation: (num_vertices,) bound on each vertex's motion relative to its body
+            (default 0).
         static: Optional (num_vertices,) mask of static (fully prescribed) vertices.
 
     Returns:
@@ -220,9 +214,10 @@ def reach_blocks(
     length = np.linalg.norm(X[edges[:, 0]] - X[edges[:, 1]], axis=1)
     half_edge = np.zeros(nv)
     np.maximum.at(half_edge, edges.ravel(), np.repeat(0.5 * length, 2))
+    still = np.zeros(nv)
     grow = {
-        "apart": margin + np.asarray(motion, dtype=float),
-        "together": margin + np.asarray(deformation, dtype=float),
+        "apart": margin + (still if motion is None else np.asarray(motion, dtype=float)),
+        "together": margin + (still if deformation is None else np.asarray(deformation, float)),
     }
 
     def primitives(prims: np.ndarray) -> _Primitives:
@@ -282,43 +277,3 @@ def _neighbours(p: _Primitives, q: _Primitives, a: np.ndarray, b: np.ndarray) ->
     lo_a, hi_a = (c[a] for c in p.rest)
     lo_b, hi_b = (c[b] for c in q.rest)
     return np.all((lo_a <= hi_b) & (lo_b <= hi_a), axis=1)
-
-
-def step_motion(
-    surface: CollisionSurface, num_bodies: int, i: int, traj: "StateHistory", dt: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """How far each collision vertex may move in step ``i`` (collective).
-
-    The last step's displacement p = dt v^{i-1} plus its change c = dt (v^{i-1} - v^{i-2})
-    (from displacements when the trajectory holds no velocities): |p| + |c| is what the
-    vertex travels if its acceleration stays as large, in any direction.
-
-    Args:
-        surface: The collision surface.
-        num_bodies: Number of bodies (``surface.body_index`` ranges over them).
-        i: The step.
-        traj: The trajectory (states u^0..u^{i-1}, velocities if any).
-        dt: Time step of step ``i``.
-
-    Returns:
-        (motion, deformation): per vertex, |p| + |c|, and the same for p and c relative to
-        a translation of the vertex's body (the middle of the body's range of each).
-    """
-    surf = surface
-    if len(traj.v) >= i:  # velocities are displacements per time (static steps too)
-        steps = [dt * surf.gather(traj.v[j]) for j in range(i - 1, max(i - 3, -1), -1)]
-    else:
-        states = [surf.gather(traj.u[j]) for j in range(i - 1, max(i - 4, -1), -1)]
-        steps = [a - b for a, b in itertools.pairwise(states)]
-    nv, nb = surf.num_vertices, num_bodies
-    moves = [steps[0], steps[0] - steps[1]] if len(steps) > 1 else steps
-    motion, deformation = np.zeros(nv), np.zeros(nv)
-    for d in moves:
-        lo = np.full((nb, surf.dim), np.inf)
-        hi = np.full((nb, surf.dim), -np.inf)
-        np.minimum.at(lo, surf.body_index, d)
-        np.maximum.at(hi, surf.body_index, d)
-        translation = 0.5 * (lo + hi)[surf.body_index]
-        motion += np.linalg.norm(d, axis=1)
-        deformation += np.linalg.norm(d - translation, axis=1)
-    return motion, deformation

@@ -70,7 +70,6 @@ from diffsolids.contact.obstacle_moves import ObstacleMoves
 from diffsolids.contact.partition import CollisionPartition
 from diffsolids.contact.pattern import ContactPattern
 from diffsolids.contact.potential import ContactPotential, projection_method
-from diffsolids.contact.reach import step_motion
 from diffsolids.contact.step_bound import (  # noqa: F401  (test_soft_barrier imports them here)
     _CCD_REACH,
     _GAP_FLOOR_ULPS,
@@ -303,8 +302,6 @@ class ContactTerm(NumericTerm):
         hist = [surf.gather(traj.u[i - j]) + obstacle[j] for j in range(1, m + 1)]
         beta_dt = coeffs.beta_dt
         v_offset = sum(a * U for a, U in zip(coeffs.alpha, hist, strict=True)) / beta_dt
-        # how far each collision vertex may move in the step
-        motion, deformation = step_motion(surf, len(self.body_ids), i, traj, coeffs.dt)
         self._step = {
             "index": i,
             "alpha": tuple(coeffs.alpha),
@@ -312,8 +309,6 @@ class ContactTerm(NumericTerm):
             "history": hist,
             "v_offset": v_offset,
             "lagged": hist[0],
-            "motion": motion,
-            "deformation": deformation,
             "obstacle": obstacle[0],
             "blocked": False,
         }
