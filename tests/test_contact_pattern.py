@@ -189,8 +189,8 @@ def test_coarse_obstacle_pattern_follows_the_pairs_within_reach(monkeypatch):
 def test_spinning_body_adds_no_contact_entries():
     """A body spinning alone (its rim moves 0.04 m, 40 dhat and more than an edge, per step)
     keeps the finite-element pattern: no pair of its surface comes within 2 dhat. (Boxes grown
-    by each vertex's motion relative to the body's translation, the old reach, held 1 in 3
-    of its surface vertex pairs.)"""
+    by each vertex's motion relative to the body's translation, the old reach, held far pairs
+    of its surface.)"""
     square = simplex_box([[-0.1, -0.1], [0.1, 0.1]], [8, 8])
     model = ds.Model(combine_meshes(COMM, [square]), ds.NeoHookean(E=1e5, nu=0.3, density=1000.0))
     contact = ContactTerm(model, dhat=DHAT, stiffness=1e3)
@@ -205,19 +205,12 @@ def test_spinning_body_adds_no_contact_entries():
         progress=False,
     )
     traj = sim.run()
-    surf = contact.surface
-    rim = np.linalg.norm(surf.gather(traj.u[-1] - traj.u[-2]), axis=1).max()
+    rim = np.linalg.norm(contact.surface.gather(traj.u[-1] - traj.u[-2]), axis=1).max()
     assert rim > 40 * DHAT
-    bc = model.dirichlet_dofs()
-    u = fem.Function(model.V)
-    u.x.array[:] = traj.u[-1]
-    contact.begin_step(integ.num_steps, traj, integ.coefficients(integ.num_steps))
-    pairs = _vertex_pairs(contact, *contact.matrix_pattern(u, bc))
-    fe = {(a, a) for a in range(surf.num_vertices)}
-    for a, b in surf.edges.tolist():
-        fe |= {(a, b), (b, a)}
-    assert set(map(tuple, pairs.tolist())) <= fe
-    assert sim.solver.patterns.rebuilds <= 1
+    assert all(r.num_collisions == 0 for r in contact.records)
+    fe = sim.solver.create_matrix()
+    assert sim.solver.A.getInfo()["nz_allocated"] == fe.getInfo()["nz_allocated"] > 0
+    assert sim.solver.patterns.rebuilds == 0
 
 
 def _all_pairs(x, *args, **kwargs):

@@ -49,7 +49,8 @@ class ContactPattern:
         share outside it.
 
         The step's :meth:`reach` itself (the same array) while it holds them all, so that the
-        matrix pattern stays the same object and the solver's check is free.
+        matrix pattern stays the same object and the solver's check is free; in a backward
+        sweep (a step begun on a whole trajectory) the union of the Hessians' blocks only.
         """
         if ev.blocks is None:
             parts = [self.potential.hessian(ev)]
@@ -67,7 +68,9 @@ class ContactPattern:
             if surf.static is not None:  # blocks of static vertices have no matrix entries
                 a, b = np.divmod(needed, surf.num_vertices)
                 needed = needed[~(surf.static[a] | surf.static[b])]
-            reach = self.reach(step)
+            # a backward sweep assembles one matrix per step: the Hessians' blocks suffice
+            # (the reach cost 0.14 s of the 0.22 s pattern check per step at 44 811 dofs)
+            reach = self.reach(step) if step["forward"] else np.zeros(0, dtype=np.int64)
             # other ranks add their Hessians' entries to the rows this rank owns: the union
             outside = self.partition.union(needed[~_contains(reach, needed)])
             ev.blocks = reach if len(outside) == 0 else sorted_unique(reach, outside)

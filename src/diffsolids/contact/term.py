@@ -317,6 +317,7 @@ class ContactTerm(NumericTerm):
         self.lagging.begin_step(self._step)
         self.builder.segment = None
         forward = len(traj.u) == i
+        self._step["forward"] = forward
         if forward and (self._forward_step is None or i != self._forward_step + 1):
             self.records = []
             self.obstacle_moves.moved_with_guess = []
