@@ -302,8 +302,10 @@ class ContactTerm(NumericTerm):
         hist = [surf.gather(traj.u[i - j]) + obstacle[j] for j in range(1, m + 1)]
         beta_dt = coeffs.beta_dt
         v_offset = sum(a * U for a, U in zip(coeffs.alpha, hist, strict=True)) / beta_dt
+        forward = len(traj.u) == i  # else a backward sweep's step
         self._step = {
             "index": i,
+            "forward": forward,
             "alpha": tuple(coeffs.alpha),
             "beta_dt": beta_dt,
             "history": hist,
@@ -316,8 +318,6 @@ class ContactTerm(NumericTerm):
         self._eval = None
         self.lagging.begin_step(self._step)
         self.builder.segment = None
-        forward = len(traj.u) == i
-        self._step["forward"] = forward
         if forward and (self._forward_step is None or i != self._forward_step + 1):
             self.records = []
             self.obstacle_moves.moved_with_guess = []

@@ -136,13 +136,13 @@ def krylov_solver(comm: MPI.Comm, prefix: str, rtol: float, max_it: int) -> PETS
         comm: The communicator.
         prefix: Options prefix of the KSP.
         rtol: Relative tolerance on ||b - A x|| / ||b||.
-        max_it: Iteration limit (restart every 200 iterations).
+        max_it: Iteration limit (restart as in :data:`KRYLOV_DEFAULTS`).
     """
     ksp = PETSc.KSP().create(comm)
     ksp.setOptionsPrefix(prefix)
     ksp.setFromOptions()
     ksp.setType("gmres")
-    ksp.setGMRESRestart(200)
+    ksp.setGMRESRestart(KRYLOV_DEFAULTS["ksp_gmres_restart"])
     ksp.setPCSide(PETSc.PC.Side.RIGHT)
     ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
     ksp.setTolerances(rtol=rtol, atol=0.0, max_it=max_it)
