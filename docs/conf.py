@@ -20,7 +20,7 @@ import diffsolids  # noqa: E402  (loads the MPI of the DOLFINx wheel before dolf
 project = "diffsolids"
 author = "the diffsolids authors"
 copyright = "2026, the diffsolids authors"
-release = "0.1.0"
+release = "0.2.0"
 
 extensions = [
     "myst_parser",
@@ -78,6 +78,7 @@ API_MODULES = {
     "diffsolids.solvers.linear_options": "Linear solvers of the Newton steps (LU or multigrid)",
     "diffsolids.contact": "Contact (IPC barrier and friction)",
     "diffsolids.contact.polyfem": "PolyFEM contact parameters",
+    "diffsolids.contact.flat": "Flat regions of obstacles (convergent formulation)",
     "diffsolids.objectives": "Objectives",
     "diffsolids.controls": "Controls",
     "diffsolids.controls.maps": "Parameter maps",

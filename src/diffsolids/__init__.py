@@ -69,6 +69,7 @@ from diffsolids.verification import (
     DifferentiableFunctional,
     check_reproducible,
     finite_difference_check,
+    line_scan,
     taylor_test,
 )
 
@@ -120,6 +121,7 @@ __all__ = [
     "errors",
     "final_value",
     "finite_difference_check",
+    "line_scan",
     "minimize",
     "read_mesh",
     "select_facets",

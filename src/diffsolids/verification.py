@@ -1,4 +1,4 @@
-"""Gradient verification: Taylor tests, central finite differences, reproducibility.
+"""Gradient verification: Taylor tests, central finite differences, reproducibility, scans.
 
 Usable from pytest and from users' scripts; every function returns a result object with a
 readable report (``print(result)``).
@@ -18,9 +18,11 @@ if TYPE_CHECKING:
 __all__ = [
     "DifferentiableFunctional",
     "FiniteDifferenceResult",
+    "LineScan",
     "TaylorResult",
     "check_reproducible",
     "finite_difference_check",
+    "line_scan",
     "taylor_test",
 ]
 
@@ -246,3 +248,81 @@ def check_reproducible(rf: "ReducedFunctional", q: npt.ArrayLike) -> float:
     if J1 != J2:
         raise AssertionError(f"forward runs are not reproducible: J = {J1!r} then {J2!r}")
     return J1
+
+
+@dataclass
+class LineScan:
+    """J on points q + t dq of a line: is J a smooth function there?
+
+    A jump is a sample off the mean of its two neighbours by more than ``threshold`` times the
+    range of J over the scan (a smooth J sampled densely is off by its second difference, far
+    less). Jumps show a forward that lands on different states for nearby parameters; a
+    gradient is then no use to an optimiser or a finite-difference check.
+
+    Attributes:
+        offsets: The t values (sorted, equally spaced).
+        values: J at each point.
+        threshold: The jump threshold, a fraction of the range of J.
+    """
+
+    offsets: np.ndarray
+    values: np.ndarray
+    threshold: float = 0.05
+
+    @property
+    def value_range(self) -> float:
+        """The largest J minus the smallest over the scan."""
+        return float(self.values.max() - self.values.min())
+
+    @property
+    def deviations(self) -> np.ndarray:
+        """|J_k - (J_{k-1} + J_{k+1}) / 2| / range of J, for the interior samples."""
+        J = self.values
+        scale = self.value_range if self.value_range > 0 else 1.0
+        return np.abs(J[1:-1] - 0.5 * (J[:-2] + J[2:])) / scale
+
+    @property
+    def jumps(self) -> np.ndarray:
+        """Indices (into ``offsets``) of the samples that jump."""
+        return 1 + np.flatnonzero(self.deviations > self.threshold)
+
+    def __str__(self) -> str:
+        dev = self.deviations
+        worst = float(dev.max()) if len(dev) else 0.0
+        return (
+            f"J on {len(self.values)} points, range {self.value_range:.6e}: "
+            f"{len(self.jumps)} jumps (> {self.threshold:g} of the range), "
+            f"worst deviation {worst:.3e} of the range"
+        )
+
+
+def line_scan(
+    rf: DifferentiableFunctional,
+    q: npt.ArrayLike,
+    dq: npt.ArrayLike,
+    radius: float,
+    num: int = 41,
+    threshold: float = 0.05,
+) -> LineScan:
+    """Evaluate J at ``num`` equally spaced points q + t dq, t in [-radius, radius].
+
+    Each point is evaluated from scratch, in order; J must not depend on the order (the
+    forward is a function of q alone). The parameters of a ReducedFunctional are restored
+    to ``q`` afterwards.
+
+    Args:
+        rf: Callable J(q).
+        q: Centre of the line.
+        dq: Direction.
+        radius: Half length of the line, in units of dq.
+        num: Number of points (at least 3).
+        threshold: Jump threshold, a fraction of the range of J (:class:`LineScan`).
+    """
+    if num < 3 or not radius > 0:
+        raise ValueError(f"line_scan: need num >= 3 and radius > 0, got {num} and {radius}")
+    q = np.asarray(q, dtype=float)
+    dq = np.asarray(dq, dtype=float)
+    offsets = np.linspace(-radius, radius, num)
+    with _parameters_restored(rf, q):
+        values = np.array([rf(q + t * dq) for t in offsets], dtype=float)
+    return LineScan(offsets, values, threshold)

@@ -13,8 +13,45 @@ import numpy as np
 from diffsolids.contact.partition import CollisionPartition
 from diffsolids.contact.step_bound import _CCD_REACH
 from diffsolids.contact.surface import CollisionSurface
+from diffsolids.errors import ParameterError
 
-__all__ = ["CollisionBuilder"]
+__all__ = ["FORMULATIONS", "CollisionBuilder", "new_collision_set"]
+
+#: The barrier formulations of :class:`~diffsolids.contact.ContactTerm` (``formulation``).
+FORMULATIONS = ("convergent", "ipc")
+
+
+def new_collision_set(
+    formulation: str, area_weighting: bool, shape_derivatives: bool = False
+) -> ipctk.NormalCollisions:
+    """An empty ipctk collision set of a formulation, to be built.
+
+    Args:
+        formulation: "convergent": the improved max approximation of Li et al. 2023 (ipctk's
+            ``IMPROVED_MAX_APPROX``; area weighting required), whose face, edge and vertex
+            terms add up to one barrier of the distance to a flat or smooth surface whatever
+            its triangulation; "ipc": one term per closest primitive pair (the IPC paper's).
+        area_weighting: Weight each collision by its surface area.
+        shape_derivatives: Keep the weights' gradients w.r.t. the rest positions.
+
+    Raises:
+        ParameterError: An unknown formulation, or "convergent" without area weighting.
+    """
+    if formulation not in FORMULATIONS:
+        raise ParameterError(
+            f"contact formulation {formulation!r}: expected one of {', '.join(FORMULATIONS)}"
+        )
+    if formulation == "convergent" and not area_weighting:
+        raise ParameterError(
+            "contact formulation 'convergent' needs area_weighting=True (its terms cancel by "
+            "their area weights); use formulation='ipc' without area weights"
+        )
+    C = ipctk.NormalCollisions()
+    C.use_area_weighting = area_weighting
+    kinds = ipctk.NormalCollisions.CollisionSetType
+    C.collision_set_type = kinds.IMPROVED_MAX_APPROX if formulation == "convergent" else kinds.IPC
+    C.enable_shape_derivatives = shape_derivatives
+    return C
 
 
 class CollisionBuilder:
@@ -26,6 +63,7 @@ class CollisionBuilder:
         partition: Which collisions this rank keeps.
         dhat: Barrier activation distance.
         area_weighting: Weight each collision by its surface area.
+        formulation: One of ``FORMULATIONS`` (:func:`new_collision_set`).
 
     Attributes:
         segment: (U0, dU, candidates, token) of the last CCD step (``ContactTerm.max_step``),
@@ -40,7 +78,10 @@ class CollisionBuilder:
         partition: CollisionPartition,
         dhat: float,
         area_weighting: bool,
+        formulation: str = "ipc",
     ) -> None:
+        new_collision_set(formulation, area_weighting)  # refuses a bad pair here
+        self.formulation = formulation
         self.surface = surface
         self.broad_phase = broad_phase
         self.partition = partition
@@ -64,14 +105,31 @@ class CollisionBuilder:
             for mesh, static, xc, C in self._shape_builds:
                 if mesh is surf.mesh and static is surf.static and np.array_equal(xc, x):
                     return C
-        C = ipctk.NormalCollisions()
-        C.use_area_weighting = self.area_weighting
-        C.enable_shape_derivatives = shape_derivatives
-        C.build(surf.mesh, np.asfortranarray(x), self.dhat, 0.0, self.broad_phase)
+        C = self.whole_set(x, shape_derivatives)
         self.partition.keep_share(C)
         if shape_derivatives:
             self._shape_builds = [(surf.mesh, surf.static, np.array(x), C), *self._shape_builds[:1]]
         return C
+
+    def whole_set(self, x: np.ndarray, shape_derivatives: bool = False) -> ipctk.NormalCollisions:
+        """The whole collision set at positions x (the same on every rank)."""
+        C = new_collision_set(self.formulation, self.area_weighting, shape_derivatives)
+        candidates = ipctk.Candidates()
+        x = np.asfortranarray(x)
+        candidates.build(self.surface.mesh, x, 0.5 * self.dhat, self.broad_phase)
+        self._build(C, candidates, x)
+        return C
+
+    def _build(
+        self, C: ipctk.NormalCollisions, candidates: ipctk.Candidates, x: np.ndarray
+    ) -> None:
+        """Build C from the candidates, flat obstacle regions treated as planes (convergent)."""
+        flat = self.surface.flat if self.formulation == "convergent" else None
+        if flat:
+            candidates = flat.filter(candidates)
+        C.build(candidates, self.surface.mesh, x, self.dhat, 0.0)
+        if flat:
+            flat.correct(C, self.surface.mesh)
 
     def build_on_segment(self, U: np.ndarray, x: np.ndarray, token: int) -> ipctk.NormalCollisions:
         """Collision set at x, reusing the CCD candidates when x lies on the last checked step.
@@ -89,8 +147,7 @@ class CollisionBuilder:
                 t = float(np.vdot(diff, dU) / np.vdot(dU, dU))
                 tol = 1e-10 * (np.abs(U0).max() + np.abs(dU).max())
                 if -1e-12 <= t <= _CCD_REACH and np.abs(diff - t * dU).max() <= tol:
-                    C = ipctk.NormalCollisions()
-                    C.use_area_weighting = self.area_weighting
-                    C.build(candidates, self.surface.mesh, np.asfortranarray(x), self.dhat, 0.0)
+                    C = new_collision_set(self.formulation, self.area_weighting)
+                    self._build(C, candidates, np.asfortranarray(x))
                     return self.partition.keep_share(C)
         return self.build(x)

@@ -186,10 +186,9 @@ def _ee_terms(
     if not len(pairs):
         return None
     dtype = np.array([ee[k].dtype.value for k in pairs.index], dtype=np.int64)
-    if collisions.use_area_weighting:  # normal_collisions_builder.cpp: 1/4 of both edge areas
-        w = 0.25 * np.asarray(mesh.edge_areas()).ravel()[pairs.edge_ids].sum(axis=1)
-    else:
-        w = np.ones(len(pairs))
+    # the pair's own weight: area weights, merged duplicates and the convergent formulation's
+    # negative edge-edge terms
+    w = np.array([ee[k].weight for k in pairs.index], dtype=float)
     xp, xr, eps, s = pairs.positions, pairs.rest, pairs.eps, pairs.s
     d, grad_d = _edge_edge_distance(xp, dtype)
     b, db = _barrier(barrier.barrier, d, barrier.dhat**2)

@@ -82,12 +82,10 @@ def suggest_barrier_stiffness(
     grad_energy = surf.gather(vec.array).ravel()
     x = np.asfortranarray(surf.rest_positions + surf.gather(u.x.array))
     unit = ipctk.BarrierPotential(contact.dhat, 1.0)
-    C = ipctk.NormalCollisions()
-    C.use_area_weighting = contact.area_weighting
-    C.build(surf.mesh, x, contact.dhat, 0.0, ipctk.LBVH())
+    C = contact.builder.whole_set(x)
     grad_barrier = unit.gradient(C, surf.mesh, x)
-    if contact.area_weighting:
-        weights = surf.mesh.vertex_areas
+    if contact.area_weighting:  # the bodies' vertices: an obstacle's triangulation is no scale
+        weights = surf.mesh.vertex_areas[: surf.num_body_vertices]
         nodal /= float(np.mean(weights)) if len(weights) else 1.0
     lo, hi = surf.rest_positions.min(axis=0), surf.rest_positions.max(axis=0)
     kappa, _ = ipctk.initial_barrier_stiffness(

@@ -45,6 +45,7 @@ from mpi4py import MPI
 from mpi4py.util import dtlib
 from petsc4py import PETSc
 
+from diffsolids.contact.flat import FlatRegions, flat_edge_mask, flat_vertex_mask
 from diffsolids.contact.obstacle import Obstacle
 from diffsolids.contact.subdivision import (
     local_node_keys,
@@ -286,6 +287,7 @@ class CollisionSurface:
         first = max(self.body_ids, default=0) + 1
         self.obstacle_ids = list(range(first, first + len(self.obstacles)))
         self.obstacle_offsets = np.cumsum([nb] + [o.num_vertices for o in self.obstacles])
+        self.flat = FlatRegions(self.dim, np.zeros(0), np.zeros(0))
         if not self.obstacles:
             return
         for o in self.obstacles:
@@ -297,6 +299,7 @@ class CollisionSurface:
         self.rest_positions = np.ascontiguousarray(np.concatenate(rest), dtype=float)
         self._obstacle_rest = self.rest_positions[nb:].copy()
         pairs = list(zip(self.obstacles, offsets[:-1], self.obstacle_ids, strict=True))
+        self.flat = self._flat_regions(offsets)
         self.edges = np.ascontiguousarray(
             np.concatenate([self.edges] + [o.edges + k for o, k, _ in pairs]), dtype=np.int32
         )
@@ -313,6 +316,20 @@ class CollisionSurface:
         self.num_vertices = int(offsets[-1])
         self.body_ids = self.body_ids + self.obstacle_ids
         self.body_index = np.searchsorted(self.body_ids, self.body)
+
+    def _flat_regions(self, offsets: np.ndarray) -> FlatRegions:
+        """The flat edges and vertices of the fixed obstacles (global indices)."""
+        edge_start = np.cumsum([len(self.edges)] + [len(o.edges) for o in self.obstacles])
+        edges, vertices = [np.zeros(0, dtype=np.int64)], [np.zeros(0, dtype=np.int64)]
+        for o, e0, v0 in zip(self.obstacles, edge_start[:-1], offsets[:-1], strict=True):
+            if o.moving:
+                continue
+            X = o.rest_positions
+            fe = flat_edge_mask(X, o.faces, o.edges) if self.dim == 3 else None
+            if fe is not None:
+                edges.append(e0 + np.flatnonzero(fe))
+            vertices.append(v0 + np.flatnonzero(flat_vertex_mask(X, o.edges, fe)))
+        return FlatRegions(self.dim, np.concatenate(edges), np.concatenate(vertices))
 
     def obstacle_displacement(self, t: float) -> np.ndarray:
         """(num_vertices, dim) displacements with the obstacles' at time ``t`` (zero body rows).

@@ -126,10 +126,21 @@ class ContactTerm(NumericTerm):
             its edge and face nodes, so the simulated boundary never intersects) or "vertices"
             (the facets between the mesh vertices only; a curved boundary may pass through
             another body between vertices). Both are the same for P1.
+        formulation: "ipc" (default): one barrier term per closest primitive pair, as in the
+            IPC paper and PolyFEM's default. "convergent" (needs ``area_weighting``): the
+            improved max approximation of the collision set (Li et al. 2023, ipctk's
+            ``IMPROVED_MAX_APPROX``, PolyFEM's ``use_convergent_formulation``), whose terms sum
+            to one barrier of the distance to a flat or smooth surface whatever its
+            triangulation, with the flat regions of fixed obstacles acting through the bodies'
+            vertices only (:mod:`~diffsolids.contact.flat`). With "ipc" a body resting on two
+            coplanar triangles is pushed off their shared edge (a barrier ridge along it), so a
+            symmetric landing becomes one of two mirror states chosen by round-off; use
+            "convergent" for bodies on triangulated flat grounds.
 
     Raises:
         ParameterError: Non-positive dhat, stiffness or eps_v, negative friction, unknown body,
-            an obstacle that is not an Obstacle or whose name is taken.
+            an obstacle that is not an Obstacle or whose name is taken, an unknown
+            formulation, or "convergent" without area weights.
         MeshError: An obstacle of the wrong dimension.
     """
 
@@ -154,6 +165,7 @@ class ContactTerm(NumericTerm):
         obstacles: Sequence[Obstacle] = (),
         hessian_projection: str = "clamp",
         boundary: str = "nodes",
+        formulation: str = "ipc",
     ) -> None:
         checked = (("dhat", dhat), ("stiffness", stiffness), ("eps_v", eps_v))
         for label, value in checked:
@@ -189,7 +201,12 @@ class ContactTerm(NumericTerm):
         self.broad_phase = ipctk.LBVH()
         self.partition = CollisionPartition(self.comm)
         self.builder = CollisionBuilder(
-            self.surface, self.broad_phase, self.partition, self.dhat, self.area_weighting
+            self.surface,
+            self.broad_phase,
+            self.partition,
+            self.dhat,
+            self.area_weighting,
+            formulation,
         )
         if narrow_phase == "additive":
             ccd = ipctk.AdditiveCCD()

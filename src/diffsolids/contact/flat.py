@@ -1,0 +1,172 @@
+"""Flat regions of fixed obstacles: contact with a plane, whatever its triangulation.
+
+An edge between two coplanar faces (3D), or a vertex between two collinear segments (2D) or
+inside such faces (3D), is no geometric feature: near it the distance to the obstacle is the
+distance to its plane. In the convergent formulation (ipctk's improved max approximation,
+Li et al. 2023) the face, edge and vertex terms of a body vertex add up to one barrier of
+that distance, but two kinds of term still see the triangulation:
+
+- edge-edge pairs with an edge inside the plane (the distance between two crossing edges
+  does not change as one slides along the other: a barrier ridge along the edge, which pushes
+  a body resting over it sideways, so that round-off chooses between two mirror states);
+- the obstacle's side of the two-sided quadrature: an obstacle vertex inside the plane under
+  a body carries a barrier term weighted by its own vertex area (large for a coarse ground),
+  so the force depends on where the obstacle has vertices.
+
+:class:`FlatRegions` removes both: the candidates of those edge-edge pairs and of the flat
+vertices against the bodies' faces (edges in 2D) are dropped before the build, and the
+flat vertex's share of the vertex-vertex terms the improved max approximation adds is taken
+out after it. The plane then acts through the bodies' vertices only (one-sided), as a plane
+of one triangle does.
+"""
+
+import ipctk
+import numpy as np
+
+__all__ = ["FlatRegions", "flat_edge_mask", "flat_vertex_mask"]
+
+_COPLANAR = 1e-10  # 1 - cos of the angle between the normals (or segments) of a flat joint
+
+
+def _edge_rows(edges: np.ndarray, pairs: np.ndarray, n: int) -> np.ndarray:
+    """Row of ``edges`` (sorted rows) holding each sorted vertex pair of ``pairs``."""
+    key = edges[:, 0].astype(np.int64) * (n + 1) + edges[:, 1]
+    order = np.argsort(key)
+    wanted = pairs[:, 0].astype(np.int64) * (n + 1) + pairs[:, 1]
+    return order[np.searchsorted(key, wanted, sorter=order)]
+
+
+def flat_edge_mask(vertices: np.ndarray, faces: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Which edges of a triangle surface lie inside a plane of it.
+
+    Args:
+        vertices: (n, 3) coordinates.
+        faces: (m, 3) triangles.
+        edges: (k, 2) the faces' edges, each row sorted.
+
+    Returns:
+        Boolean mask over ``edges``: two faces, coplanar and alike oriented.
+    """
+    X = np.asarray(vertices, dtype=float)
+    normal = np.cross(X[faces[:, 1]] - X[faces[:, 0]], X[faces[:, 2]] - X[faces[:, 0]])
+    normal /= np.linalg.norm(normal, axis=1)[:, None]
+    pairs = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    row = _edge_rows(edges, pairs, len(X))
+    face = np.repeat(np.arange(len(faces)), 3)
+    count = np.bincount(row, minlength=len(edges))
+    first = np.zeros(len(edges), dtype=np.int64)
+    first[row[::-1]] = face[::-1]
+    last = np.zeros(len(edges), dtype=np.int64)
+    last[row] = face
+    flat = count == 2
+    cos = np.einsum("ij,ij->i", normal[first[flat]], normal[last[flat]])
+    flat[flat] = cos >= 1.0 - _COPLANAR
+    return flat
+
+
+def flat_vertex_mask(
+    vertices: np.ndarray, edges: np.ndarray, flat_edges: np.ndarray | None
+) -> np.ndarray:
+    """Which vertices lie inside a plane (3D) or a straight run of segments (2D).
+
+    Args:
+        vertices: (n, dim) coordinates.
+        edges: (k, 2) edges (3D: sorted rows) or directed segments (2D).
+        flat_edges: 3D: the mask of :func:`flat_edge_mask`; 2D: None.
+
+    Returns:
+        Boolean mask over the vertices. 3D: every incident edge is flat. 2D: two segments,
+        one ending and one starting at the vertex, in the same direction.
+    """
+    n = len(vertices)
+    if flat_edges is not None:
+        incident = np.bincount(edges.ravel(), minlength=n)
+        flat = np.bincount(edges[flat_edges].ravel(), minlength=n)
+        return (incident > 0) & (flat == incident)
+    X = np.asarray(vertices, dtype=float)
+    ends = np.bincount(edges[:, 1], minlength=n)
+    starts = np.bincount(edges[:, 0], minlength=n)
+    joint = (ends == 1) & (starts == 1)
+    incoming = np.zeros((n, X.shape[1]))
+    outgoing = np.zeros((n, X.shape[1]))
+    d = X[edges[:, 1]] - X[edges[:, 0]]
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    incoming[edges[:, 1]] = d
+    outgoing[edges[:, 0]] = d
+    return joint & (np.einsum("ij,ij->i", incoming, outgoing) >= 1.0 - _COPLANAR)
+
+
+class FlatRegions:
+    """The flat edges and vertices of a collision mesh's fixed obstacles, by global index.
+
+    Args:
+        dim: 2 or 3.
+        edges: Global indices of flat edges (3D; empty in 2D).
+        vertices: Global indices of flat vertices.
+    """
+
+    def __init__(self, dim: int, edges: np.ndarray, vertices: np.ndarray) -> None:
+        self.dim = dim
+        self.edges = np.asarray(edges, dtype=np.int64)
+        self.vertices = np.asarray(vertices, dtype=np.int64)
+
+    def __bool__(self) -> bool:
+        return bool(len(self.edges) or len(self.vertices))
+
+    def filter(self, candidates: ipctk.Candidates) -> ipctk.Candidates:
+        """Drop the edge-edge candidates with a flat edge and the flat vertices' candidates.
+
+        A flat vertex's candidates are those against the bodies' faces (3D) or edges (2D):
+        the obstacle's side of the quadrature inside its plane.
+        """
+        if len(self.edges) and candidates.ee_candidates:
+            ee = candidates.ee_candidates
+            ids = np.array([(c.edge0_id, c.edge1_id) for c in ee], dtype=np.int64)
+            keep = ~np.isin(ids, self.edges).any(axis=1)
+            if not keep.all():
+                candidates.ee_candidates = [c for c, k in zip(ee, keep, strict=True) if k]
+        if not len(self.vertices):
+            return candidates
+        if self.dim == 3 and candidates.fv_candidates:
+            fv = candidates.fv_candidates
+            keep = ~np.isin(np.array([c.vertex_id for c in fv], dtype=np.int64), self.vertices)
+            if not keep.all():
+                candidates.fv_candidates = [c for c, k in zip(fv, keep, strict=True) if k]
+        if self.dim == 2 and candidates.ev_candidates:
+            ev = candidates.ev_candidates
+            keep = ~np.isin(np.array([c.vertex_id for c in ev], dtype=np.int64), self.vertices)
+            if not keep.all():
+                candidates.ev_candidates = [c for c, k in zip(ev, keep, strict=True) if k]
+        return candidates
+
+    def correct(self, collisions: ipctk.NormalCollisions, mesh: ipctk.CollisionMesh) -> None:
+        """Take the flat vertices' share out of the improved max approximation's vertex pairs.
+
+        ``normal_collisions_builder.cpp`` adds to a vertex pair (v, p) the share of each side:
+        3D (positive terms) 1/4 of the vertex area of the other side's vertex unless that one
+        is on an open boundary; 2D (negative terms) (1 - n) / 2 of it, n the number of edges
+        at the other vertex when above 1. The share of a flat vertex p is removed.
+        """
+        if not len(self.vertices) or not collisions.vv_collisions:
+            return
+        vv = collisions.vv_collisions
+        ids = np.array([(c.vertex0_id, c.vertex1_id) for c in vv], dtype=np.int64)
+        flat = np.isin(ids, self.vertices)
+        rows = np.flatnonzero(flat.any(axis=1))
+        if not len(rows):
+            return
+        areas = np.asarray(mesh.vertex_areas).ravel()
+        adjacency = mesh.vertex_vertex_adjacencies
+        for k in rows:  # the pairs at a flat vertex: a few per body vertex near one
+            c = vv[k]
+            for side in (0, 1):
+                if not flat[k, side]:
+                    continue
+                p, v = ids[k, side], ids[k, 1 - side]
+                if self.dim == 3:
+                    share = 0.0 if mesh.is_vertex_on_boundary(v) else 0.25 * areas[p]
+                else:
+                    n = len(adjacency[v])
+                    share = (1 - n) * 0.5 * areas[p] if n > 1 else 0.0
+                c.weight = c.weight - share
+        collisions.vv_collisions = vv

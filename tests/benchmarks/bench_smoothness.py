@@ -1,0 +1,157 @@
+"""Smoothness benchmark: is the contact forward a smooth function of its parameters?
+
+Per scene (``tests/smoothness_scenes.py``; the paper's sliding bunny and throw when the data is
+present), with the default solver options: J on ``--points`` points of a line through q0
+(a random unit direction), the number of jumps (a sample off its neighbours' mean by more
+than 5% of J's range, ``diffsolids.line_scan``) and the worst deviation, the central
+differences of the gradient at three step sizes along the random direction and along the
+gradient (relative errors), and the Newton iterations per contact step of the run at q0 (max
+and mean over the steps with contact pairs). For the drop: J and the final state on grounds
+of 1, 2 and 4 coplanar triangles (their largest difference).
+
+Run ``python tests/benchmarks/bench_smoothness.py [--scenes drop slide] [--points 41]``. The
+last line printed is a JSON object with the numbers. PolyFEM's Newton iterations per step
+(the paper's Table 4) for comparison: puzzle 4.6, kangaroo 4.5, throw 15.3, sliding bunny 70.
+"""
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+TESTS = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(TESTS))
+DATA = Path(os.environ.get("DIFFSOLIDS_DATA", TESTS.parents[1] / "shared" / "data")) / "diffipc"
+
+
+def _parse(argv):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument(
+        "--scenes",
+        nargs="+",
+        default=["drop", "drop_2d", "slide", "sliding_bunny", "throw"],
+        help="scenes to scan",
+    )
+    p.add_argument("--points", type=int, default=41, help="points of each line scan")
+    p.add_argument("--bunny-steps", type=int, default=5, help="steps of the sliding bunny")
+    p.add_argument("--throw-steps", type=int, default=3, help="steps of the throw")
+    return p.parse_args(argv)
+
+
+def paper_scene(name: str, args):
+    """The sliding bunny (log mu) or the throw (v0) as a smoothness Scene, or None."""
+    from demo_modules import load_demo
+    from mpi4py import MPI
+    from smoothness_scenes import Scene
+
+    common = load_demo("paper_common")
+    if name == "sliding_bunny":
+        demo = load_demo("paper_sliding_bunny")
+        if not (DATA / demo.FOLDER / "opt.json").is_file():
+            return None
+        problem = demo.friction_problem(DATA, MPI.COMM_WORLD, args.bunny_steps)
+        _, contact, _, rf, _, _, q0, _ = problem
+        return Scene(rf, np.log(q0), 0.01, contact)
+    demo = load_demo("paper_throw_bunnies")
+    if not (DATA / demo.FOLDER / "opt.json").is_file():
+        return None
+    path, opt = common.experiment(DATA, demo.FOLDER)
+    scene, _ = common.scenes(path, opt)
+    rf, q0, contact = demo.throw_problem(scene, MPI.COMM_WORLD, args.throw_steps)
+    return Scene(rf, q0, 0.01, contact)
+
+
+def contact_iterations(scene) -> dict:
+    """Newton iterations of the steps with contact pairs in the last run."""
+    records = scene.rf.trajectory.records
+    pairs = [r.num_collisions for r in scene.contact.records]
+    its = [rec.iterations for rec, n in zip(records, pairs, strict=True) if n > 0]
+    return {
+        "contact_steps": len(its),
+        "max_iterations": max(its, default=0),
+        "mean_iterations": float(np.mean(its)) if its else 0.0,
+    }
+
+
+def measure(scene, points: int, seed: int = 7) -> dict:
+    """Line scan, central differences and Newton iterations of one scene."""
+    import diffsolids as ds
+
+    rng = np.random.default_rng(seed)
+    q0 = scene.q0
+    t0 = time.perf_counter()
+    J0, g = scene.rf.value_and_gradient(q0)
+    forward_gradient = time.perf_counter() - t0
+    out = {"parameters": len(q0), "J": J0, **contact_iterations(scene)}
+    direction = rng.standard_normal(len(q0))
+    direction /= np.linalg.norm(direction)
+    scan = ds.line_scan(scene.rf, q0, direction, scene.radius, points)
+    out.update(
+        jumps=len(scan.jumps),
+        worst_deviation=float(scan.deviations.max()),
+        J_range=scan.value_range,
+    )
+    steps = scene.radius * np.array([0.1, 0.01, 0.001])
+    for label, d in (("random", direction), ("gradient", g / np.linalg.norm(g))):
+        fd = ds.finite_difference_check(scene.rf, q0, d, steps=steps, gradient=g)
+        out[f"fd_errors_{label}"] = [float(e) for e in fd.relative_errors]
+    out["forward_and_gradient_s"] = forward_gradient
+    return out
+
+
+def drop_triangulations() -> dict:
+    """J and the final state of the drop on grounds of 1, 2 and 4 coplanar triangles."""
+    from smoothness_scenes import drop
+
+    values, states, its = {}, {}, {}
+    for triangles in (1, 2, 4):
+        scene = drop(triangles)
+        values[triangles] = scene.rf(scene.q0)
+        states[triangles] = scene.rf.trajectory.u[-1].copy()
+        its[triangles] = contact_iterations(scene)
+    diff = max(float(np.abs(states[k] - states[1]).max()) for k in (2, 4))
+    return {
+        "J_by_triangles": {str(k): v for k, v in values.items()},
+        "final_state_difference_m": diff,
+        "iterations_by_triangles": {str(k): v for k, v in its.items()},
+    }
+
+
+def main(argv=None) -> dict:
+    from mpi4py import MPI
+    from smoothness_scenes import SCENES
+
+    args = _parse(argv)
+    comm = MPI.COMM_WORLD
+    out = {"points": args.points}
+    for name in args.scenes:
+        t0 = time.perf_counter()
+        scene = SCENES[name]() if name in SCENES else paper_scene(name, args)
+        if scene is None:
+            continue
+        result = measure(scene, args.points)
+        if name == "drop":
+            result["triangulations"] = drop_triangulations()
+        result["seconds"] = time.perf_counter() - t0
+        out[name] = result
+        if comm.rank == 0:
+            print(
+                f"{name}: {result['jumps']} jumps (worst {result['worst_deviation']:.2e} of the "
+                f"range), central differences random {result['fd_errors_random']}, gradient "
+                f"{result['fd_errors_gradient']}, Newton its per contact step max "
+                f"{result['max_iterations']} mean {result['mean_iterations']:.1f} "
+                f"({result['seconds']:.0f} s)",
+                flush=True,
+            )
+    if comm.rank == 0:
+        print(json.dumps(out))
+    return out
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,149 @@
+"""Contact scenes whose J must be a smooth function of the parameters (bench_smoothness, tests).
+
+Each builder returns a :class:`Scene`: the reduced functional, the centre q0 of its line scan,
+the scan's radius and the contact term (its records give the pairs per step). All run with
+the default :class:`~diffsolids.SolverOptions` and ``formulation="convergent"`` unless told.
+
+- ``drop``: the 3D block of issue 38 dropped flat on a ground of 1, 2 or 4 coplanar
+  triangles (the same 4 m square; with 2, the shared edge runs under the block's diagonal
+  vertices; with 4, the middle vertex lies under a vertex of the block), E recovered from a
+  target run (log E).
+- ``drop_2d``: a 2D box dropped on a ground polyline of collinear segments, one joint under a
+  corner of the box and one under an inner vertex; (log E, log mu) of its landing and slide.
+- ``slide``: a 3D block thrown along a ground of 8 coplanar triangles (a 2 x 2 grid, every
+  diagonal the same way), across their shared edges; (log mu, initial speed), its final
+  position.
+"""
+
+from typing import NamedTuple
+
+import numpy as np
+from mpi4py import MPI
+
+import diffsolids as ds
+from diffsolids.contact import ContactTerm, Obstacle
+from diffsolids.controls import FrictionControl
+from diffsolids.objectives import center_of_mass, final_value
+
+__all__ = ["SCENES", "Scene", "drop", "drop_2d", "slide"]
+
+
+class Scene(NamedTuple):
+    """A reduced functional with the line to scan."""
+
+    rf: ds.ReducedFunctional
+    q0: np.ndarray
+    radius: float
+    contact: ContactTerm
+
+
+def ground_3d(triangles: int, size: float = 4.0, centre=(0.1, 0.1)) -> Obstacle:
+    """A flat square ground [-1.4, -1.4 + size]^2 at z = 0 of 1 (half of it), 2 or 4 triangles.
+
+    One triangle: the half below the square's anti-diagonal (the same bounding box).
+    """
+    a, b = -1.4, -1.4 + size
+    corners = np.array([[a, a, 0], [b, a, 0], [b, b, 0], [a, b, 0]], float)
+    if triangles == 1:
+        return Obstacle(corners[[0, 1, 3]], faces=np.array([[0, 1, 2]]), name="ground")
+    if triangles == 2:
+        return Obstacle(corners, faces=np.array([[0, 1, 2], [0, 2, 3]]), name="ground")
+    if triangles == 4:
+        V = np.vstack([corners, [centre[0], centre[1], 0.0]])
+        F = np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+        return Obstacle(V, faces=F, name="ground")
+    raise ValueError(f"ground of {triangles} triangles: 1, 2 or 4")
+
+
+def drop(
+    triangles: int = 2,
+    comm: MPI.Comm = MPI.COMM_WORLD,
+    steps: int = 25,
+    formulation: str = "convergent",
+) -> Scene:
+    """The block of issue 38 dropped on a ground of ``triangles`` triangles (log E)."""
+    block = ds.mesh.simplex_box([[0.0, 0.0, 0.01], [0.2, 0.2, 0.11]], [4, 4, 2])
+    domain = ds.combine_meshes(comm, [block], names={"block": 1})
+    model = ds.Model(domain, ds.NeoHookean(E=6e4, nu=0.3, density=500.0))
+    model.add_gravity(9.81)
+    contact = ContactTerm(
+        model, dhat=1e-3, friction=0.2, obstacles=[ground_3d(triangles)], formulation=formulation
+    )
+    model.add_numeric_term(contact)
+    sim = ds.Simulation(model, ds.BDF(2, 0.01, steps), ds.SolverOptions(), progress=False)
+    control = ds.ParameterControl(model, "E", "uniform", log=True)
+    control.assign(np.array([np.log(2e4)]))
+    target = sim.run()
+    misfit = ds.time_integral(ds.target_trajectory(sim, target, bodies="block"), "uniform")
+    rf = ds.ReducedFunctional(sim, misfit / 1e-6, control)
+    return Scene(rf, np.array([np.log(6e4) + 0.02]), 0.02, contact)
+
+
+def drop_2d(
+    comm: MPI.Comm = MPI.COMM_WORLD, steps: int = 30, formulation: str = "convergent"
+) -> Scene:
+    """A 2D box landing with a sideways speed on a ground of collinear segments (log E, log mu).
+
+    Ground joints at x = 0.0 (under the box's left corner), 0.1 (under an inner vertex) and
+    0.237; the box [0, 0.2] x [0.005, 0.105] starts at (0.3, -0.2) m/s.
+    """
+    box = ds.mesh.simplex_box([[0.0, 0.005], [0.2, 0.105]], [4, 2])
+    domain = ds.combine_meshes(comm, [box], names={"box": 1})
+    model = ds.Model(domain, ds.NeoHookean(E=5e4, nu=0.3, density=500.0))
+    model.add_gravity(9.81)
+    xs = np.array([-1.0, 0.0, 0.1, 0.237, 1.5])
+    ground = Obstacle(np.column_stack([xs, np.zeros_like(xs)]), name="ground")
+    contact = ContactTerm(
+        model, dhat=1e-3, friction=0.3, obstacles=[ground], formulation=formulation
+    )
+    model.add_numeric_term(contact)
+    X = model.V.tabulate_dof_coordinates()
+    v0 = np.tile([0.3, -0.2], (len(X), 1)).ravel()
+    integrator = ds.BDF(2, 0.01, steps)
+    sim = ds.Simulation(model, integrator, ds.SolverOptions(), v0=v0, progress=False)
+    controls = [
+        ds.ParameterControl(model, "E", "uniform", log=True),
+        FrictionControl(contact, pairs=[("box", "ground")], log=True),
+    ]
+    com = center_of_mass(model, "box")
+    objective = final_value(com[0] * 100.0 + com[1] * 1000.0)
+    rf = ds.ReducedFunctional(sim, objective, controls)
+    return Scene(rf, np.array([np.log(5e4), np.log(0.3)]), 0.02, contact)
+
+
+def slide(
+    comm: MPI.Comm = MPI.COMM_WORLD, steps: int = 20, formulation: str = "convergent"
+) -> Scene:
+    """A block thrown along a flat ground of 8 triangles, across their shared edges.
+
+    Parameters (log mu, the block's initial velocity): its final centre of mass along x and
+    its height.
+    """
+    block = ds.mesh.simplex_box([[0.0, 0.0, 0.0005], [0.2, 0.2, 0.1005]], [4, 4, 2])
+    domain = ds.combine_meshes(comm, [block], names={"block": 1})
+    model = ds.Model(domain, ds.NeoHookean(E=1e5, nu=0.3, density=500.0))
+    model.add_gravity(9.81)
+    g = np.linspace(-1.0, 2.0, 3)
+    gx, gy = np.meshgrid(g, g, indexing="ij")
+    V = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(9)])
+    F = []
+    for i in range(2):
+        for j in range(2):
+            a, b, c, d = 3 * i + j, 3 * (i + 1) + j, 3 * (i + 1) + j + 1, 3 * i + j + 1
+            F += [[a, b, c], [a, c, d]]
+    ground = Obstacle(V, faces=np.array(F), name="ground")
+    contact = ContactTerm(
+        model, dhat=1e-3, friction=0.3, obstacles=[ground], formulation=formulation
+    )
+    model.add_numeric_term(contact)
+    sim = ds.Simulation(model, ds.BDF(2, 0.01, steps), ds.SolverOptions(), progress=False)
+    controls = [
+        FrictionControl(contact, pairs=[("block", "ground")], log=True),
+        ds.RigidVelocity(sim, "block", angular=False),
+    ]
+    com = center_of_mass(model, "block")
+    rf = ds.ReducedFunctional(sim, final_value(com[0] * 10.0 + com[2] * 100.0), controls)
+    return Scene(rf, np.array([np.log(0.3), 1.0, 0.0, 0.0]), 0.02, contact)
+
+
+SCENES = {"drop": drop, "drop_2d": drop_2d, "slide": slide}

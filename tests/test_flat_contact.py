@@ -1,0 +1,114 @@
+"""Contact with a flat obstacle does not depend on its triangulation (convergent formulation).
+
+The block of issue 38 dropped flat on a ground of 1, 2 or 4 coplanar triangles (the same
+square): with ``formulation="convergent"`` the motion is the same to round-off; with the IPC
+collision set (``"ipc"``) the shared edge under the block's diagonal is a barrier ridge that
+pushes the landing to one of two mirror states, so J differs from the one-triangle ground.
+"""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from smoothness_scenes import drop, drop_2d
+
+import diffsolids as ds
+from diffsolids.contact.flat import flat_edge_mask, flat_vertex_mask
+from diffsolids.contact.obstacle import _edges_of
+from diffsolids.verification import line_scan
+
+STEPS = 8  # the impact is step 5
+
+
+def _fan(height: float = 0.0):
+    V = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0], [0.1, 0.2, height]], float)
+    F = np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+    return V, F, _edges_of(F)
+
+
+def test_flat_edges_and_vertices_3d():
+    V, F, E = _fan()
+    edges = flat_edge_mask(V, F, E)
+    inner = (E == 4).any(axis=1)
+    assert np.array_equal(edges, inner)  # the four edges to the middle; the rim is no joint
+    assert np.array_equal(flat_vertex_mask(V, E, edges), [False] * 4 + [True])
+    V, F, E = _fan(height=0.01)  # a pyramid: no flat joint
+    edges = flat_edge_mask(V, F, E)
+    assert not edges.any() and not flat_vertex_mask(V, E, edges).any()
+
+
+def test_flat_vertices_2d():
+    X = np.array([[0, 0], [1, 0], [2, 0], [3, 0.1], [4, 0.2]], float)
+    segments = np.column_stack([np.arange(4), np.arange(1, 5)])
+    assert np.array_equal(flat_vertex_mask(X, segments, None), [0, 1, 0, 1, 0])
+
+
+def _final(triangles: int, formulation: str):
+    scene = drop(triangles, steps=STEPS, formulation=formulation)
+    J = scene.rf(scene.q0)
+    its = [r.iterations for r in scene.rf.trajectory.records]
+    return J, scene.rf.trajectory.u[-1].copy(), its
+
+
+def test_drop_independent_of_the_ground_triangulation():
+    J1, u1, _ = _final(1, "convergent")
+    for triangles in (2, 4):
+        J, u, its = _final(triangles, "convergent")
+        assert abs(J - J1) <= 1e-9 * abs(J1), (triangles, J, J1)
+        assert np.abs(u - u1).max() <= 1e-9
+        assert its[4] <= 10, its  # the impact step: 5-6 iterations measured (ipc: 55-71)
+    # the IPC set on two triangles: the shared edge moves the landing
+    _, u2, _ = _final(2, "ipc")
+    _, u1_ipc, _ = _final(1, "ipc")
+    assert np.abs(u2 - u1_ipc).max() > 1e-6
+
+
+def test_drop_gradient_and_scan():
+    scene = drop(2, steps=STEPS)
+    J, g = scene.rf.value_and_gradient(scene.q0)
+    for d in (np.array([1.0]), g / np.linalg.norm(g)):
+        fd = ds.finite_difference_check(scene.rf, scene.q0, d, steps=[1e-4], gradient=g)
+        assert fd.relative_error <= 1e-5, str(fd)
+    scan = line_scan(scene.rf, scene.q0, np.array([1.0]), scene.radius, 9)
+    assert len(scan.jumps) == 0, str(scan)
+    assert scene.rf(scene.q0) == J  # the same q gives the same J after the scan
+
+
+@pytest.mark.slow
+def test_drop_2d_gradient_random_and_along_gradient():
+    scene = drop_2d(steps=20)
+    _, g = scene.rf.value_and_gradient(scene.q0)
+    d = np.random.default_rng(3).standard_normal(len(g))
+    for direction in (d / np.linalg.norm(d), g / np.linalg.norm(g)):
+        fd = ds.finite_difference_check(scene.rf, scene.q0, direction, [1e-4], gradient=g)
+        assert fd.relative_error <= 1e-5, str(fd)
+
+
+def test_line_scan_finds_a_jump():
+    smooth = line_scan(lambda q: float(np.sin(q[0])), np.zeros(1), np.ones(1), 1.0, 21)
+    assert len(smooth.jumps) == 0 and smooth.deviations.max() < 0.01
+    step = line_scan(lambda q: float(q[0] + (q[0] > 0.01)), np.zeros(1), np.ones(1), 1.0, 21)
+    assert list(step.jumps) == [10, 11], str(step)
+    with pytest.raises(ValueError, match="num >= 3"):
+        line_scan(lambda q: 0.0, np.zeros(1), np.ones(1), 1.0, 2)
+
+
+def test_formulation_errors_in_a_child_process():
+    code = (
+        "import numpy as np\n"
+        "from mpi4py import MPI\n"
+        "import diffsolids as ds\n"
+        "box = ds.mesh.simplex_box([[0, 0], [1, 1]], [2, 2])\n"
+        "model = ds.Model(ds.combine_meshes(MPI.COMM_SELF, [box]), ds.NeoHookean(E=1e5, nu=0.3))\n"
+        "for kw in ({'formulation': 'max'}, {'area_weighting': False, "
+        "'formulation': 'convergent'}):\n"
+        "    try:\n"
+        "        ds.ContactTerm(model, dhat=1e-3, **kw)\n"
+        "    except ds.ParameterError as e:\n"
+        "        print('refused:', e)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert "contact formulation 'max'" in out.stdout
+    assert "needs area_weighting=True" in out.stdout
