@@ -6,6 +6,7 @@ import logging
 
 import numpy as np
 import pytest
+import ufl
 from mpi4py import MPI
 from optimize_script import (
     E_TRUE,
@@ -17,7 +18,8 @@ from optimize_script import (
     shape_problem,
 )
 
-from diffsolids.errors import NewtonConvergenceError
+import diffsolids as ds
+from diffsolids.errors import NewtonConvergenceError, ParameterError
 from diffsolids.mesh import signed_cell_volumes
 from diffsolids.optimize import (
     LBFGS,
@@ -505,3 +507,38 @@ def test_remesh_hook_resets_memory_and_continues():
     )
     assert result.converged
     assert np.allclose(np.exp(result.q), E_TRUE, rtol=1e-6)
+
+
+def _lame_bar_problem():
+    """The bar with Lame parameters, each a log-parametrised control (lmbda, then mu)."""
+    from dolfinx import fem
+
+    from diffsolids.controls import ParameterControl
+    from diffsolids.objectives import Integral, final_value
+    from diffsolids.reduced_functional import ReducedFunctional
+
+    facets = {1: lambda x: np.isclose(x[0], 0.0), 2: lambda x: np.isclose(x[0], 4.0)}
+    dom = ds.mesh.create_rectangle(MPI.COMM_WORLD, [[0, 0], [4, 1]], [8, 2], facets=facets)
+    model = ds.Model(dom, ds.LinearElastic(lmbda=600.0, mu=400.0))
+    model.add_traction(2, [10.0, -2.0])
+    model.add_dirichlet(1, 0.0)
+    sim = ds.Simulation(model, ds.Static(), ds.SolverOptions(rtol=1e-12), progress=False)
+    target = fem.Function(model.V)
+    misfit = Integral(lambda f: ufl.inner(f.u - target, f.u - target) * f.dx, "misfit")
+    controls = [ParameterControl(model, n, "uniform", log=True) for n in ("lmbda", "mu")]
+    rf = ReducedFunctional(sim, final_value(misfit), controls)
+    q0 = rf.initial_parameters()
+    rf(np.log([900.0, 700.0]))
+    target.x.array[:] = rf.trajectory.u[-1]
+    return rf, q0
+
+
+def test_a_trial_with_an_overflowing_field_is_rejected_and_the_run_goes_on():
+    rf, q0 = _lame_bar_problem()
+    with pytest.raises(ParameterError, match=r"mu has \d+ non-finite"):
+        rf.controls.assign(q0 + np.array([0.0, 800.0]))  # exp overflows: mu = inf
+    rf.controls.assign(q0)  # lmbda first while mu still holds inf: validated together
+    assert np.allclose(rf.model.coefficients["mu"].x.array, 400.0)
+    result = minimize(rf, q0, LBFGSOptions(initial_step=800.0, gradient_rtol=1e-6))
+    assert result.history[1].invalid_trials >= 1
+    assert result.objective < 1e-3 * result.history[0].objective

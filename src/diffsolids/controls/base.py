@@ -109,6 +109,7 @@ class ControlSet:
         if not controls:
             raise ControlError("at least one control is needed")
         self.controls = list(controls)
+        self.model = simulation.model
         for c in self.controls:
             c.check(simulation)
         _check_disjoint(self.controls)
@@ -137,9 +138,16 @@ class ControlSet:
         return [q[a:b] for a, b in zip(self.offsets[:-1], self.offsets[1:], strict=True)]
 
     def assign(self, q: npt.ArrayLike) -> None:
-        """Apply the concatenated parameters."""
-        for c, block in zip(self.controls, self.split(q), strict=True):
-            c.assign(block)
+        """Apply the concatenated parameters; the parameter fields are validated once, at the end.
+
+        Raises:
+            ControlError: q of the wrong length or with non-finite entries.
+            ParameterError: Non-physical parameter fields after the assignment.
+        """
+        blocks = self.split(q)
+        with self.model.parameter_update():
+            for c, block in zip(self.controls, blocks, strict=True):
+                c.assign(block)
 
     def targets(self) -> Targets:
         """Union of the controls' targets."""

@@ -141,7 +141,7 @@ class ParameterControl(Control):
         else:
             arr[:] = self.base * p[0]
             self._scale = float(p[0])
-        self.model.validate_parameters()
+        self.model.parameters_changed()
 
     @override
     def targets(self) -> Targets:

@@ -6,9 +6,10 @@ compiles the model's forms and collects its step bounds when it is created, so i
 model: terms, loads, contact and Dirichlet conditions are added before.
 """
 
+import contextlib
 import functools
 import numbers
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -106,6 +107,7 @@ class Model:
         self.dirichlet: list[RealisedDirichlet] = []
         self.numeric_terms: list[NumericTerm] = []
         self._frozen = False
+        self._deferred_validation = 0
 
     # -- construction helpers -------------------------------------------------------------
     def _body_materials(
@@ -138,6 +140,33 @@ class Model:
                 fn.x.array[self.domain.cell_tags.find(body)] = getattr(mat, name)
             self.coefficients[name] = fn
         self.validate_parameters()
+
+    @contextlib.contextmanager
+    def parameter_update(self) -> Iterator[None]:
+        """Change several parameter fields, then validate them together once.
+
+        Controls that each set one field (lmbda, then mu) validate at the end of the block, so
+        that restoring a valid point after a trial with a non-finite field does not fail on the
+        fields not yet restored. Blocks nest; an exception inside skips the validation.
+
+        Raises:
+            ParameterError: The fields at the end of the block are non-physical.
+        """
+        self._deferred_validation += 1
+        try:
+            yield
+        finally:
+            self._deferred_validation -= 1
+        self.parameters_changed()
+
+    def parameters_changed(self) -> None:
+        """Validate the parameter fields after a change, unless inside :meth:`parameter_update`.
+
+        Raises:
+            ParameterError: A non-finite or out-of-range value, naming the parameter.
+        """
+        if self._deferred_validation == 0:
+            self.validate_parameters()
 
     def validate_parameters(self) -> None:
         """Check the current parameter fields (every dof) for physical ranges.
