@@ -25,11 +25,12 @@ Run ``python demos/beam3d_stress.py`` (default size), ``--tiny`` (smoke test), `
 
 from common import MESHES, DemoReport, by_size, run_demo
 from mpi4py import MPI
-from shape_tools import GuardedMeshMotion, StressProblem, plot_shapes_3d, shape_run
+from shape_tools import StressProblem, plot_shapes_3d, shape_run
 
 import diffsolids as ds
 from diffsolids.io import silhouette_edges
 from diffsolids.mesh import from_geo
+from diffsolids.optimize import MeshMotionControl
 
 GEO = MESHES / "beam3d.geo"
 SUPPORT = "support"
@@ -55,9 +56,9 @@ class Problem(StressProblem):
             model.add_traction(load, [0.0, 0.0, -TRACTION])
         return model
 
-    def control(self, model, sim) -> GuardedMeshMotion:
+    def control(self, model, sim) -> MeshMotionControl:
         """Every boundary vertex except those of the support patch and of the loaded faces."""
-        return GuardedMeshMotion(model, exclude_facets=[SUPPORT, *LOADS])
+        return MeshMotionControl(model, exclude_facets=[SUPPORT, *LOADS], refuse_intersections=True)
 
     def outline(self, model) -> list:
         """Silhouettes seen from the side and from above."""

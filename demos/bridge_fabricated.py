@@ -27,7 +27,6 @@ from common import MESHES, DemoReport, run_demo
 from dolfinx import fem
 from mpi4py import MPI
 from shape_tools import (
-    GuardedMeshMotion,
     check_invariants,
     design_vertex_coordinates,
     optimise_shape,
@@ -42,7 +41,7 @@ import diffsolids as ds
 from diffsolids.io import boundary_edges
 from diffsolids.mesh import from_geo
 from diffsolids.objectives import BoundarySmoothing, final_value, target_positions
-from diffsolids.optimize import LBFGSOptions, ShapeInnerProduct
+from diffsolids.optimize import LBFGSOptions, MeshMotionControl, ShapeInnerProduct
 from diffsolids.reduced_functional import ReducedFunctional
 
 GEO = MESHES / "bridge.geo"
@@ -87,7 +86,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     for side in FIXED:
         model.add_dirichlet(side, 0.0)
     sim = ds.Simulation(model, ds.Static(), ds.SolverOptions(rtol=1e-12), progress=False)
-    control = GuardedMeshMotion(model, exclude_facets=list(FIXED))
+    control = MeshMotionControl(model, exclude_facets=list(FIXED), refuse_intersections=True)
     X_true = vertex_coordinates(domain)
     suffix = ".xdmf" if args.xdmf else ".bp"
 

@@ -25,11 +25,12 @@ Run ``python demos/bridge_stress.py`` (default size), ``--tiny`` (smoke test), `
 
 from common import MESHES, DemoReport, by_size, run_demo
 from mpi4py import MPI
-from shape_tools import GuardedMeshMotion, StressProblem, shape_run
+from shape_tools import StressProblem, shape_run
 
 import diffsolids as ds
 from diffsolids.mesh import from_geo
 from diffsolids.objectives import volume_penalty
+from diffsolids.optimize import MeshMotionControl
 
 GEO = MESHES / "bridge.geo"
 FIXED = ("fixed_left", "fixed_right")
@@ -56,9 +57,9 @@ class Problem(StressProblem):
             model.add_traction(load, [0.0, -TRACTION])
         return model
 
-    def control(self, model, sim) -> GuardedMeshMotion:
+    def control(self, model, sim) -> MeshMotionControl:
         """Every boundary vertex except the clamped sides and the loaded segments."""
-        return GuardedMeshMotion(model, exclude_facets=[*FIXED, *LOADS])
+        return MeshMotionControl(model, exclude_facets=[*FIXED, *LOADS], refuse_intersections=True)
 
     def volume_term(self, model, V0: float):
         """Two-sided: (V - V0)^2."""

@@ -40,10 +40,11 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from common import MESHES, DemoReport, by_size, run_demo
 from mpi4py import MPI
-from shape_tools import GuardedShapeControl, StressProblem, shape_run
+from shape_tools import StressProblem, shape_run
 
 import diffsolids as ds
 from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
+from diffsolids.controls import ShapeControl
 from diffsolids.mesh import from_geo
 from diffsolids.optimize import MeshMotion
 
@@ -178,12 +179,14 @@ class Problem(StressProblem):
         """Newton options of the static solve with contact."""
         return ds.SolverOptions(rtol=1e-9)
 
-    def control(self, model, sim) -> GuardedShapeControl:
+    def control(self, model, sim) -> ShapeControl:
         """The boundary of both parts except the clamped and loaded sides, interface tied."""
         motion = MeshMotion(model.domain, exclude_facets=["fixed", "load"])
         T, tied = interface_tie(motion, self._contact.surface, 2.5 * GAP)
         tie = spla.aslinearoperator(T)
-        control = GuardedShapeControl(model, linear_map=spla.aslinearoperator(motion) @ tie)
+        control = ShapeControl(
+            model, linear_map=spla.aslinearoperator(motion) @ tie, refuse_intersections=True
+        )
         control.name = "shape[tied mesh motion]"
         self._parts = {"contact": self._contact, "motion": motion, "tie": T, "tied": tied}
         return control

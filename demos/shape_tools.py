@@ -3,7 +3,7 @@
 The stress problem the three stress demos share (L8 von Mises stress, volume term and boundary
 smoothing, normalised by the first mesh), a run that writes and looks at the initial and final
 states around L-BFGS while ``diffsolids.optimize.InvariantMonitor`` checks every accepted
-iterate, the checks every run reports, shape controls that refuse a folded boundary, and the
+iterate, the checks every run reports, and the
 before/after figures. All functions are collective over the mesh communicator and return the
 same value on every rank.
 """
@@ -19,16 +19,12 @@ from dolfinx import fem
 from mpi4py import MPI
 
 import diffsolids as ds
-from diffsolids.controls import ShapeControl
-from diffsolids.errors import InvertedElementError
 from diffsolids.io import boundary_edges, write_trajectory
 from diffsolids.io.output import von_mises_field
 from diffsolids.objectives import BoundarySmoothing, final_value, stress_lp_norm, volume_penalty
 from diffsolids.optimize import (
-    BoundaryIntersection,
     InvariantMonitor,
     LBFGSOptions,
-    MeshMotionControl,
     OptimizationResult,
     Remesher,
     ShapeInnerProduct,
@@ -38,8 +34,6 @@ from diffsolids.parallel import collective_comm
 from diffsolids.reduced_functional import ReducedFunctional
 
 __all__ = [
-    "GuardedMeshMotion",
-    "GuardedShapeControl",
     "ShapeRun",
     "StressProblem",
     "check_invariants",
@@ -98,37 +92,6 @@ def max_von_mises(model, u: np.ndarray) -> float:
     field = von_mises_field(model, u)
     local = field.x.array.max() if field.x.array.size else -np.inf
     return collective_comm(model.domain.comm).allreduce(float(local), op=MPI.MAX)
-
-
-class _BoundaryGuard:
-    """Refuses rest shapes whose boundary intersects itself (mixin of a shape control).
-
-    Inverted cells are refused by ShapeControl; a fold of the boundary over another part of
-    the body (or over another body) can happen without them. The optimiser treats the error
-    as an invalid trial and returns to the last accepted shape.
-    """
-
-    def assign(self, q: np.ndarray) -> None:
-        """Apply q, then refuse a self-intersecting boundary (InvertedElementError)."""
-        super().assign(q)
-        if self.boundary.intersects():
-            raise InvertedElementError("the shape update folds the boundary over itself")
-
-
-class GuardedMeshMotion(_BoundaryGuard, MeshMotionControl):
-    """MeshMotionControl that also refuses rest shapes with a self-intersecting boundary."""
-
-    def __init__(self, model, **kwargs):
-        super().__init__(model, **kwargs)
-        self.boundary = BoundaryIntersection(model)
-
-
-class GuardedShapeControl(_BoundaryGuard, ShapeControl):
-    """ShapeControl that also refuses rest shapes with a self-intersecting boundary."""
-
-    def __init__(self, model, **kwargs):
-        super().__init__(model, **kwargs)
-        self.boundary = BoundaryIntersection(model)
 
 
 def write_state(model, path: Path, u: np.ndarray) -> list[Path]:

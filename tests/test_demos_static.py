@@ -181,11 +181,10 @@ def test_interlocking_tie_moves_the_interface_together():
     assert a @ inner(a) > 0 and b @ inner(b) > 0
 
 
-def test_guard_refuses_a_shape_whose_parts_overlap():
+def test_interlocking_parts_refuse_to_overlap():
     import scipy.sparse as sp
 
-    shape_tools = load_demo("shape_tools")
-
+    from diffsolids.controls import ShapeControl
     from diffsolids.model import Model, NeoHookean
     from diffsolids.optimize import BoundaryIntersection
 
@@ -196,7 +195,7 @@ def test_guard_refuses_a_shape_whose_parts_overlap():
     top = np.unique(domain.mesh.geometry.input_global_indices[np.unique(cells)])
     n = domain.mesh.geometry.index_map().size_global
     P = sp.csr_matrix((np.ones(len(top)), (2 * top + 1, np.zeros(len(top)))), shape=(2 * n, 1))
-    control = shape_tools.GuardedShapeControl(model, linear_map=P)
+    control = ShapeControl(model, linear_map=P, refuse_intersections=True)
     control.assign(np.array([0.005]))  # up by half the gap: fine
     assert not BoundaryIntersection(model).intersects()
     with pytest.raises(InvertedElementError, match="folds the boundary"):

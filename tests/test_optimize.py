@@ -19,7 +19,7 @@ from optimize_script import (
 )
 
 import diffsolids as ds
-from diffsolids.errors import NewtonConvergenceError, ParameterError
+from diffsolids.errors import MeshError, NewtonConvergenceError, ParameterError
 from diffsolids.mesh import signed_cell_volumes
 from diffsolids.optimize import (
     LBFGS,
@@ -542,3 +542,45 @@ def test_a_trial_with_an_overflowing_field_is_rejected_and_the_run_goes_on():
     result = minimize(rf, q0, LBFGSOptions(initial_step=800.0, gradient_rtol=1e-6))
     assert result.history[1].invalid_trials >= 1
     assert result.objective < 1e-3 * result.history[0].objective
+
+
+class _FailingRemesher(_RefiningRemesher):
+    """Asks for a remesh after iteration 2 and fails as a remesher meeting a folded boundary."""
+
+    def remesh(self, rf, q):
+        raise MeshError("remeshing failed: the boundary intersects itself (test)")
+
+
+def test_a_failed_remesh_ends_the_run_at_the_accepted_point():
+    remesher = _FailingRemesher()
+    rf, _ = bar_problem(MPI.COMM_WORLD, bodies=2)
+    options = LBFGSOptions(max_iterations=10, gradient_rtol=0.0)
+    with pytest.warns(OptimizationWarning, match="remeshing failed.*intersects itself"):
+        result = LBFGS(rf, options, remesher=remesher).run()
+    assert result.reason.startswith("remesh: MeshError")
+    assert result.iterations == 2 and len(result.history) == 3
+    assert result.functional is rf
+    assert np.array_equal(rf.controls.value(), result.q)
+    assert result.objective == result.history[-1].objective
+    assert result.objective == pytest.approx(rf(result.q), rel=1e-12)
+
+
+def test_shape_control_refuses_a_boundary_folded_into_another_body():
+    from diffsolids.controls import ShapeControl
+    from diffsolids.errors import InvertedElementError
+
+    left = ds.mesh.simplex_box([[0.0, 0.0], [1.0, 1.0]], [2, 2])
+    right = ds.mesh.simplex_box([[1.5, 0.0], [2.5, 1.0]], [2, 2])
+    domain = ds.combine_meshes(MPI.COMM_WORLD, [left, right], names={"left": 1, "right": 2})
+    model = ds.Model(domain, ds.LinearElastic(E=1e3, nu=0.3))
+    right_side = lambda x: x[0] > 1.2  # noqa: E731
+    guarded = ShapeControl(model, right_side, refuse_intersections=True)
+    plain = ShapeControl(model, right_side)
+    q = np.tile([-0.8, 0.0], guarded.size // 2)  # the right square, rigidly into the left one
+    X = model.domain.mesh.geometry.x.copy()
+    with pytest.raises(InvertedElementError, match="folds the boundary"):
+        guarded.assign(q)
+    assert np.array_equal(model.domain.mesh.geometry.x, X)  # not applied
+    guarded.assign(0.5 * q)  # still 0.1 apart: accepted
+    assert np.allclose(guarded.value(), 0.5 * q)
+    plain.assign(q)  # without the option: accepted, no cell inverts

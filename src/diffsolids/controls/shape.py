@@ -10,6 +10,7 @@ import scipy.sparse.linalg as spla
 from mpi4py import MPI
 
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
+from diffsolids.contact.boundary_intersection import BoundaryIntersection
 from diffsolids.controls.base import Control, ControlError
 from diffsolids.errors import InvertedElementError
 from diffsolids.mesh import Domain, inverted_cells
@@ -50,6 +51,10 @@ class ShapeControl(Control):
             displacement of all vertices in canonical order; overrides ``vertices``. A
             ``scipy.sparse.linalg.LinearOperator`` (e.g. a mesh-motion extension) is used as
             is; its products must be collective and identical on all ranks.
+        refuse_intersections: Also refuse rest shapes whose boundary intersects itself, another
+            body or an obstacle of the model's contact terms (a fold that inverts no cell).
+            The refused shape is not applied; the optimiser treats the error as an invalid
+            trial and backs off.
     """
 
     name = "shape"
@@ -60,8 +65,10 @@ class ShapeControl(Control):
         vertices: str | npt.ArrayLike | Callable[[np.ndarray], np.ndarray] = "all",
         exclude_facets: Sequence[int | str] = (),
         linear_map: npt.ArrayLike | sp.spmatrix | sp.sparray | spla.LinearOperator | None = None,
+        refuse_intersections: bool = False,
     ) -> None:
         self.model = model
+        self.boundary = BoundaryIntersection(model) if refuse_intersections else None
         domain = model.domain
         mesh = domain.mesh
         self.dim = mesh.geometry.dim
@@ -147,8 +154,18 @@ class ShapeControl(Control):
             raise InvertedElementError(
                 f"shape update inverts {total} cells (input cell indices {shown[:20]})", cells=bad
             )
-        mesh.geometry.x[:, : self.dim] = new
+        old = mesh.geometry.x[:, : self.dim].copy()
+        self._move_rest(new)
+        if self.boundary is not None and self.boundary.intersects():
+            self._move_rest(old)
+            raise InvertedElementError(
+                "the shape update folds the boundary over itself (or into another body or an "
+                "obstacle); the shape was not changed"
+            )
         self.q = np.asarray(q, dtype=float).copy()
+
+    def _move_rest(self, X: np.ndarray) -> None:
+        self.model.domain.mesh.geometry.x[:, : self.dim] = X
         for term in self.model.numeric_terms:
             term.update_rest_positions()
 

@@ -19,11 +19,10 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-import ipctk
 import numpy as np
 from mpi4py import MPI
 
-from diffsolids.contact.surface import CollisionSurface
+from diffsolids.contact.boundary_intersection import BoundaryIntersection
 from diffsolids.contact.term import ContactTerm
 from diffsolids.errors import IntersectionError
 from diffsolids.io.geometry import nodal_displacement
@@ -128,34 +127,3 @@ def inverted_rest_cells(model: "Model") -> int:
     bad = inverted_cells(mesh, model.reference_signs)
     local = int(np.count_nonzero(bad < owned))  # ghost cells are counted by their owners
     return collective_comm(model.domain.comm).allreduce(local, op=MPI.SUM)
-
-
-class BoundaryIntersection:
-    """Whether a model's boundary (all bodies) intersects itself, at rest or deformed (ipctk).
-
-    Args:
-        model: The Model; its current rest positions are read at every call (shape changes
-            are seen).
-    """
-
-    def __init__(self, model: "Model") -> None:
-        self.model = model
-        self.surface = CollisionSurface(model.domain, model.V, boundary="nodes")
-        # kinematic obstacles are seen through their contact terms' own check
-        self.contacts = [
-            t for t in model.numeric_terms if isinstance(t, ContactTerm) and t.obstacles
-        ]
-
-    def intersects(self, u: np.ndarray | None = None, step: int = 0) -> bool:
-        """Whether the boundary at rest (``u`` None) or deformed, ``X + u``, intersects.
-
-        Obstacles of the model's contact terms are placed where they are at step ``step``.
-        """
-        if any(c.intersects(u, step) for c in self.contacts):
-            return True
-        s = self.surface
-        s.update_rest_positions()
-        x = s.rest_positions.copy()
-        if u is not None:
-            x += s.gather(u)
-        return bool(ipctk.has_intersections(s.mesh, np.asfortranarray(x), ipctk.LBVH()))

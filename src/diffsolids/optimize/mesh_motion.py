@@ -321,6 +321,8 @@ class MeshMotionControl(ShapeControl):
         extension: "elasticity" or "harmonic".
         stiffening: Cell-volume stiffening exponent.
         poisson_ratio: Poisson ratio of the elasticity extension.
+        refuse_intersections: Refuse rest shapes with a self-intersecting boundary (see
+            :class:`~diffsolids.controls.ShapeControl`).
     """
 
     name = "shape[mesh motion]"
@@ -333,11 +335,12 @@ class MeshMotionControl(ShapeControl):
         extension: str = "elasticity",
         stiffening: float = 1.0,
         poisson_ratio: float = 0.3,
+        refuse_intersections: bool = False,
     ) -> None:
         self.motion = MeshMotion(
             model.domain, vertices, exclude_facets, extension, stiffening, poisson_ratio
         )
-        super().__init__(model, linear_map=self.motion)
+        super().__init__(model, linear_map=self.motion, refuse_intersections=refuse_intersections)
 
     def riesz_map(self, mass_weight: float | None = None, scale: float = 1.0) -> RieszMap:
         """The design space's H1-type inner product (see :class:`RieszMap`)."""

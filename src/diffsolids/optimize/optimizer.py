@@ -87,7 +87,9 @@ class OptimizationResult:
         gradient: dJ/dq at q.
         iterations: Accepted steps (including those before a resumption).
         reason: Why the run stopped: "gradient_atol", "gradient_rtol", "step", "objective",
-            "max_iterations", "line_search" (no acceptable step found) or "user: <name>".
+            "max_iterations", "line_search" (no acceptable step found), "remesh: <error>" (the
+            remesher failed; the result is the last accepted point on the mesh before) or
+            "user: <name>".
         message: Readable explanation.
         history: One record per iterate, starting with the initial point.
         num_forward: Forward solves of this process (line-search trials and restarts).
@@ -222,6 +224,7 @@ class LBFGS:
         self.point: _Point | None = None
         self.active: np.ndarray | None = None  # variables held at their bounds last iteration
         self._t_start = 0.0
+        self._stop: str | None = None  # a stop reason found while accepting an iterate
 
     # -- evaluation ---------------------------------------------------------------------------
     @overload
@@ -447,12 +450,24 @@ class LBFGS:
             observer(rec, self)
 
     def _maybe_remesh(self, rec: IterationRecord) -> None:
+        """Remesh if the remesher asks; a failure keeps the accepted point and ends the run."""
         p = self.point
         wanted = bool(
             collective_comm(self.comm).bcast(bool(self.remesher.needs_remesh(self.rf, p.q)), root=0)
         )
         if not wanted:
             return
+        rf, inner_product = self.rf, self.inner_product
+        try:
+            self._remesh(rec, p)
+        except DiffsolidsError as e:
+            logger.warning("opt: remeshing failed (%s); the run ends at the accepted point", e)
+            self.rf, self.point, self.inner_product = rf, p, inner_product
+            self.memory.inner_product = inner_product
+            self._restore()
+            self._stop = f"remesh: {type(e).__name__}: {e}"
+
+    def _remesh(self, rec: IterationRecord, p: _Point) -> None:
         J_before = p.J
         new_rf, q = self.remesher.remesh(self.rf, p.q)
         self.rf = new_rf
@@ -593,7 +608,7 @@ class LBFGS:
         step_norm = float(np.linalg.norm(q - p.q))
         rec = self._record(step_norm, t, trials, invalid, seconds, t_grad)
         self._accepted(rec)
-        return None
+        return self._stop
 
     # -- driver ----------------------------------------------------------------------------------
     def run(self, q0: npt.ArrayLike | None = None) -> OptimizationResult:
@@ -643,8 +658,10 @@ class LBFGS:
         self.rf.simulation.warm_start = None
         message = _MESSAGES.get(reason.split(":")[0], reason)
         logger.info("opt stopped after %d iterations: %s", self.iteration, message)
-        if reason == "line_search":
-            warnings.warn(f"optimisation stopped: {message}", OptimizationWarning, stacklevel=2)
+        if reason == "line_search" or reason.startswith("remesh"):
+            detail = reason.partition(": ")[2]
+            text = f"{message} ({detail})" if detail else message
+            warnings.warn(f"optimisation stopped: {text}", OptimizationWarning, stacklevel=2)
         return OptimizationResult(
             q=p.q.copy(),
             objective=p.J,
@@ -668,6 +685,7 @@ _MESSAGES = {
     "objective": "objective reduction below its tolerance",
     "max_iterations": "iteration limit reached",
     "line_search": "the line search found no valid step with sufficient decrease",
+    "remesh": "remeshing failed; the result is the last accepted point, on the mesh before",
     "user": "a user stopping condition was met",
 }
 
