@@ -85,6 +85,7 @@ def test_log_file_holds_the_history(tmp_path, suffix, capsys):
         assert head[-2:] == ["J:misfit", "J:0.0001*u2"]
     else:
         assert [json.loads(s)["iteration"] for s in text.splitlines()] == list(range(5))
+        assert json.loads(text.splitlines()[-1])["q"] == result.q.tolist()  # by default
     records = read_log(path)
     assert len(records) == len(result.history)
     for got, rec in zip(records, result.history, strict=True):
@@ -143,6 +144,33 @@ def test_control_summary_shows_small_controls_and_norms_of_large_ones():
     assert control_summary(controls, q) == "E=2.5e+05 v0=[1.5, -0.25] |shape|=5"
     line = IterationLog(MPI.COMM_WORLD).header()
     assert line.split()[:2] == ["iter", "J"]
+
+
+def test_log_columns_never_merge():
+    wide = IterationRecord(
+        iteration=12345,
+        objective=-1.234567891e-300,
+        gradient_norm=2.5e-100,
+        step_norm=2.376e-02,
+        step_length=1.24e-4,
+        trials=12,
+        invalid_trials=11,
+        forward_seconds=12345.678,
+        gradient_seconds=9876.54,
+        parameter_summary="E=1",
+    )
+    row = IterationLog(MPI.COMM_WORLD).line(wide).split()
+    assert row == [
+        "12345",
+        "-1.234567891e-300",
+        "2.500e-100",
+        "2.376e-02",
+        "0.000124",
+        "12(11!)",
+        "12345.68",
+        "9876.54",
+        "E=1",
+    ]
 
 
 SCRIPT = """

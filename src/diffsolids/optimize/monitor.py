@@ -134,14 +134,14 @@ def log_iteration(rec: IterationRecord) -> None:
 
 # the columns of the printed log: (title, width, value of a record)
 _COLUMNS = (
-    ("iter", 5, lambda r: f"{r.iteration:d}"),
-    ("J", 17, lambda r: f"{r.objective:.9e}"),
-    ("|grad|", 10, lambda r: f"{r.gradient_norm:.3e}"),
-    ("|step|", 10, lambda r: f"{r.step_norm:.3e}" if r.iteration else "-"),
-    ("t", 8, lambda r: f"{r.step_length:.3g}" if r.iteration else "-"),
-    ("trials", 7, lambda r: f"{r.trials}" + (f"({r.invalid_trials}!)" if r.invalid_trials else "")),
-    ("fwd(s)", 8, lambda r: f"{r.forward_seconds:.2f}"),
-    ("grad(s)", 8, lambda r: f"{r.gradient_seconds:.2f}"),
+    ("iter", 4, lambda r: f"{r.iteration:d}"),
+    ("J", 16, lambda r: f"{r.objective:.9e}"),
+    ("|grad|", 9, lambda r: f"{r.gradient_norm:.3e}"),
+    ("|step|", 9, lambda r: f"{r.step_norm:.3e}" if r.iteration else "-"),
+    ("t", 9, lambda r: f"{r.step_length:.3g}" if r.iteration else "-"),
+    ("trials", 6, lambda r: f"{r.trials}" + (f"({r.invalid_trials}!)" if r.invalid_trials else "")),
+    ("fwd(s)", 7, lambda r: f"{r.forward_seconds:.2f}"),
+    ("grad(s)", 7, lambda r: f"{r.gradient_seconds:.2f}"),
 )
 
 # the scalar fields of a CSV log, in order (then one ``J:<term>`` column per objective term)
@@ -160,6 +160,7 @@ CSV_FIELDS = (
     "parameter_summary",
     "remeshed",
     "objective_before_remesh",
+    "q",
 )
 
 
@@ -200,11 +201,12 @@ class IterationLog:
 
     def header(self) -> str:
         """The title line of the printed table."""
-        return "".join(f"{t:>{w}}" for t, w, _ in _COLUMNS) + "  controls"
+        return " ".join(f"{t:>{w}}" for t, w, _ in _COLUMNS) + "  controls"
 
     def line(self, rec: IterationRecord) -> str:
         """The printed line of one record."""
-        text = "".join(f"{f(rec):>{w}}" for _, w, f in _COLUMNS) + "  " + rec.parameter_summary
+        # a space between columns: a value wider than its column shifts the line, never merges
+        text = " ".join(f"{f(rec):>{w}}" for _, w, f in _COLUMNS) + "  " + rec.parameter_summary
         if rec.remeshed:
             text += f"  (remeshed; J was {rec.objective_before_remesh:.9e})"
         return text
@@ -274,6 +276,8 @@ def _log_format(path: Path) -> str:
 def _csv_value(value: object) -> str:
     if value is None:
         return ""
+    if isinstance(value, list):  # q: all digits, blank-separated
+        return " ".join(repr(float(x)) for x in value)
     if isinstance(value, float):
         return repr(value)  # all digits: read_log gives the numbers back exactly
     return str(value)
@@ -298,13 +302,15 @@ def read_log(path: str | os.PathLike) -> list[IterationRecord]:
     return records
 
 
-def _from_csv(field_name: str, text: str) -> int | str | bool | float | None:
+def _from_csv(field_name: str, text: str) -> int | str | bool | float | list[float] | None:
     if field_name in ("iteration", "trials", "invalid_trials"):
         return int(text)
     if field_name == "parameter_summary":
         return text
     if field_name == "remeshed":
         return text == "True"
+    if field_name == "q":
+        return [float(x) for x in text.split()] if text else None
     return float(text) if text != "" else None
 
 
@@ -431,7 +437,7 @@ class OptimizationOutput:
         self,
         directory: str | os.PathLike,
         comm: MPI.Comm,
-        write_parameters: bool = False,
+        write_parameters: bool = True,
         plot_every: int = 10,
         iterate_every: int = 0,
         iterate_format: str = "bp",

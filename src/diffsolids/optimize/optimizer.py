@@ -163,7 +163,9 @@ class LBFGS:
         log_file: Also write the log to this file (rank 0; a ``.csv`` or ``.jsonl`` name
             chooses the format), one flushed line per accepted iterate. Independent of
             ``log``; a resumed run rewrites it from its checkpointed history.
-        write_parameters: Record q in the history file.
+        write_parameters: Record q in the history, the history file and a JSON-lines log
+            file (default), so that a stopped run's last iterate can be recovered; False keeps
+            the files small for very large controls.
         plot_every: Update PNG plots of the objective and gradient norm every k iterations and
             at the end (0: no plots).
         iterate_every: Write the trajectory of every k-th iterate (0: never).
@@ -185,7 +187,7 @@ class LBFGS:
         progress: bool | None = None,
         log: bool = False,
         log_file: str | PathLike | None = None,
-        write_parameters: bool = False,
+        write_parameters: bool = True,
         plot_every: int = 10,
         iterate_every: int = 0,
         iterate_format: str = "bp",
