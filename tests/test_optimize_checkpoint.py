@@ -119,3 +119,25 @@ def test_killed_run_resumes_like_an_uninterrupted_one(tmp_path):
     assert np.all(np.abs(Ja - Jb) <= 1e-10 * np.abs(Jb)), np.abs(Ja - Jb) / np.abs(Jb)
     qa, qb = np.array([d["q"] for d in a]), np.array([d["q"] for d in b])
     assert np.all(np.abs(qa - qb) <= 1e-10 * np.abs(qb))
+
+
+def test_ctrl_c_stops_at_the_accepted_point_with_a_checkpoint(tmp_path):
+    iterations = 30
+    ckpt, out = tmp_path / "ckpt", tmp_path / "out"
+    proc = _script(ckpt, out, iterations)
+    deadline = time.monotonic() + 600
+    while len(_history(out / "history.jsonl")) < 3 and proc.poll() is None:
+        assert time.monotonic() < deadline, "the optimisation script made no progress"
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGINT)
+    log = proc.communicate()[0].decode()
+    assert proc.returncode == 0, log  # no PETSc error, no traceback: a result
+    assert "interrupted" in log and "Traceback" not in log and "PETSc" not in log, log
+    history = _history(out / "history.jsonl")
+    stopped_at = len(history) - 1
+    assert 2 <= stopped_at < iterations
+    assert f"stopped after {stopped_at} iterations (interrupted)" in log, log
+    resumed = _script(ckpt, out, stopped_at + 1)  # the checkpoint resumes where it stopped
+    log = resumed.communicate()[0].decode()
+    assert resumed.returncode == 0, log
+    assert int(log.split("resumed_from=")[1].split()[0]) == stopped_at

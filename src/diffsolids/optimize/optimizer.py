@@ -50,6 +50,7 @@ from diffsolids.optimize.bounds import (
     step_limit,
 )
 from diffsolids.optimize.checkpoint import Checkpoint
+from diffsolids.optimize.interrupt import InterruptRequest
 from diffsolids.optimize.lbfgs import LBFGSMemory
 from diffsolids.optimize.monitor import (
     IterationLog,
@@ -87,7 +88,8 @@ class OptimizationResult:
         gradient: dJ/dq at q.
         iterations: Accepted steps (including those before a resumption).
         reason: Why the run stopped: "gradient_atol", "gradient_rtol", "step", "objective",
-            "max_iterations", "line_search" (no acceptable step found), "remesh: <error>" (the
+            "max_iterations", "line_search" (no acceptable step found), "interrupted" (Ctrl-C:
+            the run stopped after the trial in progress), "remesh: <error>" (the
             remesher failed; the result is the last accepted point on the mesh before) or
             "user: <name>".
         message: Readable explanation.
@@ -227,6 +229,7 @@ class LBFGS:
         self.active: np.ndarray | None = None  # variables held at their bounds last iteration
         self._t_start = 0.0
         self._stop: str | None = None  # a stop reason found while accepting an iterate
+        self._interrupt = InterruptRequest(self.comm)
 
     # -- evaluation ---------------------------------------------------------------------------
     @overload
@@ -544,6 +547,9 @@ class LBFGS:
             bound = p.J + opts.armijo * min(float(p.g @ s), 0.0)  # Armijo on the projected path
             if valid and value <= bound:
                 return q, value, t, trials, invalid, seconds
+            if self._interrupt.pending():
+                self._stop = "interrupted"
+                break
             if valid:
                 logger.debug(
                     "opt: trial t=%.3g rejected (J=%.10e above the Armijo bound)", t, value
@@ -595,6 +601,8 @@ class LBFGS:
         if not float(p.g @ d) < 0:
             return "gradient_atol"
         q, J, t, trials, invalid, seconds = self._line_search(d, lo, hi)
+        if q is None and self._stop is not None:
+            return self._stop
         if q is None and self.memory.scaled:
             logger.info("opt: line search failed; retrying along -M^-1 g with a reset memory")
             self.memory.reset()
@@ -638,11 +646,14 @@ class LBFGS:
             bar.update(self.iteration)
             previous = self.history[-2] if len(self.history) > 1 else None
             reason = self._stop_reason(self.history[-1], previous)
-            while reason is None:
-                reason = self._step()
-                bar.update(1)
-                if reason is None:
-                    reason = self._stop_reason(self.history[-1], self.history[-2])
+            with self._interrupt:
+                while reason is None:
+                    reason = self._step()
+                    bar.update(1)
+                    if reason is None:
+                        reason = self._stop_reason(self.history[-1], self.history[-2])
+                    if reason is None and self._interrupt.pending():
+                        reason = "interrupted"
         p = self.point
         if p.snapshot is not None and hasattr(self.rf, "restore"):
             self.rf.restore(p.snapshot)
@@ -660,7 +671,7 @@ class LBFGS:
         self.rf.simulation.warm_start = None
         message = _MESSAGES.get(reason.split(":")[0], reason)
         logger.info("opt stopped after %d iterations: %s", self.iteration, message)
-        if reason == "line_search" or reason.startswith("remesh"):
+        if reason in ("line_search", "interrupted") or reason.startswith("remesh"):
             detail = reason.partition(": ")[2]
             text = f"{message} ({detail})" if detail else message
             warnings.warn(f"optimisation stopped: {text}", OptimizationWarning, stacklevel=2)
@@ -687,6 +698,7 @@ _MESSAGES = {
     "objective": "objective reduction below its tolerance",
     "max_iterations": "iteration limit reached",
     "line_search": "the line search found no valid step with sufficient decrease",
+    "interrupted": "interrupted (Ctrl-C); the result is the last accepted point",
     "remesh": "remeshing failed; the result is the last accepted point, on the mesh before",
     "user": "a user stopping condition was met",
 }
