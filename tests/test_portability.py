@@ -213,3 +213,16 @@ def test_error_reaches_the_user_as_itself(scenario, ranks, tmp_path):
         assert len(re.findall(r"diffsolids\.errors\.\w+: ", rank_err)) == 1, err
     for bad in ("SystemError", "Exception ignored", "Segmentation", "Fatal Python error"):
         assert bad not in err, err
+
+
+@pytest.mark.skipif(importlib.util.find_spec("adios2") is None, reason="adios2 not installed")
+def test_adios2_imported_first_gets_an_explanation_and_second_works():
+    def child(code: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+
+    first = child("import adios2\nimport diffsolids")
+    if first.returncode == 0:
+        pytest.skip("this adios2 build coexists with DOLFINx's own ADIOS2")
+    assert "Import diffsolids (or dolfinx) before adios2" in first.stderr, first.stderr
+    second = child("import diffsolids\nimport adios2\nprint(adios2.FileReader)")
+    assert second.returncode == 0, second.stderr

@@ -7,11 +7,24 @@ discrete adjoint of exactly those computations.
 """
 
 import contextlib
+import sys
 
 # The PyPI wheel needs its MPI loaded before the DOLFINx bindings; a conda/spack/docker DOLFINx
 # has no such module.
 with contextlib.suppress(ImportError):
     import dolfinx_solver  # noqa: F401
+
+try:
+    import dolfinx  # noqa: F401
+except ImportError as _error:
+    if "adios2" in sys.modules and "adios2" in str(_error):
+        raise ImportError(
+            "DOLFINx cannot load its ADIOS2 library because the adios2 Python package was "
+            "imported first and brought its own libadios2_core (same soname, other build: "
+            f"{_error}). Import diffsolids (or dolfinx) before adios2; adios2 imported "
+            "afterwards works."
+        ) from _error
+    raise
 
 from diffsolids import errors
 from diffsolids.adjoint.checkpointing import Checkpointing
