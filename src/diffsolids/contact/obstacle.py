@@ -266,6 +266,7 @@ class Obstacle:
         import meshio
 
         from diffsolids.mesh import read_mesh
+        from diffsolids.mesh.readers import check_points_and_cells
 
         path = Path(path)
         name = path.stem if name is None else name
@@ -278,6 +279,9 @@ class Obstacle:
         points = np.asarray(data.points, dtype=float)
         if points.ndim != 2 or len(points) == 0 or not data.cells:
             raise MeshError(f"obstacle file {path}: no points or cells")
+        check_points_and_cells(
+            f"obstacle file {path}", points, [(c.type, c.data) for c in data.cells]
+        )
         if dim is None:
             dim = 3 if points.shape[1] == 3 and np.ptp(points[:, 2]) > 0 else 2
         kinds = {c.type for c in data.cells}

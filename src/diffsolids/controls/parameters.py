@@ -82,6 +82,27 @@ class ParameterControl(Control):
             self.map.inverse(self._physical_values())
         except ControlError as err:
             raise ControlError(f"coefficient {name!r} cannot be parametrised: {err}") from None
+        self._check_bounds()
+
+    def _check_bounds(self) -> None:
+        """Refuse bounds of the wrong size, NaN, or a lower bound above the upper one."""
+        try:
+            lower, upper = self.bounds()
+        except ValueError:
+            shapes = f"{np.shape(self._lower)} and {np.shape(self._upper)}"
+            raise ControlError(
+                f"control {self.name}: bounds of shapes {shapes} for {self.size} parameters"
+            ) from None
+        if np.any(np.isnan(lower)) or np.any(np.isnan(upper)):
+            raise ControlError(f"control {self.name}: bounds contain NaN")
+        crossed = np.flatnonzero(lower > upper)
+        if crossed.size:
+            i = int(crossed[0])
+            raise ControlError(
+                f"control {self.name}: lower bound above the upper bound for {crossed.size} "
+                f"parameters (parameter {i}: lower {lower[i]:g} > upper {upper[i]:g}, the map "
+                f"{self.map.name} allows [{self.map.bounds()[0]:g}, {self.map.bounds()[1]:g}])"
+            )
 
     @override
     def check(self, simulation: "Simulation") -> None:

@@ -11,6 +11,7 @@ from diffsolids.mesh.quality import (
 )
 from diffsolids.mesh.readers import (
     check_cells,
+    check_points_and_cells,
     from_geo,
     from_gmsh_model,
     read_mesh,
@@ -37,6 +38,7 @@ __all__ = [
     "boundary_facets",
     "check_cells",
     "check_orientation",
+    "check_points_and_cells",
     "combine_meshes",
     "create_box",
     "create_domain",

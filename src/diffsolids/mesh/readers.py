@@ -20,7 +20,14 @@ if TYPE_CHECKING:
     import gmsh
     import meshio
 
-__all__ = ["check_cells", "from_geo", "from_gmsh_model", "read_mesh", "transform_domain"]
+__all__ = [
+    "check_cells",
+    "check_points_and_cells",
+    "from_geo",
+    "from_gmsh_model",
+    "read_mesh",
+    "transform_domain",
+]
 
 
 def from_gmsh_model(
@@ -140,7 +147,8 @@ def read_mesh(
 
     Raises:
         MeshError: A missing or unreadable file, no volume cells, a surface mesh in 3D space,
-            inverted or degenerate cells (:func:`check_cells`: the file, how many, the first
+            non-finite coordinates, cells referring to missing vertices, inverted or degenerate
+            cells (:func:`check_cells`: the file, how many, the first
             indices), or a bad transformation.
     """
     path = Path(path)
@@ -183,12 +191,14 @@ def check_cells(domain: Domain, source: str | os.PathLike = "the mesh") -> None:
         source: The file, for the message.
 
     Raises:
+        MeshError: Non-finite vertex coordinates (the file, how many, the first input indices).
         InvertedElementError: A :class:`~diffsolids.errors.MeshError` naming the file, the
             number of bad cells of each kind and the first few indices (``cells``: this
             rank's bad local cells).
     """
     from diffsolids.mesh.quality import _mean_edge_length, folded_cells, signed_cell_volumes
 
+    _check_coordinates(domain, source)
     mesh = domain.mesh
     tdim = mesh.topology.dim
     owned = mesh.topology.index_map(tdim).size_local
@@ -222,6 +232,57 @@ def check_cells(domain: Domain, source: str | os.PathLike = "the mesh") -> None:
         "file's order)",
         cells=np.flatnonzero(inverted | tiny),
     )
+
+
+def check_points_and_cells(
+    source: str | os.PathLike, points: np.ndarray, cells: Sequence[tuple[str, np.ndarray]]
+) -> None:
+    """Refuse non-finite coordinates and cells that refer to vertices the file does not have.
+
+    Args:
+        source: The file, for the message.
+        points: Vertex coordinates (num_points x gdim).
+        cells: (cell type, connectivity array) per block, 0-based vertex indices.
+
+    Raises:
+        MeshError: Naming the file, the first bad vertices (0-based, with their coordinates) or
+            the first bad cell (its block, index and the vertex index it uses).
+    """
+    bad = np.flatnonzero(~np.all(np.isfinite(points), axis=1))
+    if bad.size:
+        shown = "; ".join(f"vertex {i} {points[i].tolist()}" for i in bad[:_SHOWN_CELLS])
+        raise MeshError(
+            f"{source}: {bad.size} vertices have non-finite coordinates ({shown}; 0-based)"
+        )
+    for kind, conn in cells:
+        conn = np.asarray(conn)
+        wrong = (conn < 0) | (conn >= len(points))
+        if np.any(wrong):
+            cell, corner = np.argwhere(wrong)[0]
+            raise MeshError(
+                f"{source}: {kind} cell {cell} refers to vertex {conn[cell, corner]} (0-based), "
+                f"but the file has {len(points)} vertices (0..{len(points) - 1}); "
+                f"{int(np.any(wrong, axis=1).sum())} {kind} cells are affected"
+            )
+
+
+def _check_coordinates(domain: Domain, source: str | os.PathLike) -> None:
+    """Refuse non-finite vertex coordinates of a distributed mesh (collective)."""
+    geometry = domain.mesh.geometry
+    owned = geometry.index_map().size_local
+    bad = ~np.all(np.isfinite(geometry.x[:owned]), axis=1)
+    local = np.sort(np.asarray(geometry.input_global_indices[:owned])[bad])[:_SHOWN_CELLS]
+    shown = sorted(
+        i for part in collective_comm(domain.comm).allgather(local.tolist()) for i in part
+    )
+    count = collective_comm(domain.comm).allreduce(int(bad.sum()), op=MPI.SUM)
+    if count:
+        more = ", ..." if count > _SHOWN_CELLS else ""
+        raise MeshError(
+            f"{source}: {count} vertices have non-finite coordinates (input indices "
+            f"{', '.join(map(str, shown[:_SHOWN_CELLS]))}{more}; 0-based, in the file's order "
+            "of nodes)"
+        )
 
 
 def _on_rank0[T](comm: MPI.Comm, task: Callable[[], T], share: bool = True) -> T | None:
@@ -318,6 +379,7 @@ def _has_physical_groups(path: Path, dim: int | None) -> bool:
 
 def _meshio_arrays(src: Path, dim: int | None) -> MeshArrays:
     m = _read_meshio(src)
+    check_points_and_cells(src, m.points, [(b.type, b.data) for b in m.cells])
     present = {b.type for b in m.cells if b.type in _KINDS}
     tdim = dim or max((_KINDS[k] for k in present if k != "line"), default=0)
     cell_type = {2: "triangle", 3: "tetra"}.get(tdim)

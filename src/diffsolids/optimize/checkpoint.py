@@ -21,10 +21,38 @@ from pathlib import Path
 import numpy as np
 from mpi4py import MPI
 
+from diffsolids.optimize.options import OptimizationError
 from diffsolids.parallel import collective_comm
 from diffsolids.simulation import Trajectory
 
-__all__ = ["Checkpoint", "atomic_write_bytes", "atomic_write_npz"]
+__all__ = ["Checkpoint", "atomic_write_bytes", "atomic_write_npz", "make_directory"]
+
+
+def make_directory(path: str | os.PathLike, comm: MPI.Comm, what: str) -> Path:
+    """Create a directory on rank 0 (collective); its failure is an error on every rank.
+
+    Args:
+        path: The directory (parents are created too).
+        comm: The communicator.
+        what: What the directory is for, for the message ("checkpoint directory").
+
+    Raises:
+        OptimizationError: The path is a file, or the directory cannot be created.
+    """
+    path = Path(path)
+    problem = None
+    if comm.rank == 0:
+        if path.exists() and not path.is_dir():
+            problem = f"{what} {path} is a file, not a directory"
+        else:
+            try:
+                path.mkdir(parents=True, exist_ok=True)
+            except OSError as e:
+                problem = f"{what} {path} cannot be created: {e.strerror or e}"
+    problem = collective_comm(comm).bcast(problem, root=0)
+    if problem is not None:
+        raise OptimizationError(problem)
+    return path
 
 
 def atomic_write_npz(path: Path, arrays: dict) -> None:
@@ -53,16 +81,16 @@ class Checkpoint:
     Args:
         directory: Checkpoint directory (created if missing).
         comm: Communicator of the run (all ranks call every method).
+
+    Raises:
+        OptimizationError: ``directory`` is a file or cannot be created.
     """
 
     STATE = "state.npz"
 
     def __init__(self, directory: str | os.PathLike, comm: MPI.Comm) -> None:
-        self.directory = Path(directory)
+        self.directory = make_directory(directory, comm, "checkpoint directory")
         self.comm = comm
-        if comm.rank == 0:
-            self.directory.mkdir(parents=True, exist_ok=True)
-        comm.barrier()
 
     def exists(self) -> bool:
         """Whether a checkpoint is present (same answer on all ranks)."""
@@ -71,11 +99,9 @@ class Checkpoint:
 
     def mesh_directory(self, remesh_count: int) -> Path:
         """Directory for the remesher's data after remesh number ``remesh_count``."""
-        path = self.directory / f"mesh_{remesh_count:03d}"
-        if self.comm.rank == 0:
-            path.mkdir(parents=True, exist_ok=True)
-        self.comm.barrier()
-        return path
+        return make_directory(
+            self.directory / f"mesh_{remesh_count:03d}", self.comm, "remesher's checkpoint"
+        )
 
     def _trajectory_path(self, tag: str, rank: int) -> Path:
         return self.directory / f"trajectory_{tag}_rank{rank:04d}.npz"

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from mpi4py import MPI
 
-from diffsolids.optimize.checkpoint import atomic_write_bytes
+from diffsolids.optimize.checkpoint import atomic_write_bytes, make_directory
 from diffsolids.optimize.options import OptimizationError
 
 if TYPE_CHECKING:
@@ -448,15 +448,12 @@ class OptimizationOutput:
             )
         if plot_every < 0 or iterate_every < 0:
             raise OptimizationError("plot_every and iterate_every must be >= 0 (0: never)")
-        self.directory = Path(directory)
+        self.directory = make_directory(directory, comm, "output directory")
         self.comm = comm
         self.write_parameters = write_parameters
         self.plot_every = plot_every
         self.iterate_every = iterate_every
         self.iterate_format = iterate_format
-        if comm.rank == 0:
-            self.directory.mkdir(parents=True, exist_ok=True)
-        comm.barrier()
 
     @property
     def history_path(self) -> Path:
