@@ -182,3 +182,44 @@ def test_plane_strain_von_mises_of_uniaxial_strain(law):
         g = ((1 + a) ** 2 - 1) / 2  # Green strain E_xx
         expected = (1 + a) * (lmbda + 2 * mu) * g - lmbda * g / (1 + a)
     assert np.allclose(vm, expected, rtol=1e-12)
+
+
+@pytest.mark.parametrize("suffix", [".bp", ".xdmf"])
+def test_each_trajectory_is_written_on_its_own_rest_shape(tmp_path, suffix):
+    from output_checks import read_vtx, read_xdmf
+
+    from diffsolids.controls import ShapeControl
+    from diffsolids.io import write_trajectory
+
+    facets = {1: lambda x: np.isclose(x[0], 0.0)}
+    domain = create_rectangle(MPI.COMM_WORLD, [[0, 0], [2, 1]], [4, 2], facets=facets)
+    model = ds.Model(domain, ds.LinearElastic(E=1e3, nu=0.3))
+    model.add_gravity(1.0)
+    model.add_dirichlet(1, 0.0)
+    sim = ds.Simulation(model, ds.Static(), progress=False)
+    control = ShapeControl(model)
+    before = sim.run()
+    X0 = model.domain.mesh.geometry.x.copy()
+    control.assign(0.1 * np.ones(control.size))  # every vertex moves by (0.1, 0.1)
+    after = sim.run()
+    X1 = model.domain.mesh.geometry.x.copy()
+
+    def geometry(path):
+        if suffix == ".bp":
+            return read_vtx(path)["steps"][0]["geometry"]
+        return read_xdmf(path)["geometry"]
+
+    write_trajectory(model, before, tmp_path / f"initial{suffix}")
+    write_trajectory(model, after, tmp_path / f"final{suffix}")
+    assert np.array_equal(model.domain.mesh.geometry.x, X1)  # the mesh is left as it was
+    if MPI.COMM_WORLD.size == 1:
+        initial, final = (
+            geometry(tmp_path / f"initial{suffix}"),
+            geometry(tmp_path / f"final{suffix}"),
+        )
+        assert np.allclose(np.sort(initial[:, 0]), np.sort(X0[:, 0]))
+        assert np.allclose(np.sort(final[:, 0]), np.sort(X1[:, 0]))
+        assert np.allclose(final[:, :2] - initial[:, :2], 0.1)
+    other = ds.Model(create_rectangle(MPI.COMM_WORLD, [[0, 0], [2, 1]], [8, 4]), model.materials[1])
+    with pytest.raises(ParameterError, match="computed on another mesh"):
+        write_trajectory(other, before, tmp_path / f"wrong{suffix}")

@@ -76,12 +76,18 @@ class StateRecorder(StateHistory, Protocol):
 
 @dataclass
 class Trajectory:
-    """States u^i, v^i (local arrays incl. ghosts) for i = 0..N and per-step records."""
+    """States u^i, v^i (local arrays incl. ghosts) for i = 0..N and per-step records.
+
+    ``rest_geometry`` is the mesh's ``geometry.x`` (this rank's nodes) the run started from, so
+    that output written after a shape change shows the trajectory on its own rest shape (None:
+    the mesh's current geometry).
+    """
 
     times: list[float] = field(default_factory=list)
     u: list[np.ndarray] = field(default_factory=list)
     v: list[np.ndarray] = field(default_factory=list)
     records: list[StepRecord] = field(default_factory=list)
+    rest_geometry: np.ndarray | None = None
 
     @property
     def num_steps(self) -> int:
@@ -421,6 +427,7 @@ class Simulation:
             traj = Trajectory(times=[0.0], u=[self.u0.copy()], v=[self.v0.copy()])
         else:
             traj = checkpoints.start()
+        traj.rest_geometry = self.model.domain.mesh.geometry.x.copy()
         if writer:
             writer.write(0.0, traj.u[0], traj.v[0])
         with progress_bar(integ.num_steps, self.model.domain.comm, self.progress) as bar:

@@ -345,6 +345,7 @@ class CheckpointedTrajectory:
 
     def __init__(self, num_steps: int, states: dict) -> None:
         self.run: CheckpointedRun | None = None  # the run holding the checkpoints
+        self.rest_geometry: np.ndarray | None = None  # as Trajectory.rest_geometry
         self.times: list[float] = [0.0]
         self.records: list = []
         self._N = num_steps

@@ -1,6 +1,8 @@
 """Time series output readable in ParaView: displacement, velocity and von Mises stress."""
 
+import contextlib
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -19,7 +21,7 @@ if TYPE_CHECKING:
     from diffsolids.model import Model
     from diffsolids.simulation import Trajectory
 
-__all__ = ["TrajectoryWriter", "von_mises_field", "write_trajectory"]
+__all__ = ["TrajectoryWriter", "at_rest_geometry", "von_mises_field", "write_trajectory"]
 
 
 class _VonMises:
@@ -217,7 +219,36 @@ def write_trajectory(
     Returns:
         The files written (``TrajectoryWriter.files``).
     """
-    with TrajectoryWriter(model, path, extra=extra) as writer:
+    with at_rest_geometry(model, trajectory), TrajectoryWriter(model, path, extra) as writer:
         for t, u, v in zip(trajectory.times, trajectory.u, trajectory.v, strict=True):
             writer.write(t, u, v)
     return list(writer.files)
+
+
+@contextlib.contextmanager
+def at_rest_geometry(model: "Model", trajectory: "Trajectory") -> Iterator[None]:
+    """The model's mesh at the trajectory's own rest geometry for the block, then back.
+
+    A trajectory computed before a shape change is written (and its stresses evaluated) on the
+    rest shape it was computed on, not on the mesh's current one.
+
+    Raises:
+        ParameterError: The trajectory was computed on another mesh (a different node count).
+    """
+    rest = trajectory.rest_geometry
+    x = model.domain.mesh.geometry.x
+    if rest is None:
+        yield
+        return
+    if rest.shape != x.shape:
+        raise ParameterError(
+            f"the trajectory was computed on another mesh ({rest.shape[0]} geometry nodes on "
+            f"this rank, the model's mesh has {x.shape[0]}); write it with the model it "
+            "belongs to"
+        )
+    current = x.copy()
+    x[:] = rest
+    try:
+        yield
+    finally:
+        x[:] = current

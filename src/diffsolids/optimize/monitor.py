@@ -492,11 +492,8 @@ class OptimizationOutput:
 
     def write_iterate(self, iteration: int, model: "Model", trajectory: "Trajectory") -> Path:
         """Write the trajectory of an iterate (collective)."""
-        from diffsolids.io.output import TrajectoryWriter
+        from diffsolids.io.output import write_trajectory
 
         path = self.directory / "iterates" / f"iterate_{iteration:04d}.{self.iterate_format}"
-        writer = TrajectoryWriter(model, path)
-        for t, u, v in zip(trajectory.times, trajectory.u, trajectory.v, strict=True):
-            writer.write(t, u, v)
-        writer.close()
+        write_trajectory(model, trajectory, path)
         return path
