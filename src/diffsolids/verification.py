@@ -48,12 +48,13 @@ class TaylorResult:
     """Remainders of J(q + h dq) around q for decreasing h.
 
     Attributes:
-        steps: The h values.
+        steps: The h values (with the default steps, the last ``num`` tried).
         first_order: |J(q + h dq) - J(q)| (rate ~1).
         second_order: |J(q + h dq) - J(q) - h dJ.dq| (rate ~2 if dJ is right).
         rates_first: log2 ratios of consecutive first-order remainders.
         rates_second: log2 ratios of consecutive second-order remainders.
         directional_derivative: dJ(q).dq from the gradient.
+        note: Why the rates do not show 2 with the default steps (empty when they do).
     """
 
     steps: np.ndarray
@@ -62,6 +63,7 @@ class TaylorResult:
     rates_first: np.ndarray
     rates_second: np.ndarray
     directional_derivative: float
+    note: str = ""
 
     @property
     def min_rate(self) -> float:
@@ -79,6 +81,8 @@ class TaylorResult:
             lines.append(
                 f"{h:10.3e} {self.first_order[k]:12.4e} {r0} {self.second_order[k]:12.4e} {r1}"
             )
+        if self.note:
+            lines.append(self.note)
         return "\n".join(lines)
 
 
@@ -108,7 +112,11 @@ def taylor_test(
         rf: Callable J(q) with ``gradient(q)`` (a :class:`DifferentiableFunctional`).
         q: Expansion point.
         dq: Direction.
-        h0: Largest step (default 1e-2 * (1 + |q|) / |dq|).
+        h0: Largest step. Given, exactly ``num`` steps h0 factor^k are tried. By default the
+            steps start at 1e-2 (1 + |q|) / |dq| and go on shrinking (at most
+            ``MAX_EXTRA_STEPS`` more) until the last ``num`` show second-order rates within
+            ``RATE_WINDOW`` of 2, or the remainder reaches round-off; the result holds the
+            last ``num`` steps and a ``note`` when rate 2 did not show.
         num: Number of steps.
         factor: Ratio of consecutive steps.
 
@@ -131,18 +139,68 @@ def _taylor(
     J0 = rf(q)
     g = rf.gradient(q)
     dJ = float(g @ dq)
-    if h0 is None:
+    adaptive = h0 is None
+    if adaptive:
         h0 = 1e-2 * (1.0 + np.linalg.norm(q[dq != 0])) / max(np.linalg.norm(dq), 1e-300)
-    hs = h0 * factor ** np.arange(num)
-    r0, r1 = [], []
-    for h in hs:
+    hs, r0, r1 = [], [], []
+    note = ""
+    noise = ROUND_OFF * max(abs(J0), 1e-300)
+    for k in range(num + (MAX_EXTRA_STEPS if adaptive else 0)):
+        h = h0 * factor**k
         Jh = rf(q + h * dq)
+        hs.append(h)
         r0.append(abs(Jh - J0))
         r1.append(abs(Jh - J0 - h * dJ))
-    r0, r1 = np.array(r0), np.array(r1)
-    rate = lambda r: np.log(r[:-1] / r[1:]) / np.log(1.0 / factor)  # noqa: E731
+        if not adaptive or len(hs) < num:
+            continue
+        rates = _rates(np.array(r1[-num:]), factor)
+        if np.all(np.abs(rates - 2.0) <= RATE_WINDOW):
+            break
+        if r1[-1] <= noise:
+            note = (
+                f"the second-order remainder reached round-off (|R1| <= {ROUND_OFF:g} |J|) "
+                "before rate 2 showed: J is not computed precisely enough for these steps "
+                "(a tighter solver rtol), or dJ is exact to the digits J has"
+            )
+            break
+    else:
+        if adaptive:
+            note = _why_no_rate_2(np.array(r1), factor, hs[-1], dJ)
+    hs, r0, r1 = (np.array(a[-num:]) for a in (hs, r0, r1))
+    return TaylorResult(hs, r0, r1, _rates(r0, factor), _rates(r1, factor), dJ, note)
+
+
+#: How far each second-order rate may lie from 2 for the default steps to stop shrinking.
+RATE_WINDOW = 0.15
+#: Steps the default Taylor test may add after the first ``num``.
+MAX_EXTRA_STEPS = 6
+#: Remainders below this fraction of |J| are taken as round-off.
+ROUND_OFF = 1e-11
+
+
+def _why_no_rate_2(r1: np.ndarray, factor: float, h_last: float, dJ: float) -> str:
+    rates = _rates(r1, factor)
+    tail = rates[-2:]
+    if np.all(np.abs(tail - 1.0) < 0.2):
+        off = r1[-1] / h_last
+        return (
+            f"the remainder falls at rate 1 down to h = {h_last:.3g}: dJ.dq is off by about "
+            f"{off:.3g} ({off / max(abs(dJ), 1e-300):.1%} of it): the gradient is wrong"
+        )
+    if np.nanmax(rates) >= 2.0 - RATE_WINDOW and np.any(tail < 0.5):
+        return (
+            f"rate 2 showed, then the remainder stopped falling near h = {h_last:.3g}: it "
+            "reached the noise of J (solver tolerances); a larger h0 shows rate 2"
+        )
+    return (
+        f"no rate 2 down to h = {h_last:.3g}: J is not smooth on this scale (see line_scan), "
+        "or the gradient is wrong"
+    )
+
+
+def _rates(r: np.ndarray, factor: float) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
-        return TaylorResult(hs, r0, r1, rate(r0), rate(r1), dJ)
+        return np.log(r[:-1] / r[1:]) / np.log(1.0 / factor)
 
 
 @dataclass
