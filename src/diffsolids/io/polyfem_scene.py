@@ -244,7 +244,15 @@ class PolyFEMBoundaryValue:
 
 @dataclass
 class PolyFEMSetup:
-    """What :meth:`PolyFEMScene.build` makes: the pieces of a simulation of the scene."""
+    """What :meth:`PolyFEMScene.build` makes: the pieces of a simulation of the scene.
+
+    Attributes:
+        domain: The mesh of all bodies with PolyFEM's volume and surface ids as tags.
+        model: The Model (materials, loads, Dirichlet conditions, the contact term).
+        integrator: ``BDF`` of the scene's time section.
+        contact: The ContactTerm when the scene has contact enabled, else None.
+        simulation: The Simulation of the model with the integrator, ready to ``run()``.
+    """
 
     domain: Domain
     model: "Model"
