@@ -351,8 +351,9 @@ class ShapeInnerProduct:
     """Initial inverse Hessian of L-BFGS for a ReducedFunctional with mesh-motion controls.
 
     Calling it, ``inner_product(g)``, applies the :class:`RieszMap` of every MeshMotionControl
-    to its block of the gradient and ``other_scale`` times the identity to all other blocks; :meth:`rebuild` makes
-    the same inner product for the functional built after a remesh (the optimiser calls it).
+    to its block of the gradient and ``other_scale`` times the identity to all other blocks;
+    :meth:`rebuild` makes the same inner product for the functional built after a remesh (the
+    optimiser calls it).
 
     Args:
         rf: The ReducedFunctional.
