@@ -9,8 +9,10 @@ builds the diffsolids objects from them:
   degrees, ``translation``: x' = R (s x) + t), ``volume_selection`` (its body id: the cell tag)
   and ``surface_selection`` (an id given to every boundary facet of that mesh, or a list of
   PolyFEM selections ``{"id", "box" | "axis"/"position" | "center"/"radius" |
-  "normal"/"point", "relative"}`` tested on facet barycentres against that mesh's bounding box;
-  a later selection wins). Body order follows ``geometry[]``.
+  "normal"/"point", "relative"}`` or ``{"threshold", "id_offset"}`` (ids 1..7 by the side of
+  the bounding box), tested on facet barycentres against that mesh's bounding box after its
+  transformation; the first selection holding a facet gives its id, as in PolyFEM's
+  ``GeometryReader.cpp``). Body order follows ``geometry[]``.
 - ``materials``: one dict for all bodies or a list of dicts with ``id`` (a body id): ``type``
   ``NeoHookean`` or ``LinearElasticity``, ``E``, ``nu``, ``rho``, optional damping ``phi``,
   ``psi``. 2D scenes are plane stress (PolyFEM's 2D convention).
@@ -190,7 +192,7 @@ class PolyFEMGeometry:
 
     mesh: Path
     body_id: int
-    surface: int | list[tuple[int, Selection]] | None
+    surface: int | list[tuple[int, "Selection | BoxSideSelection"]] | None
     scale: float | tuple[float, ...] = 1.0
     rotation: float | tuple[float, ...] | None = None
     translation: tuple[float, ...] | None = None
@@ -381,10 +383,13 @@ class PolyFEMScene:
             if isinstance(g.surface, int):
                 values[mine] = g.surface
             elif g.surface is not None:
-                for tag, selection in g.surface:
-                    hit = selection.inside(centres[mine], boxes[k])
-                    idx = np.flatnonzero(mine)[hit]
-                    values[idx] = tag
+                # PolyFEM's order: the first selection holding a facet names it
+                for tag, selection in reversed(g.surface):
+                    idx = np.flatnonzero(mine)
+                    if isinstance(selection, BoxSideSelection):
+                        values[idx] = selection.ids(centres[mine], boxes[k])
+                    else:
+                        values[idx[selection.inside(centres[mine], boxes[k])]] = tag
         keep = values > 0
         order = np.argsort(boundary[keep], kind="stable")
         facet_tags = dolfinx.mesh.meshtags(
@@ -796,7 +801,7 @@ def _obstacle_displacements(
         if not (isinstance(id_, int) and id_ in surfaces):
             body_entries.append(e)
     for g in geometry:
-        if g.surface not in surfaces or not g.is_obstacle:
+        if not (isinstance(g.surface, int) and g.surface in surfaces and g.is_obstacle):
             out.append(g)
             continue
         found = None
@@ -1023,14 +1028,32 @@ def _geometry(entries: object, folder: Path, obstacles: str) -> list[PolyFEMGeom
     return out
 
 
-def _surface(value: object, where: str) -> int | list[tuple[int, Selection]] | None:
-    if value is None or isinstance(value, int):
+def _surface(
+    value: object, where: str
+) -> int | list[tuple[int, "Selection | BoxSideSelection"]] | None:
+    """``surface_selection`` as PolyFEM's ``Selection::build_selections`` reads it.
+
+    An integer, one selection object or a list of them (polyfem/utils/Selection.cpp); the
+    first selection that contains a facet's barycentre gives its id
+    (polyfem/mesh/GeometryReader.cpp, ``compute_boundary_ids``).
+    """
+    if value is None or (isinstance(value, int) and not isinstance(value, bool)):
         return value
+    if isinstance(value, Mapping):
+        value = [value]
     if not isinstance(value, list):
-        raise ParameterError(f"{where}.surface_selection = {value!r}: an id or a list")
+        raise ParameterError(
+            f"{where}.surface_selection = {value!r}: an id, a selection object or a list of them"
+        )
     out = []
     for k, s in enumerate(value):
         w = f"{where}.surface_selection[{k}]"
+        if isinstance(s, Mapping) and "threshold" in s:
+            extra = sorted(set(s) - {"threshold", "id_offset"})
+            if extra:
+                raise ParameterError(f"{w}: unsupported key(s) {extra} of a side selection")
+            out.append((0, BoxSideSelection(float(s["threshold"]), int(s.get("id_offset", 0)))))
+            continue
         if not isinstance(s, Mapping) or not isinstance(s.get("id"), int):
             raise ParameterError(f"{w} = {s!r}: a selection with an integer 'id'")
         rel = bool(s.get("relative", False))
@@ -1048,6 +1071,31 @@ def _surface(value: object, where: str) -> int | list[tuple[int, Selection]] | N
             raise ParameterError(f"{w}: unsupported selection keys {sorted(keys)}")
         out.append((int(s["id"]), sel))
     return out
+
+
+@dataclass(frozen=True)
+class BoxSideSelection:
+    """PolyFEM's ``{"threshold": eps, "id_offset": o}``: ids by the side of the bounding box.
+
+    A facet whose barycentre is within eps of the box's x min gets 1 + o, else y min 2 + o,
+    x max 3 + o, y max 4 + o, z min 5 + o, z max 6 + o, any other 7 + o (in that order);
+    a negative eps means 1e-2 in 3D, 1e-7 in 2D (polyfem/utils/Selection.cpp,
+    ``BoxSideSelection``).
+    """
+
+    threshold: float
+    id_offset: int = 0
+
+    def ids(self, points: np.ndarray, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """The id of each point (num_points x dim) against the mesh's bounding box."""
+        dim = points.shape[1]
+        eps = self.threshold if self.threshold >= 0 else (1e-2 if dim == 3 else 1e-7)
+        lo, hi = (np.asarray(b, dtype=float)[:dim] for b in box)
+        ids = np.full(len(points), 7, dtype=np.int32)
+        sides = [(0, lo), (1, lo), (0, hi), (1, hi)] + ([(2, lo), (2, hi)] if dim == 3 else [])
+        for side, (axis, corner) in reversed(list(enumerate(sides, start=1))):
+            ids[np.abs(points[:, axis] - corner[axis]) < eps] = side  # the first side wins
+        return ids + self.id_offset
 
 
 def _time(time: Mapping[str, Any] | None) -> tuple[float, float, int, int]:
