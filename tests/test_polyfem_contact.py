@@ -60,11 +60,28 @@ def test_given_dhat_adaptive_kappa_and_unsupported_options():
         scene["solver"]["contact"]["barrier_stiffness"] = bad
         with pytest.raises(ds.ParameterError, match="barrier_stiffness"):
             polyfem_contact_options(scene, domain)
-    scene["contact"]["use_convergent_formulation"] = True
-    with pytest.raises(ds.ParameterError, match="convergent contact formulation"):
-        polyfem_contact_options(scene, domain)
     with pytest.raises(ds.ParameterError, match="no contact"):
         polyfem_contact_options({"contact": {"enabled": False}}, domain)
+
+
+def test_convergent_formulation_maps_the_physical_barrier_stiffness():
+    scene, domain = _puzzle_scene()
+    scene["contact"]["dhat"] = 2e-3
+    scene["solver"]["contact"]["barrier_stiffness"] = 1e5
+    plain = polyfem_contact_options(scene, domain)
+    assert plain["stiffness"] == 1e5 and not plain["area_weighting"]
+    assert "formulation" not in plain
+    scene["contact"]["use_convergent_formulation"] = True
+    options = polyfem_contact_options(scene, domain)
+    assert options["formulation"] == "convergent" and options["area_weighting"]
+    assert options["stiffness"] == pytest.approx(1e5 / 2e-3**3, rel=1e-14)
+    scene["contact"]["use_physical_barrier"] = False
+    assert polyfem_contact_options(scene, domain)["stiffness"] == 1e5
+    for key in ("use_area_weighting", "use_improved_max_operator"):
+        scene["contact"][key] = False
+        with pytest.raises(ds.ParameterError, match=f"contact.{key} = false"):
+            polyfem_contact_options(scene, domain)
+        scene["contact"][key] = True
 
 
 def test_dhat_default_sees_obstacle_edges_and_dhat_percentage():

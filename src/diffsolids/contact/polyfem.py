@@ -20,8 +20,16 @@ obstacles' edges), dhat is ``dhat_percentage`` (default 0.8) times that edge: Po
 same rule in ``legacy/State.cpp``), which takes the minimum over ``collision_mesh.edges()``
 at ``rest_positions()``. A dhat given in the scene is used as written (PolyFEM only warns
 when it exceeds the shortest edge). PolyFEM reads ``barrier_stiffness`` from
-``solver.contact``, the others from ``contact``. The "convergent formulation" (area weights,
-a collision set with correction pairs, a barrier divided by dhat^3) is not supported.
+``solver.contact``, the others from ``contact``.
+
+``use_convergent_formulation: true`` is ``ContactTerm(formulation="convergent",
+area_weighting=True)``: PolyFEM then sets ipctk's area weighting, improved max operator and
+physical barrier (``use_area_weighting``, ``use_improved_max_operator``,
+``use_physical_barrier``, each default true; ``legacy/state/StateSolveNonlinear.cpp``). The
+physical barrier multiplies b(d^2, dhat^2) by dhat / units(dhat^2) = 1 / dhat^3
+(ipctk ``BarrierPotential``, ``ClampedLogSqBarrier::units``), so a numeric kappa_P is our
+stiffness kappa_P / dhat^3 (kappa_P with ``use_physical_barrier: false``). Switching off the
+area weights or the improved max operator is refused.
 
 With ipctk's squared-distance barrier a pair carrying a contact force f settles at a distance
 d ~ 2 kappa dhat^4 / f: the scenes' kappa_P (1e4-1e5 with dhat ~ 1e-3) put pairs at gaps of
@@ -91,19 +99,24 @@ def polyfem_contact_options(
 
     Returns:
         ``dhat``, ``stiffness`` (None for "adaptive": use ``suggest_barrier_stiffness``),
-        ``friction``, ``eps_v`` and ``area_weighting=False``.
+        ``friction``, ``eps_v``, ``area_weighting`` (False; True with the convergent
+        formulation, which also sets ``formulation="convergent"``).
 
     Raises:
-        ParameterError: Contact disabled, the convergent formulation, or a malformed value.
+        ParameterError: Contact disabled, a convergent formulation without area weights or
+            the improved max operator, or a malformed value.
     """
     contact = dict(scene.get("contact", {}))
     if not contact.get("enabled", False):
         raise ParameterError("the scene has no contact (contact.enabled is not true)")
-    if contact.get("use_convergent_formulation", False):
-        raise ParameterError(
-            "PolyFEM's convergent contact formulation (use_convergent_formulation) is not "
-            "supported: it needs ipctk's IMPROVED_MAX_APPROX collision set"
-        )
+    convergent = bool(contact.get("use_convergent_formulation", False))
+    if convergent:
+        for key in ("use_area_weighting", "use_improved_max_operator"):
+            if not contact.get(key, True):
+                raise ParameterError(
+                    f"contact.{key} = false: diffsolids' convergent formulation always has "
+                    "area weights and the improved max approximation"
+                )
     if "dhat" in contact:
         dhat = float(contact["dhat"])
     else:
@@ -121,10 +134,13 @@ def polyfem_contact_options(
         raise ParameterError(
             f"solver.contact.barrier_stiffness = {kappa!r}: a number > 0 or 'adaptive'"
         )
+    if convergent and stiffness is not None and contact.get("use_physical_barrier", True):
+        stiffness /= dhat**3  # ipctk's physical barrier: b(d^2, dhat^2) dhat / units(dhat^2)
     return {
         "dhat": dhat,
         "stiffness": stiffness,
         "friction": float(contact.get("friction_coefficient", 0.0)),
         "eps_v": float(contact.get("epsv", _DEFAULT_EPSV)),
-        "area_weighting": False,
+        "area_weighting": convergent,
+        **({"formulation": "convergent"} if convergent else {}),
     }

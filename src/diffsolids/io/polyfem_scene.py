@@ -14,10 +14,12 @@ builds the diffsolids objects from them:
   transformation; the first selection holding a facet gives its id, as in PolyFEM's
   ``GeometryReader.cpp``). Body order follows ``geometry[]``.
 - ``materials``: one dict for all bodies or a list of dicts with ``id`` (a body id): ``type``
-  ``NeoHookean`` or ``LinearElasticity``, ``E``, ``nu``, ``rho``, optional damping ``phi``,
-  ``psi``. 2D scenes are plane stress (PolyFEM's 2D convention).
+  ``NeoHookean`` or ``LinearElasticity``, ``E``, ``nu``, ``rho`` (default 1, as PolyFEM),
+  optional damping ``phi``, ``psi``. 2D scenes are plane stress (PolyFEM's 2D convention;
+  ``model(domain, plane_stress=False)`` for plane strain).
 - ``time``: ``t0`` (0), ``tend``, ``dt`` or ``time_steps``, ``integrator`` ("BDF1".."BDF6",
-  "ImplicitEuler", or ``{"type": "BDF", "steps": k}``; default BDF1).
+  "ImplicitEuler", or ``{"type": "BDF", "steps": k}``; default BDF1). Without ``time`` the
+  scene is static: one solve (:class:`~diffsolids.Static`), as PolyFEM's default.
 - ``contact``: ``enabled``, ``dhat`` (default: PolyFEM's rule from the shortest collision-mesh
   edge and ``dhat_percentage``, see :mod:`diffsolids.contact.polyfem`), ``epsv``,
   ``friction_coefficient``;
@@ -91,7 +93,7 @@ from diffsolids.mesh.selections import (
 
 if TYPE_CHECKING:
     from diffsolids.contact import ContactTerm, Obstacle
-    from diffsolids.integrators import BDF, Integrator
+    from diffsolids.integrators import Integrator
     from diffsolids.model.materials import Material
     from diffsolids.model.model import Model
     from diffsolids.simulation import Simulation
@@ -137,6 +139,9 @@ _CONTACT = {
     "epsv",
     "friction_coefficient",
     "use_convergent_formulation",
+    "use_area_weighting",
+    "use_improved_max_operator",
+    "use_physical_barrier",
 }
 _SOLVER_IGNORED = {"linear", "nonlinear", "max_threads", "advanced"}
 _SOLVER_CONTACT = {"barrier_stiffness", "CCD", "friction_iterations"}
@@ -235,12 +240,13 @@ class PolyFEMBoundaryValue:
 
     Attributes:
         id: The selection id.
-        value: The vector value.
+        value: The vector value: numbers, or (boundary conditions) expressions of x, y, z, t
+            in PolyFEM's grammar where a component varies.
         components: Components it applies to (Dirichlet ``dimension``; None: all).
     """
 
     id: int
-    value: tuple[float, ...]
+    value: tuple[float | str, ...]
     components: tuple[int, ...] | None = None
 
 
@@ -275,7 +281,7 @@ class PolyFEMScene:
         t0: Start time.
         dt: Time step.
         num_steps: Number of steps (``time_steps``, or round((tend - t0) / dt)).
-        bdf_order: BDF order of ``time.integrator``.
+        bdf_order: BDF order of ``time.integrator`` (0: a static scene, no ``time`` section).
         rhs: ``boundary_conditions.rhs`` (minus the body force per unit mass), or None.
         dirichlet: Dirichlet entries (ids: surface ids).
         neumann: Neumann entries (tractions; ids: surface ids).
@@ -405,24 +411,28 @@ class PolyFEMScene:
         Args:
             domain: From :meth:`domain`.
             materials: Optional Materials replacing the scene's, by body id.
-            **kwargs: Further arguments of :class:`~diffsolids.Model`.
+            **kwargs: Further arguments of :class:`~diffsolids.Model` (``plane_stress``
+                defaults to True in 2D, PolyFEM's convention).
         """
         from diffsolids.model.model import Model
 
         mats = {b: m.material() for b, m in self.materials.items() if b in self.body_ids}
         mats.update(materials or {})
-        model = Model(domain, mats, degree=self.degree, plane_stress=domain.dim == 2, **kwargs)
+        kwargs.setdefault("plane_stress", domain.dim == 2)
+        model = Model(domain, mats, degree=self.degree, **kwargs)
         self._check_dim(domain.dim)
         if self.rhs is not None and any(self.rhs):
             model.add_body_force(-np.asarray(self.rhs), name="gravity")
         for n in self.neumann:
-            model.add_traction(n.id, np.asarray(n.value))
+            value = _boundary_value(n, domain.dim, f"{self.path}: neumann_boundary", False)
+            model.add_traction(n.id, value.at_time if callable(value) else value)
         clamped = {g.surface for g in self.obstacle_geometry}  # obstacles: no dofs
         for d in self.dirichlet:
             if d.id in clamped:
                 continue
             comps = None if d.components is None else list(d.components)
-            model.add_dirichlet(d.id, np.asarray(d.value), comps)
+            value = _boundary_value(d, domain.dim, f"{self.path}: dirichlet_boundary", True)
+            model.add_dirichlet(d.id, value, comps)
             if comps is None and not any(d.value):
                 clamped.add(d.id)
         for g in self.bodies:
@@ -446,10 +456,17 @@ class PolyFEMScene:
         if self.rhs is not None and len(self.rhs) != dim:
             raise ParameterError(f"{self.path}: rhs {list(self.rhs)} for a {dim}D scene")
 
-    def integrator(self) -> "BDF":
-        """The BDF integrator of ``time``."""
-        from diffsolids.integrators import BDF
+    @property
+    def static(self) -> bool:
+        """Whether the scene has no ``time`` section (one static solve, as PolyFEM)."""
+        return self.bdf_order == 0
 
+    def integrator(self) -> "Integrator":
+        """The BDF integrator of ``time``, or ``Static()`` for a static scene."""
+        from diffsolids.integrators import BDF, Static
+
+        if self.static:
+            return Static()
         return BDF(self.bdf_order, self.dt, self.num_steps)
 
     def obstacles(self, dim: int) -> list["Obstacle"]:
@@ -558,14 +575,16 @@ class PolyFEMScene:
         from diffsolids.simulation import Simulation
 
         kwargs.setdefault("progress", False)
-        return Simulation(
-            model,
-            integrator,
-            solver_options,
-            u0=self.nodal_values(model, self.initial_displacement),
-            v0=self.nodal_values(model, self.initial_velocity),
-            **kwargs,
-        )
+        return Simulation(model, integrator, solver_options, **self._initial_state(model), **kwargs)
+
+    def _initial_state(self, model: "Model") -> dict[str, np.ndarray]:
+        """``u0`` and, for a dynamic scene, ``v0`` of the Simulation."""
+        state = {"u0": self.nodal_values(model, self.initial_displacement)}
+        if not self.static:
+            state["v0"] = self.nodal_values(model, self.initial_velocity)
+        elif any(any(e.value) for e in self.initial_velocity):
+            raise ParameterError(f"{self.path}: an initial velocity in a static scene")
+        return state
 
     def build(
         self,
@@ -593,12 +612,7 @@ class PolyFEMScene:
         else:
             simulation_kwargs.setdefault("progress", False)
             sim = simulation_class(
-                model,
-                integrator,
-                solver_options,
-                u0=self.nodal_values(model, self.initial_displacement),
-                v0=self.nodal_values(model, self.initial_velocity),
-                **simulation_kwargs,
+                model, integrator, solver_options, **self._initial_state(model), **simulation_kwargs
             )
         return PolyFEMSetup(domain, model, integrator, contact, sim)
 
@@ -680,8 +694,8 @@ def read_polyfem_scene(
         num_steps=num_steps,
         bdf_order=order,
         rhs=None if rhs is None else tuple(_numbers(rhs, "boundary_conditions.rhs").tolist()),
-        dirichlet=_values(dirichlet, "dirichlet_boundary", True),
-        neumann=_values(bcs.get("neumann_boundary", []), "neumann_boundary"),
+        dirichlet=_values(dirichlet, "dirichlet_boundary", True, expressions=True),
+        neumann=_values(bcs.get("neumann_boundary", []), "neumann_boundary", expressions=True),
         initial_velocity=_values(ics.get("velocity", []), "initial_conditions.velocity"),
         initial_displacement=_values(ics.get("solution", []), "initial_conditions.solution"),
         contact_enabled=bool(contact.get("enabled", False)),
@@ -713,7 +727,7 @@ def _kinematic_geometry(
     surfaces = [g.surface for g in scene.geometry if isinstance(g.surface, int)]
     out = []
     for k, g in enumerate(scene.geometry):
-        alone = ids.count(g.body_id) == 1 and surfaces.count(g.surface) == 1
+        alone = ids.count(g.body_id) == 1 and (g.surface is None or surfaces.count(g.surface) == 1)
         fixed = isinstance(g.surface, int) and g.surface in zero and alone
         kinematic = (g.is_obstacle and obstacles == "kinematic") or (fixed_as_obstacles and fixed)
         if kinematic:
@@ -995,10 +1009,11 @@ def _geometry(entries: object, folder: Path, obstacles: str) -> list[PolyFEMGeom
         rotation = None if rotation is None else _numbers(rotation, f"{where}.rotation")
         translation = t.get("translation")
         translation = None if translation is None else _numbers(translation, f"{where}.translation")
-        if "volume_selection" not in g or not isinstance(g["volume_selection"], int):
+        volume = g.get("volume_selection", 0)  # PolyFEM: 0 without a selection or stored ids
+        if not isinstance(volume, int) or isinstance(volume, bool):
             raise ParameterError(
-                f"{where}.volume_selection must be an integer body id, got "
-                f"{g.get('volume_selection')!r}"
+                f"{where}.volume_selection must be an integer body id, got {volume!r} (selections "
+                "of cells by region or file are not supported)"
             )
         obstacle = bool(g.get("is_obstacle", False))
         if obstacle and obstacles == "error":
@@ -1015,7 +1030,7 @@ def _geometry(entries: object, folder: Path, obstacles: str) -> list[PolyFEMGeom
         out.append(
             PolyFEMGeometry(
                 mesh=mesh,
-                body_id=int(g["volume_selection"]),
+                body_id=volume,
                 surface=_surface(g.get("surface_selection"), where),
                 scale=float(scale[0]) if scale.size == 1 else tuple(scale.tolist()),
                 rotation=None
@@ -1099,8 +1114,9 @@ class BoxSideSelection:
 
 
 def _time(time: Mapping[str, Any] | None) -> tuple[float, float, int, int]:
+    """(t0, dt, num_steps, BDF order); a scene without ``time`` is static (order 0)."""
     if time is None:
-        raise ParameterError("PolyFEM scene: no 'time' section (static scenes are not supported)")
+        return 0.0, 1.0, 1, 0
     _check_keys(time, _TIME, "time")
     t0 = float(time.get("t0", 0.0))
     if t0 != 0.0:
@@ -1138,7 +1154,9 @@ def _time(time: Mapping[str, Any] | None) -> tuple[float, float, int, int]:
     return t0, dt, num_steps, order
 
 
-def _values(entries: object, where: str, dirichlet: bool = False) -> list[PolyFEMBoundaryValue]:
+def _values(
+    entries: object, where: str, dirichlet: bool = False, expressions: bool = False
+) -> list[PolyFEMBoundaryValue]:
     if not isinstance(entries, list):
         raise ParameterError(f"{where} must be a list of {{'id', 'value'}} entries")
     out = []
@@ -1147,15 +1165,91 @@ def _values(entries: object, where: str, dirichlet: bool = False) -> list[PolyFE
         _check_keys(e, {"id", "value", "dimension"} if dirichlet else {"id", "value"}, w)
         if not isinstance(e.get("id"), int):
             raise ParameterError(f"{w}.id = {e.get('id')!r}: an integer id (selections by id only)")
-        value = _numbers(e.get("value"), f"{w}.value")
+        if expressions:
+            value = _components(e.get("value"), f"{w}.value")
+        else:
+            value = _numbers(e.get("value"), f"{w}.value").tolist()
         comps = None
         if "dimension" in e:
             mask = [bool(b) for b in e["dimension"]]
             comps = tuple(i for i, b in enumerate(mask) if b)
             if len(comps) == len(mask):
                 comps = None
-        out.append(PolyFEMBoundaryValue(int(e["id"]), tuple(value.tolist()), comps))
+        out.append(PolyFEMBoundaryValue(int(e["id"]), tuple(value), comps))
     return out
+
+
+def _components(value: object, where: str) -> list[float | str]:
+    """A boundary value's components: numbers, or checked PolyFEM expressions of x, y, z, t.
+
+    A constant expression such as ``"0.7*sin(-3)"`` becomes its number.
+    """
+    from diffsolids.io.expressions import parse_expression
+
+    if not isinstance(value, list) or not value:
+        raise ParameterError(f"{where} = {value!r}: a list with one value per axis")
+    out: list[float | str] = []
+    for d, c in enumerate(value):
+        if isinstance(c, str):
+            try:
+                expr = parse_expression(c)
+            except ParameterError as error:
+                raise ParameterError(f"{where}[{d}]: {error}") from None
+            if expr.variables:
+                out.append(c)
+                continue
+            c = float(expr())
+        if isinstance(c, bool) or not isinstance(c, int | float) or not math.isfinite(c):
+            raise ParameterError(
+                f"{where}[{d}] = {c!r}: a finite number or an expression of x, y, z, t "
+                "(per-vertex arrays, files and units are not supported)"
+            )
+        out.append(float(c))
+    return out
+
+
+class _BoundaryExpression:
+    """A Dirichlet value ``(x, t) -> (dim, n)`` from numbers and expressions of x, y, z, t."""
+
+    def __init__(self, components: Sequence[float | str], dim: int) -> None:
+        from diffsolids.io.expressions import parse_expression
+
+        self.dim = dim
+        self.parts = [parse_expression(c) if isinstance(c, str) else float(c) for c in components]
+
+    def __call__(self, x: np.ndarray, t: float) -> np.ndarray:
+        n = x.shape[1]
+        point = {"x": x[0], "y": x[1], "z": x[2] if x.shape[0] > 2 else np.zeros(n)}
+        return np.stack(
+            [
+                np.broadcast_to(c if isinstance(c, float) else c(t=t, **point), (n,))
+                for c in self.parts
+            ]
+        )
+
+    def at_time(self, t: float) -> np.ndarray:
+        """The value of a position-independent entry at time t (a traction)."""
+        return np.array([c if isinstance(c, float) else float(c(t=t)) for c in self.parts])
+
+    @property
+    def depends_on_position(self) -> bool:
+        """Whether a component uses x, y or z."""
+        return any(not isinstance(c, float) and c.depends_on_position for c in self.parts)
+
+
+def _boundary_value(
+    entry: PolyFEMBoundaryValue, dim: int, where: str, position: bool
+) -> np.ndarray | _BoundaryExpression:
+    """An entry's value for the model: numbers, or an expression callable."""
+    if all(isinstance(c, float) for c in entry.value):
+        return np.asarray(entry.value, dtype=float)
+    value = _BoundaryExpression(entry.value, dim)
+    if value.depends_on_position and not position:
+        raise ParameterError(
+            f"{where} id {entry.id}: value {list(entry.value)} depends on x, y or z; tractions "
+            "that vary over the surface are not supported (functions of t are)"
+        )
+    return value
 
 
 def _materials(value: object, body_ids: list[int]) -> dict[int, PolyFEMMaterial]:
@@ -1172,14 +1266,14 @@ def _materials(value: object, body_ids: list[int]) -> dict[int, PolyFEMMaterial]
         law = m.get("type")
         if law not in _LAWS:
             raise ParameterError(f"{w}.type = {law!r}: supported {sorted(_LAWS)}")
-        for key in ("E", "nu", "rho"):
+        for key in ("E", "nu"):
             if key not in m:
                 raise ParameterError(f"{w}.{key} is missing")
         mat = PolyFEMMaterial(
             _LAWS[law],
             float(m["E"]),
             float(m["nu"]),
-            float(m["rho"]),
+            float(m.get("rho", 1.0)),  # PolyFEM's default (json-specs/material-parameters.json)
             float(m.get("phi", 0.0)),
             float(m.get("psi", 0.0)),
         )
