@@ -301,6 +301,18 @@ def test_boundary_smoothing_hand_values():
     assert BoundarySmoothing(model, 3.0).evaluate(model) == pytest.approx(4 * 0.5**1.5, rel=1e-14)
 
 
+def test_laplacian_boundary_smoothing_hand_value_and_scaling():
+    """Unit square: each corner is (1/2, 1/2) from the mean of its two neighbours: J = 4/2."""
+    model = _unit_square_two_cells()
+    reg = BoundarySmoothing(model, scale_invariant=False)
+    assert reg.evaluate(model) == pytest.approx(2.0, rel=1e-14)
+    x = model.domain.mesh.geometry.x
+    x0 = x.copy()
+    x[:, :2] *= 3.0  # PolyFEM's non-scale-invariant form grows with the size squared
+    assert reg.evaluate(model) == pytest.approx(18.0, rel=1e-14)
+    x[:] = x0
+
+
 def test_boundary_smoothing_scale_invariant_and_zero_when_even():
     dom = create_rectangle(MPI.COMM_SELF, [[0, 0], [2, 1]], [6, 3])
     model = ds.Model(dom, ds.LinearElastic(E=1.0, nu=0.3))
@@ -338,9 +350,17 @@ def _shape_gradient_per_node(model, grad):
 
 
 @pytest.mark.parametrize(
-    ("dim", "p", "exclude"), [(2, 2.0, ()), (2, 3.5, (1,)), (3, 2.0, ()), (3, 1.5, (1,))]
+    ("dim", "p", "exclude", "scale_invariant"),
+    [
+        (2, 2.0, (), True),
+        (2, 3.5, (1,), True),
+        (3, 2.0, (), True),
+        (3, 1.5, (1,), True),
+        (2, 2.0, (1,), False),
+        (3, 2.0, (), False),
+    ],
 )
-def test_boundary_smoothing_gradient(dim, p, exclude):
+def test_boundary_smoothing_gradient(dim, p, exclude, scale_invariant):
     facets = {1: lambda x: np.isclose(x[0], 0.0)}
     if dim == 2:
         dom = create_rectangle(MPI.COMM_SELF, [[0, 0], [2, 1]], [5, 3], facets=facets)
@@ -350,7 +370,7 @@ def test_boundary_smoothing_gradient(dim, p, exclude):
     x = dom.mesh.geometry.x
     rng = np.random.default_rng(4)
     x[:, :dim] += 0.03 * rng.standard_normal((len(x), dim))  # a rough surface: s_i != 0
-    reg = BoundarySmoothing(model, p, exclude_facets=exclude)
+    reg = BoundarySmoothing(model, p, exclude_facets=exclude, scale_invariant=scale_invariant)
     G = _shape_gradient_per_node(model, reg.gradient(model)["shape"])
     assert np.abs(G).max() > 0
     if exclude:

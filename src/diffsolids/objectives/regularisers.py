@@ -42,26 +42,43 @@ def _check_model(reg: _BuiltForAModel, model: "Model") -> None:
 
 
 class BoundarySmoothing(Regulariser):
-    """Scale-invariant smoothing of the boundary (paper eq. 37).
+    """Smoothing of the boundary: scale-invariant (paper eq. 37) or the graph Laplacian's.
 
-    J = sum_{i in B} ||s_i||^p, s_i = sum_j (v_i - v_j) / sum_j ||v_i - v_j|| over the
-    neighbours j of i along boundary edges (edges of exterior facets). s_i vanishes where
-    the boundary is straight and evenly sampled; J does not change when the shape is scaled.
+    Scale-invariant (default): J = sum_{i in B} ||s_i||^p, s_i = sum_j (v_i - v_j) /
+    sum_j ||v_i - v_j|| over the neighbours j of i along boundary edges (edges of exterior
+    facets). s_i vanishes where the boundary is straight and evenly sampled; J does not
+    change when the shape is scaled.
+
+    ``scale_invariant=False``: J = sum_{i in B} ||v_i - mean_j v_j||^2, PolyFEM's
+    ``BoundarySmoothingForm`` with ``scale_invariant: false`` (the squared norm of the
+    uniform graph Laplacian of the boundary vertices; ``p`` is not used, as there). J has
+    units of length squared and grows with the shape's size.
 
     Args:
         model: The Model (rest positions are its mesh's current vertex positions).
-        p: Exponent p > 1 (paper: 2; larger p gives smoother surfaces).
+        p: Exponent p > 1 of the scale-invariant form (paper: 2; larger p gives smoother
+            surfaces).
         exclude_facets: Facet tags whose vertices are left out of B (e.g. fixed parts).
+        scale_invariant: The paper's form (True) or the Laplacian's (False).
     """
 
     def __init__(
-        self, model: "Model", p: float = 2.0, exclude_facets: Sequence[int | str] = ()
+        self,
+        model: "Model",
+        p: float = 2.0,
+        exclude_facets: Sequence[int | str] = (),
+        scale_invariant: bool = True,
     ) -> None:
         p = float(p)
         if not (np.isfinite(p) and p > 1.0):
             raise ParameterError(f"boundary smoothing needs p > 1, got {p}")
         self.model, self.p = model, p
-        self.name = f"boundary smoothing (p={p:g})"
+        self.scale_invariant = bool(scale_invariant)
+        self.name = (
+            f"boundary smoothing (p={p:g})"
+            if self.scale_invariant
+            else "boundary smoothing (Laplacian)"
+        )
         mesh = model.domain.mesh
         self.comm = mesh.comm
         self.dim = mesh.geometry.dim
@@ -119,9 +136,21 @@ class BoundarySmoothing(Regulariser):
         L = np.bincount(self._src, weights=length, minlength=n)
         return d, length, S, L
 
+    def _laplacian(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """r_i = v_i - mean_j v_j over the boundary neighbours, and the degrees."""
+        n = len(X)
+        degree = np.bincount(self._src, minlength=n).astype(float)
+        neighbours = np.column_stack(
+            [np.bincount(self._src, weights=X[self._dst, k], minlength=n) for k in range(self.dim)]
+        )
+        return X - neighbours / degree[:, None], degree
+
     @override
     def evaluate(self, model: "Model") -> float:
         _check_model(self, model)
+        if not self.scale_invariant:
+            r, _ = self._laplacian(self.positions())
+            return float(np.sum(r * r))
         _, _, S, L = self._sums(self.positions())
         s = S / L[:, None]
         return float(np.sum(np.linalg.norm(s, axis=1) ** self.p))
@@ -129,6 +158,15 @@ class BoundarySmoothing(Regulariser):
     def vertex_gradient(self) -> np.ndarray:
         """dJ/dv for the vertices of B (rows as ``self.vertices``; appendix F)."""
         X = self.positions()
+        if not self.scale_invariant:
+            r, degree = self._laplacian(X)
+            w = 2.0 * r / degree[:, None]  # dJ/dv_k = 2 r_k - sum_{i ~ k} 2 r_i / deg_i
+            return 2.0 * r - np.column_stack(
+                [
+                    np.bincount(self._dst, weights=w[self._src, k], minlength=len(X))
+                    for k in range(self.dim)
+                ]
+            )
         d, length, S, L = self._sums(X)
         s = S / L[:, None]
         norm = np.linalg.norm(s, axis=1)
