@@ -13,6 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -29,6 +30,7 @@ COVERED = {
     "howto_extend.py": "test_howto_extend_gradients_through_the_new_pieces",
     "howto_polyfem.py": "test_howto_polyfem_builds_and_runs_the_scene",
     "howto_watch.py": "test_howto_watch_logs_every_iteration_and_plots_the_log",
+    "howto_shape.py": "test_howto_shape_lowers_the_stress_and_writes_both_shapes",
 }
 
 
@@ -144,6 +146,19 @@ def test_howto_watch_logs_every_iteration_and_plots_the_log(tmp_path):
         assert float(line.split(",")[1]) == pytest.approx(float(row[1]), rel=1e-9)
     svg = (tmp_path / "log.svg").read_text()
     assert svg.lstrip().startswith("<?xml") and svg.count('id="axes_') == 2
+
+
+def test_howto_shape_lowers_the_stress_and_writes_both_shapes(tmp_path):
+    script = "docs/examples/howto_shape.py"
+    out = _run([sys.executable, script, "--out", str(tmp_path), "--iterations", "8"])
+    J = [float(r[1]) for r in _log_rows(out)]
+    assert len(J) == 9 and J[-1] < 0.85 * J[0]
+    from output_checks import read_vtx
+
+    initial = read_vtx(tmp_path / "initial.bp")["steps"][0]["geometry"]
+    final = read_vtx(tmp_path / "final.bp")["steps"][0]["geometry"]
+    assert np.abs(initial).max() == pytest.approx(3.0)  # the plate as it was
+    assert np.abs(final - initial).max() > 0.05  # the optimised shape
 
 
 @pytest.mark.skipif(not (DATA / "fig20_kangaroo").is_dir(), reason="paper data not found")

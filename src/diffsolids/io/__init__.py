@@ -7,8 +7,14 @@ from diffsolids.io.geometry import (
     silhouette_edges,
 )
 from diffsolids.io.logging import configure_logging
-from diffsolids.io.output import TrajectoryWriter, von_mises_field, write_trajectory
+from diffsolids.io.output import (
+    TrajectoryWriter,
+    at_rest_geometry,
+    von_mises_field,
+    write_trajectory,
+)
 from diffsolids.io.polyfem_scene import (
+    BoxSideSelection,
     PolyFEMBoundaryValue,
     PolyFEMGeometry,
     PolyFEMMaterial,
@@ -19,6 +25,7 @@ from diffsolids.io.polyfem_scene import (
 from diffsolids.io.progress import ProgressBar, progress_bar
 
 __all__ = [
+    "BoxSideSelection",
     "PolyFEMBoundaryValue",
     "PolyFEMGeometry",
     "PolyFEMMaterial",
@@ -26,6 +33,7 @@ __all__ = [
     "PolyFEMSetup",
     "ProgressBar",
     "TrajectoryWriter",
+    "at_rest_geometry",
     "boundary_edges",
     "configure_logging",
     "deformed_triangles",

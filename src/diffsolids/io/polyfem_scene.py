@@ -100,6 +100,7 @@ if TYPE_CHECKING:
     from diffsolids.solvers.newton import SolverOptions
 
 __all__ = [
+    "BoxSideSelection",
     "PolyFEMBoundaryValue",
     "PolyFEMGeometry",
     "PolyFEMMaterial",
