@@ -1,6 +1,7 @@
 """The public entry point: a problem script with one import, and checks that leave q as it was."""
 
 import numpy as np
+import pytest
 from mpi4py import MPI
 
 import diffsolids as ds
@@ -42,3 +43,14 @@ def test_a_one_import_script_and_checks_that_restore_the_parameters():
     # the perturbed evaluations left the model at q0
     assert np.array_equal(rf.initial_parameters(), q0)
     assert np.array_equal(rf.model.domain.mesh.geometry.x, x0)
+
+
+def test_moved_scene_helpers_keep_a_warning_alias():
+    import importlib
+
+    scenes = importlib.import_module("diffsolids.contact.scenes")
+    for name in ("combine_meshes", "simplex_box", "simplex_ball"):
+        with pytest.warns(DeprecationWarning, match=f"moved to diffsolids.mesh.{name}"):
+            assert getattr(scenes, name) is getattr(ds.mesh, name)
+    with pytest.raises(AttributeError, match="no attribute 'nothing'"):
+        scenes.nothing  # noqa: B018
