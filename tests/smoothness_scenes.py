@@ -80,18 +80,22 @@ def drop(
 
 
 def drop_2d(
-    comm: MPI.Comm = MPI.COMM_WORLD, steps: int = 30, formulation: str = "convergent"
+    comm: MPI.Comm = MPI.COMM_WORLD,
+    steps: int = 30,
+    formulation: str = "convergent",
+    joints: tuple[float, ...] = (0.0, 0.1, 0.237),
 ) -> Scene:
     """A 2D box landing with a sideways speed on a ground of collinear segments (log E, log mu).
 
-    Ground joints at x = 0.0 (under the box's left corner), 0.1 (under an inner vertex) and
-    0.237; the box [0, 0.2] x [0.005, 0.105] starts at (0.3, -0.2) m/s.
+    Ground from x = -1 to 1.5 with joints at ``joints`` (by default under the box's left corner,
+    under an inner vertex and at 0.237); the box [0, 0.2] x [0.005, 0.105] starts at
+    (0.3, -0.2) m/s.
     """
     box = ds.mesh.simplex_box([[0.0, 0.005], [0.2, 0.105]], [4, 2])
     domain = ds.combine_meshes(comm, [box], names={"box": 1})
     model = ds.Model(domain, ds.NeoHookean(E=5e4, nu=0.3, density=500.0))
     model.add_gravity(9.81)
-    xs = np.array([-1.0, 0.0, 0.1, 0.237, 1.5])
+    xs = np.array([-1.0, *joints, 1.5])
     ground = Obstacle(np.column_stack([xs, np.zeros_like(xs)]), name="ground")
     contact = ContactTerm(
         model, dhat=1e-3, friction=0.3, obstacles=[ground], formulation=formulation

@@ -584,3 +584,29 @@ def test_shape_control_refuses_a_boundary_folded_into_another_body():
     guarded.assign(0.5 * q)  # still 0.1 apart: accepted
     assert np.allclose(guarded.value(), 0.5 * q)
     plain.assign(q)  # without the option: accepted, no cell inverts
+
+
+def test_the_optimiser_checks_its_hooks_by_their_declared_protocols(bar1):
+    from diffsolids.optimize import RemeshCheckpoints, RemeshHook
+    from diffsolids.optimize.hooks import condition_name
+
+    rf, _ = bar1
+
+    class HalfRemesher:
+        def needs_remesh(self, rf, q):
+            return False
+
+    with pytest.raises(OptimizationError, match=r"HalfRemesher needs .*RemeshHook"):
+        LBFGS(rf, remesher=HalfRemesher())
+    assert isinstance(_RefiningRemesher(), RemeshHook)
+    assert not isinstance(_RefiningRemesher(), RemeshCheckpoints)
+    assert isinstance(_CheckpointingRemesher(), RemeshCheckpoints)
+
+    def enough(rec, opt):
+        return False
+
+    class Budget:
+        def __call__(self, rec, opt):
+            return False
+
+    assert condition_name(enough) == "enough" and condition_name(Budget()) == "Budget"

@@ -123,12 +123,14 @@ class CollisionBuilder:
     def _build(
         self, C: ipctk.NormalCollisions, candidates: ipctk.Candidates, x: np.ndarray
     ) -> None:
-        """Build C from the candidates, flat obstacle regions treated as planes (convergent)."""
-        flat = self.surface.flat if self.formulation == "convergent" else None
+        """Build C from the candidates, flat obstacle regions treated as planes."""
+        flat = self.surface.flat
         if flat:
             candidates = flat.filter(candidates)
+            if self.formulation == "ipc":
+                candidates = flat.nearest(candidates, x, self.surface.mesh)
         C.build(candidates, self.surface.mesh, x, self.dhat, 0.0)
-        if flat:
+        if flat and self.formulation == "convergent":
             flat.correct(C, self.surface.mesh)
 
     def build_on_segment(self, U: np.ndarray, x: np.ndarray, token: int) -> ipctk.NormalCollisions:

@@ -23,7 +23,7 @@ of one triangle does.
 import ipctk
 import numpy as np
 
-__all__ = ["FlatRegions", "flat_edge_mask", "flat_vertex_mask"]
+__all__ = ["FlatRegions", "flat_edge_mask", "flat_primitive_regions", "flat_vertex_mask"]
 
 _COPLANAR = 1e-10  # 1 - cos of the angle between the normals (or segments) of a flat joint
 
@@ -34,6 +34,46 @@ def _edge_rows(edges: np.ndarray, pairs: np.ndarray, n: int) -> np.ndarray:
     order = np.argsort(key)
     wanted = pairs[:, 0].astype(np.int64) * (n + 1) + pairs[:, 1]
     return order[np.searchsorted(key, wanted, sorter=order)]
+
+
+def _edge_faces(
+    faces: np.ndarray, edges: np.ndarray, n: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per edge: the number of faces holding it, the first and the last of them."""
+    pairs = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    row = _edge_rows(edges, pairs, n)
+    face = np.repeat(np.arange(len(faces)), 3)
+    count = np.bincount(row, minlength=len(edges))
+    first = np.zeros(len(edges), dtype=np.int64)
+    first[row[::-1]] = face[::-1]
+    last = np.zeros(len(edges), dtype=np.int64)
+    last[row] = face
+    return count, first, last
+
+
+def flat_primitive_regions(
+    vertices: np.ndarray, edges: np.ndarray, faces: np.ndarray, flat_edges: np.ndarray | None
+) -> np.ndarray:
+    """The flat region of each primitive of one obstacle, numbered from 0.
+
+    Faces (3D) are joined across flat edges, segments (2D) at flat vertices.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    if flat_edges is not None:
+        _, first, last = _edge_faces(faces, edges, len(vertices))
+        a, b, m = first[flat_edges], last[flat_edges], len(faces)
+    else:
+        flat = flat_vertex_mask(vertices, edges, None)
+        n = len(vertices)
+        incoming = np.full(n, -1, dtype=np.int64)
+        outgoing = np.full(n, -1, dtype=np.int64)
+        incoming[edges[:, 1]] = np.arange(len(edges))
+        outgoing[edges[:, 0]] = np.arange(len(edges))
+        a, b, m = incoming[flat], outgoing[flat], len(edges)
+    graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(m, m))
+    return connected_components(graph, directed=False)[1]
 
 
 def flat_edge_mask(vertices: np.ndarray, faces: np.ndarray, edges: np.ndarray) -> np.ndarray:
@@ -50,14 +90,7 @@ def flat_edge_mask(vertices: np.ndarray, faces: np.ndarray, edges: np.ndarray) -
     X = np.asarray(vertices, dtype=float)
     normal = np.cross(X[faces[:, 1]] - X[faces[:, 0]], X[faces[:, 2]] - X[faces[:, 0]])
     normal /= np.linalg.norm(normal, axis=1)[:, None]
-    pairs = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    row = _edge_rows(edges, pairs, len(X))
-    face = np.repeat(np.arange(len(faces)), 3)
-    count = np.bincount(row, minlength=len(edges))
-    first = np.zeros(len(edges), dtype=np.int64)
-    first[row[::-1]] = face[::-1]
-    last = np.zeros(len(edges), dtype=np.int64)
-    last[row] = face
+    count, first, last = _edge_faces(faces, edges, len(X))
     flat = count == 2
     cos = np.einsum("ij,ij->i", normal[first[flat]], normal[last[flat]])
     flat[flat] = cos >= 1.0 - _COPLANAR
@@ -105,10 +138,19 @@ class FlatRegions:
         vertices: Global indices of flat vertices.
     """
 
-    def __init__(self, dim: int, edges: np.ndarray, vertices: np.ndarray) -> None:
+    def __init__(
+        self,
+        dim: int,
+        edges: np.ndarray,
+        vertices: np.ndarray,
+        primitive_region: np.ndarray | None = None,
+    ) -> None:
         self.dim = dim
         self.edges = np.asarray(edges, dtype=np.int64)
         self.vertices = np.asarray(vertices, dtype=np.int64)
+        self.primitive_region = (
+            np.zeros(0, dtype=np.int64) if primitive_region is None else primitive_region
+        )
 
     def __bool__(self) -> bool:
         return bool(len(self.edges) or len(self.vertices))
@@ -137,6 +179,51 @@ class FlatRegions:
             keep = ~np.isin(np.array([c.vertex_id for c in ev], dtype=np.int64), self.vertices)
             if not keep.all():
                 candidates.ev_candidates = [c for c, k in zip(ev, keep, strict=True) if k]
+        return candidates
+
+    def nearest(
+        self, candidates: ipctk.Candidates, x: np.ndarray, mesh: ipctk.CollisionMesh
+    ) -> ipctk.Candidates:
+        """Keep one candidate per body vertex and flat region: its nearest face (segment).
+
+        The distance to a flat region is the distance to the nearest of its faces (the union
+        is one polygon of a plane); the IPC collision set would add a term per face the vertex
+        is close to, e.g. the face under it and the edge of the coplanar face next to it.
+        Ties (a vertex over a flat edge) go to the first face in order.
+        """
+        if not len(self.primitive_region):
+            return candidates
+        if self.dim == 3:
+            pairs = candidates.fv_candidates
+            if not pairs:
+                return candidates
+            ids = np.array([(c.face_id, c.vertex_id) for c in pairs], dtype=np.int64)
+            corners = x[np.asarray(mesh.faces)[ids[:, 0]]]
+            dist = _point_triangle_distance2(x[ids[:, 1]], corners)
+        else:
+            pairs = candidates.ev_candidates
+            if not pairs:
+                return candidates
+            ids = np.array([(c.edge_id, c.vertex_id) for c in pairs], dtype=np.int64)
+            ends = x[np.asarray(mesh.edges)[ids[:, 0]]]
+            dist = _point_segment_distance2(x[ids[:, 1]], ends[:, 0], ends[:, 1])
+        region = self.primitive_region[ids[:, 0]]
+        grouped = np.flatnonzero(region >= 0)
+        order = grouped[
+            np.lexsort((ids[grouped, 0], dist[grouped], region[grouped], ids[grouped, 1]))
+        ]
+        key = np.column_stack([ids[order, 1], region[order]])
+        first = np.ones(len(order), dtype=bool)
+        first[1:] = np.any(key[1:] != key[:-1], axis=1)
+        keep = region < 0
+        keep[order[first]] = True
+        if keep.all():
+            return candidates
+        kept = [c for c, k in zip(pairs, keep, strict=True) if k]
+        if self.dim == 3:
+            candidates.fv_candidates = kept
+        else:
+            candidates.ev_candidates = kept
         return candidates
 
     def correct(self, collisions: ipctk.NormalCollisions, mesh: ipctk.CollisionMesh) -> None:
@@ -170,3 +257,25 @@ class FlatRegions:
                     share = (1 - n) * 0.5 * areas[p] if n > 1 else 0.0
                 c.weight = c.weight - share
         collisions.vv_collisions = vv
+
+
+def _point_segment_distance2(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Squared distances of points to segments (rows)."""
+    d = b - a
+    t = np.clip(np.einsum("ij,ij->i", p - a, d) / np.einsum("ij,ij->i", d, d), 0.0, 1.0)
+    r = p - (a + t[:, None] * d)
+    return np.einsum("ij,ij->i", r, r)
+
+
+def _point_triangle_distance2(p: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Squared distances of points to triangles (t: (m, 3, 3) corners)."""
+    a, b, c = t[:, 0], t[:, 1], t[:, 2]
+    n = np.cross(b - a, c - a)
+    nn = np.einsum("ij,ij->i", n, n)
+    side = [np.einsum("ij,ij->i", np.cross(q - o, p - o), n) for o, q in ((a, b), (b, c), (c, a))]
+    inside = (side[0] >= 0) & (side[1] >= 0) & (side[2] >= 0)
+    plane = np.einsum("ij,ij->i", p - a, n) ** 2 / nn
+    edges = np.minimum.reduce(
+        [_point_segment_distance2(p, o, q) for o, q in ((a, b), (b, c), (c, a))]
+    )
+    return np.where(inside, plane, edges)

@@ -45,7 +45,12 @@ from mpi4py import MPI
 from mpi4py.util import dtlib
 from petsc4py import PETSc
 
-from diffsolids.contact.flat import FlatRegions, flat_edge_mask, flat_vertex_mask
+from diffsolids.contact.flat import (
+    FlatRegions,
+    flat_edge_mask,
+    flat_primitive_regions,
+    flat_vertex_mask,
+)
 from diffsolids.contact.obstacle import Obstacle
 from diffsolids.contact.subdivision import (
     local_node_keys,
@@ -321,15 +326,25 @@ class CollisionSurface:
         """The flat edges and vertices of the fixed obstacles (global indices)."""
         edge_start = np.cumsum([len(self.edges)] + [len(o.edges) for o in self.obstacles])
         edges, vertices = [np.zeros(0, dtype=np.int64)], [np.zeros(0, dtype=np.int64)]
+        body_prims = len(self.faces) if self.dim == 3 else len(self.edges)
+        regions = [np.full(body_prims, -1, dtype=np.int64)]
+        next_region = 0
         for o, e0, v0 in zip(self.obstacles, edge_start[:-1], offsets[:-1], strict=True):
+            prims = len(o.faces) if self.dim == 3 else len(o.edges)
             if o.moving:
+                regions.append(np.full(prims, -1, dtype=np.int64))
                 continue
             X = o.rest_positions
             fe = flat_edge_mask(X, o.faces, o.edges) if self.dim == 3 else None
             if fe is not None:
                 edges.append(e0 + np.flatnonzero(fe))
             vertices.append(v0 + np.flatnonzero(flat_vertex_mask(X, o.edges, fe)))
-        return FlatRegions(self.dim, np.concatenate(edges), np.concatenate(vertices))
+            region = flat_primitive_regions(X, o.edges, o.faces, fe)
+            regions.append(next_region + region)
+            next_region += int(region.max(initial=-1)) + 1
+        return FlatRegions(
+            self.dim, np.concatenate(edges), np.concatenate(vertices), np.concatenate(regions)
+        )
 
     def obstacle_displacement(self, t: float) -> np.ndarray:
         """(num_vertices, dim) displacements with the obstacles' at time ``t`` (zero body rows).

@@ -9,6 +9,7 @@ checks of those invariants in :mod:`diffsolids.optimize.invariants`.
 """
 
 from diffsolids.optimize.checkpoint import Checkpoint
+from diffsolids.optimize.hooks import RebuildableInnerProduct, RemeshCheckpoints, RemeshHook
 from diffsolids.optimize.invariants import (
     BoundaryIntersection,
     StateChecks,
@@ -52,6 +53,9 @@ __all__ = [
     "OptimizationOutput",
     "OptimizationResult",
     "OptimizationWarning",
+    "RebuildableInnerProduct",
+    "RemeshCheckpoints",
+    "RemeshHook",
     "Remesher",
     "RieszMap",
     "ShapeInnerProduct",

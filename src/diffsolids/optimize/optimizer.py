@@ -7,7 +7,7 @@ solve fails (Newton failure, non-finite objective, any DiffsolidsError) is *inva
 returns to the last accepted point and the step is shortened. Only trials that are valid and
 satisfy the Armijo condition are accepted.
 
-Remeshing hook: an optional ``remesher`` object with
+Remeshing hook: an optional ``remesher``, a :class:`~diffsolids.optimize.hooks.RemeshHook`, with
 
 - ``needs_remesh(rf, q) -> bool``, called after every accepted iterate, and
 - ``remesh(rf, q) -> (new_rf, new_q)``, building the scene on a new mesh. The L-BFGS memory is
@@ -50,6 +50,12 @@ from diffsolids.optimize.bounds import (
     step_limit,
 )
 from diffsolids.optimize.checkpoint import Checkpoint
+from diffsolids.optimize.hooks import (
+    RebuildableInnerProduct,
+    RemeshCheckpoints,
+    RemeshHook,
+    condition_name,
+)
 from diffsolids.optimize.interrupt import InterruptRequest
 from diffsolids.optimize.lbfgs import LBFGSMemory
 from diffsolids.optimize.monitor import (
@@ -64,7 +70,6 @@ from diffsolids.parallel import collective_comm
 
 if TYPE_CHECKING:
     from diffsolids.adjoint.checkpointing import CheckpointedTrajectory
-    from diffsolids.optimize.remesh import Remesher
     from diffsolids.reduced_functional import ReducedFunctional
     from diffsolids.simulation import Trajectory
 
@@ -180,7 +185,7 @@ class LBFGS:
         options: LBFGSOptions | None = None,
         *,
         inner_product: Callable[[np.ndarray], np.ndarray] | None = None,
-        remesher: "Remesher | None" = None,
+        remesher: RemeshHook | None = None,
         stop_conditions: Sequence[Callable] = (),
         on_accept: Observer | Sequence[Observer] | None = None,
         output_dir: str | PathLike | None = None,
@@ -198,6 +203,11 @@ class LBFGS:
         self.options = options or LBFGSOptions()
         self.options.validate()
         self.inner_product = inner_product
+        if remesher is not None and not isinstance(remesher, RemeshHook):
+            raise OptimizationError(
+                f"remesher {type(remesher).__name__} needs needs_remesh(rf, q) and remesh(rf, q) "
+                "(diffsolids.optimize.hooks.RemeshHook)"
+            )
         self.remesher = remesher
         self.stop_conditions = list(stop_conditions)
         observers = [] if on_accept is None else on_accept
@@ -280,18 +290,16 @@ class LBFGS:
     def _restore(self) -> None:
         """Model and controls back to the accepted point after an invalid trial."""
         p = self.point
-        if p.snapshot is not None and hasattr(self.rf, "restore"):
+        if p.snapshot is not None:
             self.rf.restore(p.snapshot)
         else:
             self.rf.controls.assign(p.q)
 
     def _terms(self) -> dict[str, float]:
-        values = getattr(self.rf, "term_values", None)
-        return dict(values()) if values is not None else {}
+        return dict(self.rf.term_values())
 
     def _snapshot(self) -> tuple | None:
-        snap = getattr(self.rf, "snapshot", None)
-        return snap() if snap is not None else None
+        return self.rf.snapshot()
 
     def _bounds(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         lo, hi = (np.asarray(b, dtype=float) for b in self.rf.bounds())
@@ -354,13 +362,12 @@ class LBFGS:
         meta, arrays = ckpt.load_state()
         count = int(meta["remesh_count"])
         if count > 0:
-            load = getattr(self.remesher, "load_checkpoint", None)
-            if load is None:
+            if not isinstance(self.remesher, RemeshCheckpoints):
                 raise OptimizationError(
                     f"the checkpoint in {ckpt.directory} follows {count} remeshes; resuming needs "
-                    "a remesher with load_checkpoint(directory, rf)"
+                    "a remesher with load_checkpoint(directory, rf) (RemeshCheckpoints)"
                 )
-            self.rf = load(ckpt.mesh_directory(count), self.rf)
+            self.rf = self.remesher.load_checkpoint(ckpt.mesh_directory(count), self.rf)
             self._rebuild_inner_product()
         rf = self.rf
         q = np.asarray(arrays["q"], dtype=float)
@@ -404,9 +411,8 @@ class LBFGS:
         self.checkpoint.save(meta, arrays, p.trajectory, self._layout())
 
     def _rebuild_inner_product(self) -> None:
-        rebuild = getattr(self.inner_product, "rebuild", None)
-        if rebuild is not None:
-            self.inner_product = rebuild(self.rf)
+        if isinstance(self.inner_product, RebuildableInnerProduct):
+            self.inner_product = self.inner_product.rebuild(self.rf)
             self.memory.inner_product = self.inner_product
 
     # -- iterations ------------------------------------------------------------------------------
@@ -504,14 +510,14 @@ class LBFGS:
         rec.parameter_norm = float(np.linalg.norm(q))
         rec.parameter_summary = control_summary(new_rf.controls, q)
         if self.checkpoint is not None:
-            save = getattr(self.remesher, "save_checkpoint", None)
-            if save is None:
-                logger.warning(
-                    "opt: the remesher has no save_checkpoint; checkpoints after this "
-                    "remesh cannot be resumed"
-                )
+            if isinstance(self.remesher, RemeshCheckpoints):
+                directory = self.checkpoint.mesh_directory(self.remesh_count)
+                self.remesher.save_checkpoint(directory, new_rf)
             else:
-                save(self.checkpoint.mesh_directory(self.remesh_count), new_rf)
+                logger.warning(
+                    "opt: the remesher has no save_checkpoint (RemeshCheckpoints); checkpoints "
+                    "after this remesh cannot be resumed"
+                )
 
     def _direction(self, g: np.ndarray, free: np.ndarray) -> np.ndarray:
         d = -self.memory.apply(g, free)
@@ -568,7 +574,7 @@ class LBFGS:
         for cond in self.stop_conditions:
             verdict = collective_comm(self.comm).bcast(cond(rec, self), root=0)
             if verdict:
-                name = verdict if isinstance(verdict, str) else getattr(cond, "__name__", "stop")
+                name = verdict if isinstance(verdict, str) else condition_name(cond)
                 return f"user: {name}"
         gn = rec.gradient_norm
         if gn <= opts.gradient_atol or gn == 0.0:
@@ -655,10 +661,7 @@ class LBFGS:
                     if reason is None and self._interrupt.pending():
                         reason = "interrupted"
         p = self.point
-        if p.snapshot is not None and hasattr(self.rf, "restore"):
-            self.rf.restore(p.snapshot)
-        else:
-            self.rf.controls.assign(p.q)
+        self._restore()
         if (
             self.output is not None
             and self.output.iterate_every > 0
