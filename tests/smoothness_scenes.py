@@ -59,7 +59,7 @@ def drop(
     triangles: int = 2,
     comm: MPI.Comm = MPI.COMM_WORLD,
     steps: int = 25,
-    formulation: str = "convergent",
+    formulation: str = "ipc",
 ) -> Scene:
     """The block of issue 38 dropped on a ground of ``triangles`` triangles (log E)."""
     block = ds.mesh.simplex_box([[0.0, 0.0, 0.01], [0.2, 0.2, 0.11]], [4, 4, 2])
@@ -82,7 +82,7 @@ def drop(
 def drop_2d(
     comm: MPI.Comm = MPI.COMM_WORLD,
     steps: int = 30,
-    formulation: str = "convergent",
+    formulation: str = "ipc",
     joints: tuple[float, ...] = (0.0, 0.1, 0.237),
 ) -> Scene:
     """A 2D box landing with a sideways speed on a ground of collinear segments (log E, log mu).
@@ -115,9 +115,7 @@ def drop_2d(
     return Scene(rf, np.array([np.log(5e4), np.log(0.3)]), 0.02, contact)
 
 
-def slide(
-    comm: MPI.Comm = MPI.COMM_WORLD, steps: int = 20, formulation: str = "convergent"
-) -> Scene:
+def slide(comm: MPI.Comm = MPI.COMM_WORLD, steps: int = 20, formulation: str = "ipc") -> Scene:
     """A block thrown along a flat ground of 8 triangles, across their shared edges.
 
     Parameters (log mu, the block's initial velocity): its final centre of mass along x and

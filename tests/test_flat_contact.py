@@ -1,9 +1,9 @@
-"""Contact with a flat obstacle does not depend on its triangulation (convergent formulation).
+"""Contact with a flat obstacle does not depend on its triangulation (both formulations).
 
 The block of issue 38 dropped flat on a ground of 1, 2 or 4 coplanar triangles (the same
-square): with ``formulation="convergent"`` the motion is the same to round-off; with the IPC
-collision set (``"ipc"``) the shared edge under the block's diagonal is a barrier ridge that
-pushes the landing to one of two mirror states, so J differs from the one-triangle ground.
+square), the 2D box on a ground of one or four collinear segments: the motion is the same to
+round-off. Without the flat-region treatment the IPC collision set made the shared edge under
+the block's diagonal a barrier ridge that pushed the landing to one of two mirror states.
 """
 
 import subprocess

@@ -38,6 +38,12 @@ def _parse(argv):
         help="scenes to scan",
     )
     p.add_argument("--points", type=int, default=41, help="points of each line scan")
+    p.add_argument(
+        "--formulation",
+        default="ipc",
+        choices=["ipc", "convergent"],
+        help="contact formulation of the drop, 2D drop and slide (default: the library's)",
+    )
     p.add_argument("--bunny-steps", type=int, default=5, help="steps of the sliding bunny")
     p.add_argument("--throw-steps", type=int, default=3, help="steps of the throw")
     return p.parse_args(argv)
@@ -104,13 +110,13 @@ def measure(scene, points: int, seed: int = 7) -> dict:
     return out
 
 
-def drop_triangulations() -> dict:
+def drop_triangulations(formulation: str) -> dict:
     """J and the final state of the drop on grounds of 1, 2 and 4 coplanar triangles."""
     from smoothness_scenes import drop
 
     values, states, its = {}, {}, {}
     for triangles in (1, 2, 4):
-        scene = drop(triangles)
+        scene = drop(triangles, formulation=formulation)
         values[triangles] = scene.rf(scene.q0)
         states[triangles] = scene.rf.trajectory.u[-1].copy()
         its[triangles] = contact_iterations(scene)
@@ -128,15 +134,18 @@ def main(argv=None) -> dict:
 
     args = _parse(argv)
     comm = MPI.COMM_WORLD
-    out = {"points": args.points}
+    out = {"points": args.points, "formulation": args.formulation}
     for name in args.scenes:
         t0 = time.perf_counter()
-        scene = SCENES[name]() if name in SCENES else paper_scene(name, args)
+        if name in SCENES:
+            scene = SCENES[name](formulation=args.formulation)
+        else:
+            scene = paper_scene(name, args)
         if scene is None:
             continue
         result = measure(scene, args.points)
         if name == "drop":
-            result["triangulations"] = drop_triangulations()
+            result["triangulations"] = drop_triangulations(args.formulation)
         result["seconds"] = time.perf_counter() - t0
         out[name] = result
         if comm.rank == 0:

@@ -1,16 +1,18 @@
-"""The convergent formulation on 2 ranks: the drop on a two-triangle ground, as serial."""
+"""Flat grounds on 2 ranks (both formulations): the drop on a two-triangle ground, as serial."""
 
 import numpy as np
+import pytest
 from mpi4py import MPI
 from smoothness_scenes import drop
 
 COMM = MPI.COMM_WORLD
 
 
-def test_drop_on_two_triangles_equals_serial():
-    parallel = drop(2, comm=COMM, steps=8)
+@pytest.mark.parametrize("formulation", ["ipc", "convergent"])
+def test_drop_on_two_triangles_equals_serial(formulation):
+    parallel = drop(2, comm=COMM, steps=8, formulation=formulation)
     J, g = parallel.rf.value_and_gradient(parallel.q0)
-    serial = drop(2, comm=MPI.COMM_SELF, steps=8)
+    serial = drop(2, comm=MPI.COMM_SELF, steps=8, formulation=formulation)
     Js, gs = serial.rf.value_and_gradient(serial.q0)
     assert abs(J - Js) <= 1e-10 * abs(Js)
     assert np.allclose(g, gs, rtol=1e-8, atol=0)
