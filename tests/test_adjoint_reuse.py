@@ -106,7 +106,7 @@ def test_sweep_reuses_the_forward_friction_and_collisions():
     # the collision sets at u^i (kept at the forward's end of step) and at u^{i-1} (lagged)
     assert builds[0] == 0, f"the sweep built {builds[0]} collision sets"
     step = contact._step  # the last step: its kept set is for its U^N only
-    U = contact.adjoint._kept[step["index"]][1]
+    U = contact.adjoint._kept[step.index][1]
     assert contact.adjoint.kept_collisions(step, U) is not None
     assert contact.adjoint.kept_collisions(step, U + 1e-12) is None
     assert _close(g, _fresh(q)[1])

@@ -75,7 +75,7 @@ def _reference_friction_rest_adjoint(self: ContactAdjoint, ev, lam_c: np.ndarray
     mesh, d = self.surface.mesh, self.dim
     E, F = mesh.edges, mesh.faces
     X = self.surface.rest_positions
-    U = lagging.step["lagged"]
+    U = lagging.step.lagged
     V = lagging.velocity(ev.U)
     lam = lam_c.reshape(-1, d)
     potential, barrier = self.friction_potential, self.potential.barrier

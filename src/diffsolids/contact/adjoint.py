@@ -22,6 +22,7 @@ from diffsolids.contact.friction_adjoint import friction_weight_adjoint
 from diffsolids.contact.lagging import LaggedFriction
 from diffsolids.contact.potential import ContactPotential
 from diffsolids.contact.shape import barrier_shape_adjoint
+from diffsolids.contact.step import ContactStep
 
 if TYPE_CHECKING:
     from diffsolids.model import Model
@@ -57,7 +58,7 @@ class ContactAdjoint:
         # step index -> (surface state key, U^i, collisions) of the converged forward
         self._kept: dict[int, tuple] = {}
 
-    def keep_collisions(self, step: dict | None, ev: Evaluation) -> None:
+    def keep_collisions(self, step: ContactStep | None, ev: Evaluation) -> None:
         """Keep the collision set of the converged state of a forward step.
 
         The backward sweep evaluates the contact Hessian at the same u^i: the set is used again
@@ -66,11 +67,13 @@ class ContactAdjoint:
         """
         if step is None:
             return
-        self._kept[step["index"]] = (self.surface.state_key(), ev.U.copy(), ev.collisions)
+        self._kept[step.index] = (self.surface.state_key(), ev.U.copy(), ev.collisions)
 
-    def kept_collisions(self, step: dict | None, U: np.ndarray) -> ipctk.NormalCollisions | None:
+    def kept_collisions(
+        self, step: ContactStep | None, U: np.ndarray
+    ) -> ipctk.NormalCollisions | None:
         """The kept collision set of ``step`` if it was built at U on the current surface."""
-        entry = None if step is None else self._kept.get(step["index"])
+        entry = None if step is None else self._kept.get(step.index)
         if entry is None:
             return None
         state, Uk, C = entry
@@ -98,7 +101,7 @@ class ContactAdjoint:
                 T,
                 self.surface.mesh,
                 np.asfortranarray(self.surface.rest_positions),
-                np.asfortranarray(self.lagging.step["lagged"]),
+                np.asfortranarray(self.lagging.step.lagged),
                 V,
                 self.potential.barrier,
                 wrt,
@@ -121,7 +124,7 @@ class ContactAdjoint:
         lagged normal forces and tangent bases and on u^{i-1}..u^{i-m} through the velocity.
         """
         T = ev.extras["friction"]
-        alpha, beta_dt = self.lagging.step["alpha"], self.lagging.step["beta_dt"]
+        alpha, beta_dt = self.lagging.step.alpha, self.lagging.step.beta_dt
         if T is None:
             n = len(self.model.fields.u.x.array)
             return {j: np.zeros(n) for j in range(1, len(alpha) + 1)}
@@ -190,7 +193,7 @@ class ContactAdjoint:
         T = self.lagging.tangential_collisions(
             self.lagging.mu_table(self.lagging.mu), self.potential.barrier, shape_derivatives=True
         )
-        x = self.surface.rest_positions + self.lagging.step["lagged"]
+        x = self.surface.rest_positions + self.lagging.step.lagged
         return out + friction_weight_adjoint(
             T,
             self.surface.mesh,

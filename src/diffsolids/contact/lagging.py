@@ -20,6 +20,7 @@ import numpy as np
 from diffsolids.contact.collisions import CollisionBuilder
 from diffsolids.contact.evaluation import Evaluation
 from diffsolids.contact.friction_table import checked_coefficients, tangential_collisions
+from diffsolids.contact.step import ContactStep
 from diffsolids.contact.timing import timed
 
 __all__ = ["LaggedFriction"]
@@ -53,7 +54,7 @@ class LaggedFriction:
         self.pair_table = pair_table
         self.timings = timings
         self.mu = np.zeros(num_pairs)
-        self.step: dict | None = None
+        self.step: ContactStep | None = None
         self.tangential: ipctk.TangentialCollisions | None = None
         self._lagged: dict | None = None
         # step index -> [surface state key, x^{i-1}, collisions at x^{i-1}, tangential
@@ -67,7 +68,7 @@ class LaggedFriction:
             self.mu = mu
             self.tangential = None  # rebuilt lazily for the current step
 
-    def begin_step(self, step: dict) -> None:
+    def begin_step(self, step: ContactStep) -> None:
         """Forget the lagged state of the previous step; ``step`` is the new step's record."""
         self.step = step
         self.tangential = None
@@ -85,7 +86,7 @@ class LaggedFriction:
         key = "lagged_shape" if shape_derivatives else "lagged"
         cached = self._lagged or {}
         if key not in cached:
-            x = self.surface.rest_positions + self.step["lagged"]
+            x = self.surface.rest_positions + self.step.lagged
             kept = None if shape_derivatives else self._kept_entry(x)
             if kept is not None:
                 cached[key] = (x, kept[2])
@@ -93,13 +94,13 @@ class LaggedFriction:
                 cached[key] = (x, self.builder.build(x, shape_derivatives))
                 if not shape_derivatives:
                     state = self.surface.state_key()
-                    self._kept[self.step["index"]] = [state, x, cached[key][1], None]
+                    self._kept[self.step.index] = [state, x, cached[key][1], None]
             self._lagged = cached
         return cached[key]
 
     def _kept_entry(self, x: np.ndarray) -> list | None:
         """The kept entry of the current step if it was built at x on the current surface."""
-        entry = self._kept.get(self.step.get("index"))
+        entry = self._kept.get(self.step.index)
         if entry is None:
             return None
         state, xk = entry[:2]
@@ -112,7 +113,7 @@ class LaggedFriction:
         barrier; else they are built (and kept).
         """
         _, C = self.lagged_state()
-        entry = self._kept.get(self.step["index"])
+        entry = self._kept.get(self.step.index)
         own = entry is not None and entry[2] is C  # the kept collision set is this step's
         if own and entry[3] is not None:
             mu, kept_barrier, T = entry[3]
@@ -151,7 +152,7 @@ class LaggedFriction:
 
     def velocity(self, U: np.ndarray) -> np.ndarray:
         """Velocity of the collision vertices at displacement U (the step's BDF formula)."""
-        return U / self.step["beta_dt"] + self.step["v_offset"]
+        return U / self.step.beta_dt + self.step.v_offset
 
     def friction_velocity(self, ev: Evaluation) -> np.ndarray | None:
         """The velocity at ev when the step has friction (None without)."""

@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from diffsolids.contact.diagnostics import obstacle_move_error
+from diffsolids.contact.step import ContactStep
 from diffsolids.contact.surface import CollisionSurface
 from diffsolids.contact.timing import timed
 from diffsolids.errors import ParameterError
@@ -93,14 +94,14 @@ class ObstacleMoves:
             return surf.obstacle_displacement(0.0)
         return surf.obstacle_displacement(float(self.clock(k)))
 
-    def check_move(self, step: dict, O_prev: np.ndarray, fraction: Fraction) -> None:
+    def check_move(self, step: ContactStep, O_prev: np.ndarray, fraction: Fraction) -> None:
         """CCD of the obstacles' move O^{i-1} -> O^i with the bodies held at u^{i-1} (collective).
 
         Free: the Newton start (u^{i-1}, O^i) is admissible. Not free: the move must be made
         with the body's initial guess (see :meth:`first_move`); the step's ``blocked`` records
         that.
         """
-        lagged, O_now = step["lagged"], step["obstacle"]
+        lagged, O_now = step.lagged, step.obstacle
         if np.array_equal(O_prev, O_now):
             return
         X = self.surface.rest_positions
@@ -108,19 +109,19 @@ class ObstacleMoves:
         x1 = np.asfortranarray(x0 + (O_now - O_prev))
         with timed(self.timings, "ccd_obstacles"):
             toi = fraction(lagged, x0, x1)
-        step["blocked"] = toi < 1.0
-        step["start_body"] = lagged - O_prev
-        if step["blocked"]:
-            self.moved_with_guess.append(step["index"])
+        step.blocked = toi < 1.0
+        step.start_body = lagged - O_prev
+        if step.blocked:
+            self.moved_with_guess.append(step.index)
             logger.info(
                 "contact step %d: the obstacles' move alone is not collision-free (fraction "
                 "%.3g): it is made with the body's initial guess",
-                step["index"],
+                step.index,
                 toi,
             )
 
     def first_move(
-        self, step: dict | None, Ub: np.ndarray, dU: np.ndarray, fraction: Fraction
+        self, step: ContactStep | None, Ub: np.ndarray, dU: np.ndarray, fraction: Fraction
     ) -> float | None:
         """The step bound of a blocked step's first move from u^{i-1} (None: not that move).
 
@@ -130,16 +131,16 @@ class ObstacleMoves:
         Raises:
             IntersectionError: The move is not admissible even without body motion.
         """
-        if step is None or not step["blocked"] or not np.array_equal(Ub, step["start_body"]):
+        if step is None or not step.blocked or not np.array_equal(Ub, step.start_body):
             return None
         X = self.surface.rest_positions
-        x0 = np.asfortranarray(X + step["lagged"])
-        x1 = np.asfortranarray(X + Ub + dU + step["obstacle"])
+        x0 = np.asfortranarray(X + step.lagged)
+        x1 = np.asfortranarray(X + Ub + dU + step.obstacle)
         with timed(self.timings, "ccd_obstacles"):
-            toi = fraction(step["lagged"], x0, x1)
+            toi = fraction(step.lagged, x0, x1)
         if toi >= 1.0:
             return np.inf
         if not np.any(dU):
-            move = step["obstacle"] - (step["lagged"] - step["start_body"])
-            raise obstacle_move_error(self.surface, step["index"], move, self.dynamic)
+            move = step.obstacle - (step.lagged - step.start_body)
+            raise obstacle_move_error(self.surface, step.index, move, self.dynamic)
         return 0.0

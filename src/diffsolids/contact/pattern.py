@@ -13,6 +13,7 @@ from diffsolids.contact.evaluation import Evaluation
 from diffsolids.contact.free_dofs import FreeDofs
 from diffsolids.contact.potential import ContactPotential
 from diffsolids.contact.reach import reach_blocks
+from diffsolids.contact.step import ContactStep
 from diffsolids.contact.surface import _contains, block_pattern
 from diffsolids.contact.timing import timed
 from diffsolids.solvers.sparsity import sorted_unique
@@ -42,7 +43,7 @@ class ContactPattern:
         self.timings = potential.timings
         self._memo: tuple | None = None
 
-    def blocks(self, ev: Evaluation, step: dict) -> np.ndarray:
+    def blocks(self, ev: Evaluation, step: ContactStep) -> np.ndarray:
         """Vertex-block pattern of the Newton matrix at ev (exact Hessian + friction stencils).
 
         The same on all ranks (collective): the reach pattern and the blocks of every rank's
@@ -56,13 +57,13 @@ class ContactPattern:
             parts = [self.potential.hessian(ev)]
             T = ev.extras["friction"]
             if T is not None:
-                if "friction_pattern" not in step:
+                if step.friction_pattern is None:
                     # at zero sliding velocity the friction Hessian covers every stencil
                     zero = np.asfortranarray(np.zeros_like(ev.U))
-                    step["friction_pattern"] = self.friction_potential.hessian(
+                    step.friction_pattern = self.friction_potential.hessian(
                         T, self.surface.mesh, zero
                     )
-                parts.append(step["friction_pattern"])
+                parts.append(step.friction_pattern)
             surf = self.surface
             needed = block_pattern(*parts, dim=self.dim, num_vertices=surf.num_vertices)
             if surf.static is not None:  # blocks of static vertices have no matrix entries
@@ -70,13 +71,13 @@ class ContactPattern:
                 needed = needed[~(surf.static[a] | surf.static[b])]
             # a backward sweep assembles one matrix per step: the Hessians' blocks suffice
             # (the reach cost 0.14 s of the 0.22 s pattern check per step at 44 811 dofs)
-            reach = self.reach(step) if step["forward"] else np.zeros(0, dtype=np.int64)
+            reach = self.reach(step) if step.forward else np.zeros(0, dtype=np.int64)
             # other ranks add their Hessians' entries to the rows this rank owns: the union
             outside = self.partition.union(needed[~_contains(reach, needed)])
             ev.blocks = reach if len(outside) == 0 else sorted_unique(reach, outside)
         return ev.blocks
 
-    def reach(self, step: dict) -> np.ndarray:
+    def reach(self, step: ContactStep) -> np.ndarray:
         """Vertex blocks of the pairs that are near at the start of the step.
 
         The stencils of the pairs of primitives whose boxes at u^{i-1}, each grown by
@@ -95,11 +96,11 @@ class ContactPattern:
         of static vertices (no matrix entries; a pair with a static primitive adds none but the
         other primitive's own, which are always in).
         """
-        if "reach" not in step:
+        if step.reach is None:
             with timed(self.timings, "reach_pattern"):
                 surf = self.surface
-                step["reach"] = reach_blocks(
-                    surf.rest_positions + step["lagged"],
+                step.reach = reach_blocks(
+                    surf.rest_positions + step.lagged,
                     surf.rest_positions,
                     surf.edges,
                     surf.faces,
@@ -107,10 +108,10 @@ class ContactPattern:
                     0.5 * _PATTERN_REACH * self.dhat,
                     static=surf.static,
                 )
-        return step["reach"]
+        return step.reach
 
     def matrix_pattern(
-        self, ev: Evaluation, step: dict, free_dofs: FreeDofs, bc_dofs: np.ndarray
+        self, ev: Evaluation, step: ContactStep, free_dofs: FreeDofs, bc_dofs: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """Global (rows, cols) of the matrix entries at ev (owned rows, free dofs; collective).
 

@@ -103,7 +103,7 @@ class ContactPotential:
                 self.surface.mesh,
                 ev,
                 self.lagging.friction_velocity(ev),
-                self.lagging.step["beta_dt"],
+                self.lagging.step.beta_dt,
             )
             ev.energy = self.partition.total(e)
 
@@ -147,7 +147,7 @@ class ContactPotential:
 
     def _hessian_now(self, ev: Evaluation, method: ipctk.PSDProjectionMethod) -> sp.csc_matrix:
         V = self.lagging.friction_velocity(ev)
-        beta_dt = self.lagging.step["beta_dt"] if V is not None else 1.0
+        beta_dt = self.lagging.step.beta_dt if V is not None else 1.0
         return contact_hessian(
             self.barrier, self.friction_potential, self.surface.mesh, ev, V, beta_dt, method
         )

@@ -70,6 +70,7 @@ from diffsolids.contact.obstacle_moves import ObstacleMoves
 from diffsolids.contact.partition import CollisionPartition
 from diffsolids.contact.pattern import ContactPattern
 from diffsolids.contact.potential import ContactPotential, projection_method
+from diffsolids.contact.step import ContactStep
 from diffsolids.contact.step_bound import (  # noqa: F401  (test_soft_barrier imports them here)
     _CCD_REACH,
     _GAP_FLOOR_ULPS,
@@ -320,17 +321,16 @@ class ContactTerm(NumericTerm):
         beta_dt = coeffs.beta_dt
         v_offset = sum(a * U for a, U in zip(coeffs.alpha, hist, strict=True)) / beta_dt
         forward = len(traj.u) == i  # else a backward sweep's step
-        self._step = {
-            "index": i,
-            "forward": forward,
-            "alpha": tuple(coeffs.alpha),
-            "beta_dt": beta_dt,
-            "history": hist,
-            "v_offset": v_offset,
-            "lagged": hist[0],
-            "obstacle": obstacle[0],
-            "blocked": False,
-        }
+        self._step = ContactStep(
+            index=i,
+            forward=forward,
+            alpha=tuple(coeffs.alpha),
+            beta_dt=beta_dt,
+            history=hist,
+            v_offset=v_offset,
+            lagged=hist[0],
+            obstacle=obstacle[0],
+        )
         self._token += 1
         self._eval = None
         self.lagging.begin_step(self._step)
@@ -369,7 +369,7 @@ class ContactTerm(NumericTerm):
         with self._timed("gather"):
             U = self.surface.gather(values)
         if self._step is not None and self.obstacles:
-            U = U + self._step["obstacle"]
+            U = U + self._step.obstacle
         T = self._friction()
         ev = self._eval
         if ev is not None and ev.token == self._token and np.array_equal(ev.U, U):
@@ -487,7 +487,7 @@ class ContactTerm(NumericTerm):
             return first
         if not np.any(dU):
             return np.inf
-        U0 = Ub + (step["obstacle"] if step is not None else 0.0)
+        U0 = Ub + (step.obstacle if step is not None else 0.0)
         x0 = np.asfortranarray(self.surface.rest_positions + U0)
         x1 = np.asfortranarray(x0 + _CCD_REACH * dU)
         with self._timed("ccd"):
