@@ -314,6 +314,22 @@ class ReducedFunctional:
         """Trajectory of the last forward run."""
         return None if self._state is None else self._state[1]
 
+    def warm_start(self, trajectory: "StateHistory | None") -> None:
+        """Warm-start the next forward runs: each step's Newton solve from ``trajectory``.
+
+        None: from the simulation's own initial guess.
+        """
+        self.simulation.warm_start = trajectory
+
+    def dof_layout(self) -> np.ndarray:
+        """A fingerprint of this rank's dof layout: the dof count, then the cells' input indices.
+
+        A checkpointed trajectory fits a run with the same fingerprint.
+        """
+        V, mesh = self.model.V, self.model.domain.mesh
+        n = (V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts) * V.dofmap.index_map_bs
+        return np.concatenate([[n], mesh.topology.original_cell_index]).astype(np.int64)
+
     @property
     def adjoint_stats(self) -> dict:
         """Statistics of the last backward sweep."""

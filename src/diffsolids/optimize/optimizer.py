@@ -254,9 +254,8 @@ class LBFGS:
         return J, collective_comm(self.comm).bcast(g, root=0)
 
     def _set_warm_start(self) -> None:
-        sim = self.rf.simulation
         traj = self.point.trajectory if self.point is not None else None
-        sim.warm_start = traj if self.options.warm_start else None
+        self.rf.warm_start(traj if self.options.warm_start else None)
 
     def _trial(self, q: np.ndarray) -> tuple[bool, float, float, str]:
         """Forward solve at a trial point: (valid, J, seconds, why invalid)."""
@@ -350,13 +349,6 @@ class LBFGS:
                 logger.warning(message)
                 warnings.warn(message, OptimizationWarning, stacklevel=3)
 
-    def _layout(self) -> np.ndarray:
-        """Fingerprint of this rank's dof layout (cells in input order and dof count)."""
-        mesh = self.rf.model.domain.mesh
-        V = self.rf.model.V
-        n = (V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts) * V.dofmap.index_map_bs
-        return np.concatenate([[n], mesh.topology.original_cell_index]).astype(np.int64)
-
     def _resume(self) -> None:
         ckpt = self.checkpoint
         meta, arrays = ckpt.load_state()
@@ -377,7 +369,7 @@ class LBFGS:
                 f"expect {rf.size}: a different problem (use a new checkpoint directory)"
             )
         rf.controls.assign(q)
-        trajectory, problem = ckpt.load_trajectory(meta, self._layout())
+        trajectory, problem = ckpt.load_trajectory(meta, self.rf.dof_layout())
         self.point = _Point(q, float(meta["objective"]), np.asarray(arrays["g"]), trajectory)
         if problem is not None and self.options.warm_start:
             message = f"checkpoint: no warm start after resuming ({problem})"
@@ -408,7 +400,7 @@ class LBFGS:
         }
         active = np.zeros(0, dtype=bool) if self.active is None else self.active
         arrays = {"q": p.q, "g": p.g, "active": active, **self.memory.state()}
-        self.checkpoint.save(meta, arrays, p.trajectory, self._layout())
+        self.checkpoint.save(meta, arrays, p.trajectory, self.rf.dof_layout())
 
     def _rebuild_inner_product(self) -> None:
         if isinstance(self.inner_product, RebuildableInnerProduct):
@@ -671,7 +663,7 @@ class LBFGS:
             self.output.write_iterate(self.iteration, self.rf.model, p.trajectory)
         if self.output is not None:
             self.output.finish(self.history)
-        self.rf.simulation.warm_start = None
+        self.rf.warm_start(None)
         message = _MESSAGES.get(reason.split(":")[0], reason)
         logger.info("opt stopped after %d iterations: %s", self.iteration, message)
         if reason in ("line_search", "interrupted") or reason.startswith("remesh"):
