@@ -14,6 +14,7 @@ from pathlib import Path
 
 DOCS = Path(__file__).resolve().parent
 sys.path.insert(0, str(DOCS.parent / "src"))
+sys.path.insert(0, str(DOCS))  # concept_figures
 
 import diffsolids  # noqa: E402  (loads the MPI of the DOLFINx wheel before dolfinx)
 
@@ -311,15 +312,20 @@ def strip_markers(app, doctree) -> None:
 
 
 def write_figures(app) -> None:
-    """Plot the optimisation logs ``docs/figures/*_log.csv`` to ``docs/api/figures/*.svg``.
+    """Draw ``docs/concept_figures.py``'s figures and plot the optimisation logs.
+
+    The logs ``docs/figures/*_log.csv`` become ``docs/api/figures/*.svg``.
 
     The data are in git (a few lines of text), the figures are not: they are drawn at each
     build by the library's own ``plot_log`` (matplotlib, a dependency of diffsolids).
     """
+    from concept_figures import draw_all
+
     from diffsolids.optimize.monitor import plot_log, read_log
 
     out = DOCS / "api" / "figures"
     out.mkdir(parents=True, exist_ok=True)
+    draw_all(out)  # the tutorial's scene, the barrier, the data flow
     for log in sorted((DOCS / "figures").glob("*_log.csv")):
         svg = out / f"{log.stem}.svg"
         if not svg.exists() or svg.stat().st_mtime < log.stat().st_mtime:
