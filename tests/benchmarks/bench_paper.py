@@ -248,7 +248,7 @@ def main(argv=None) -> dict:
                 f"({r['newton_iterations']} Newton its, {r['s_per_newton_iteration']:.4f} s "
                 f"each; per contact step max {r['newton_per_contact_step_max']} mean "
                 f"{r['newton_per_contact_step_mean']:.1f}, PolyFEM {r['paper_newton_per_step']}), "
-                "gradient {r['gradient_s']:.3f} s ({r['gradient_over_forward']:.3f} "
+                f"gradient {r['gradient_s']:.3f} s ({r['gradient_over_forward']:.3f} "
                 f"of forward; again at a neighbouring q: {r['repeat_gradient_s']:.3f} s, "
                 f"{r['repeat_gradient_over_forward']:.3f}); "
                 f"paper {r['paper_solve_s']} / {r['paper_gradient_s']} s",
