@@ -124,3 +124,31 @@ def test_formulation_errors_in_a_child_process():
     assert out.returncode == 0, out.stderr
     assert "contact formulation 'max'" in out.stdout
     assert "needs area_weighting=True" in out.stdout
+
+
+def test_nearest_face_of_a_flat_region_leaves_the_candidates_whole():
+    import ipctk
+
+    from diffsolids.contact.flat import FlatRegions, flat_edge_mask, flat_primitive_regions
+
+    ground = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=float)
+    faces = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32)
+    edges = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [2, 3]], dtype=np.int32)
+    flat = flat_edge_mask(ground, faces, edges)
+    assert flat.tolist() == [False, True, False, False, False]  # the diagonal
+    regions = flat_primitive_regions(ground, edges, faces, flat)
+    assert regions.tolist() == [0, 0]
+    # a lone body vertex 4 over the ground, near the diagonal
+    V = np.vstack([ground, [[0.55, 0.5, 5e-4]]])
+    mesh = ipctk.CollisionMesh(V, edges, faces)
+    regions = FlatRegions(3, np.flatnonzero(flat), np.zeros(0), np.concatenate([regions]))
+    candidates = ipctk.Candidates()
+    candidates.build(mesh, V, 1e-2)
+    assert sorted(c.face_id for c in candidates.fv_candidates if c.vertex_id == 4) == [0, 1]
+    whole = len(candidates.fv_candidates)
+    for x, face in ((0.55, 0), (0.45, 1)):  # below / above the diagonal x = y
+        X = V.copy()
+        X[4, 0] = x
+        kept = regions.nearest(candidates, np.asfortranarray(X), mesh)
+        assert [c.face_id for c in kept.fv_candidates if c.vertex_id == 4] == [face]
+        assert len(candidates.fv_candidates) == whole  # the segment's candidates stay whole

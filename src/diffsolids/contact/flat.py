@@ -219,12 +219,20 @@ class FlatRegions:
         keep[order[first]] = True
         if keep.all():
             return candidates
+        # a new Candidates: the line search builds several sets from one CCD segment's
+        # candidates, at different x, so those must stay whole
+        out = ipctk.Candidates()
+        out.ee_candidates = candidates.ee_candidates
+        out.vv_candidates = candidates.vv_candidates
+        out.pv_candidates = candidates.pv_candidates
         kept = [c for c, k in zip(pairs, keep, strict=True) if k]
         if self.dim == 3:
-            candidates.fv_candidates = kept
+            out.ev_candidates = candidates.ev_candidates
+            out.fv_candidates = kept
         else:
-            candidates.ev_candidates = kept
-        return candidates
+            out.fv_candidates = candidates.fv_candidates
+            out.ev_candidates = kept
+        return out
 
     def correct(self, collisions: ipctk.NormalCollisions, mesh: ipctk.CollisionMesh) -> None:
         """Take the flat vertices' share out of the improved max approximation's vertex pairs.
