@@ -54,3 +54,19 @@ def test_moved_scene_helpers_keep_a_warning_alias():
             assert getattr(scenes, name) is getattr(ds.mesh, name)
     with pytest.raises(AttributeError, match="no attribute 'nothing'"):
         scenes.nothing  # noqa: B018
+
+
+def test_peak_rss_mb_sees_an_allocation():
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy as np\n"
+        "from diffsolids.parallel import peak_rss_mb\n"
+        "before = peak_rss_mb()\n"
+        "a = np.ones(40_000_000)\n"  # 320 MB, touched
+        "print(before, peak_rss_mb())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    before, after = (float(x) for x in out.stdout.split())
+    assert 0 < before and after - before == pytest.approx(320, abs=40)

@@ -11,7 +11,7 @@ they run on :func:`collective_comm`, a congruent communicator that lives as long
 
 from mpi4py import MPI
 
-__all__ = ["collective_comm"]
+__all__ = ["collective_comm", "peak_rss_mb"]
 
 # Communicators made for process groups that are neither COMM_WORLD nor one rank, keyed by the
 # group's COMM_WORLD ranks in order. Kept until MPI finalises: never freed mid-exception.
@@ -40,3 +40,12 @@ def collective_comm(comm: MPI.Comm) -> MPI.Intracomm:
     if key not in _SUBGROUP_COMMS:
         _SUBGROUP_COMMS[key] = comm.Dup()
     return _SUBGROUP_COMMS[key]
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident memory so far, in MB (the kernel's high-water mark)."""
+    import resource
+    import sys
+
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0

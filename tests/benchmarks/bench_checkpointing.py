@@ -169,6 +169,9 @@ def main():
             row["python_peak_mb"] = round(python_mb, 3)
         result["policies"][name] = row
         print(name, json.dumps(row), flush=True)
+    from diffsolids.parallel import peak_rss_mb
+
+    result["peak_rss_mb"] = peak_rss_mb()  # this process's
     print(json.dumps(result))
 
 

@@ -298,6 +298,9 @@ def _ranks_driver(args, argv) -> dict:
         f"{vectors:.1f} surface vectors per Newton iteration; collision set build, CCD, gather "
         "and reach pattern replicated on every rank; forward contact timers only",
     }
+    from diffsolids.parallel import peak_rss_mb
+
+    summary["peak_rss_mb"] = peak_rss_mb()  # this process's
     print(json.dumps(summary))
     return summary
 
@@ -471,6 +474,9 @@ def main(argv=None) -> dict:
         result.update({f"coarse_obstacle_{k}": v for k, v in coarse.items()})
         result.update({f"fine_obstacle_{k}": v for k, v in fine.items()})
     if comm.rank == 0:
+        from diffsolids.parallel import peak_rss_mb
+
+        result["peak_rss_mb"] = peak_rss_mb()  # this process's
         print(json.dumps(result))
     return result
 

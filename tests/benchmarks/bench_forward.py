@@ -361,6 +361,9 @@ def main() -> dict:
         f"overhead {forward / bare_s:.3f} wall, {cpu / bare_cpu:.3f} cpu (target <= 1.10); "
         f"load average {load_before:.1f} -> {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
     )
+    from diffsolids.parallel import peak_rss_mb
+
+    summary["peak_rss_mb"] = peak_rss_mb()  # this process's
     say(json.dumps(summary))
     return summary
 

@@ -536,4 +536,7 @@ if __name__ == "__main__":
     COMM.barrier()
     if COLD_CACHE is not None and COMM.rank == 0:
         shutil.rmtree(COLD_CACHE, ignore_errors=True)
+    from diffsolids.parallel import peak_rss_mb
+
+    result["peak_rss_mb"] = peak_rss_mb()  # this process's
     say(json.dumps(result))

@@ -171,6 +171,9 @@ def main(argv=None) -> dict:
         "bunny_surface_difference_m": diff,
     }
     if comm.rank == 0:
+        from diffsolids.parallel import peak_rss_mb
+
+        out["peak_rss_mb"] = peak_rss_mb()  # this process's
         print(json.dumps(out))
     return out
 

@@ -257,6 +257,9 @@ def main(argv=None) -> dict:
     results["ranks"] = comm.size
     results["kappa_option"] = args.kappa
     if comm.rank == 0:
+        from diffsolids.parallel import peak_rss_mb
+
+        results["peak_rss_mb"] = peak_rss_mb()  # this process's
         print(json.dumps(results), flush=True)
     return results
 

@@ -115,6 +115,9 @@ def main():
     if comm.rank == 0:
         for key in ("2d", "3d"):
             print(key, json.dumps(result[key], indent=1))
+        from diffsolids.parallel import peak_rss_mb
+
+        result["peak_rss_mb"] = peak_rss_mb()  # this process's
         print(json.dumps(result))
 
 

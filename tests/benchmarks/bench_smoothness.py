@@ -158,6 +158,9 @@ def main(argv=None) -> dict:
                 flush=True,
             )
     if comm.rank == 0:
+        from diffsolids.parallel import peak_rss_mb
+
+        out["peak_rss_mb"] = peak_rss_mb()  # this process's
         print(json.dumps(out))
     return out
 

@@ -100,6 +100,9 @@ def main() -> None:
     if comm.rank == 0:
         for key, value in out.items():
             print(f"{key:>24}: {value:.4g}" if isinstance(value, float) else f"{key:>24}: {value}")
+        from diffsolids.parallel import peak_rss_mb
+
+        out["peak_rss_mb"] = peak_rss_mb()  # this process's
         print(json.dumps(out))
 
 
