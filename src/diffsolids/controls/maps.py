@@ -68,10 +68,12 @@ class Log(ParameterMap):
     name = "log"
 
     def forward(self, q: np.ndarray) -> np.ndarray:  # noqa: D102
-        return np.exp(np.asarray(q, dtype=float))
+        with np.errstate(over="ignore"):  # inf: refused by the model's check, naming the field
+            return np.exp(np.asarray(q, dtype=float))
 
     def derivative(self, q: np.ndarray) -> np.ndarray:  # noqa: D102
-        return np.exp(np.asarray(q, dtype=float))
+        with np.errstate(over="ignore"):
+            return np.exp(np.asarray(q, dtype=float))
 
     def inverse(self, p: np.ndarray) -> np.ndarray:  # noqa: D102
         p = np.asarray(p, dtype=float)
