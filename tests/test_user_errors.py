@@ -111,3 +111,8 @@ def _model():
 def test_malformed_bounds_are_refused_where_the_control_is_made(bounds, message):
     with pytest.raises(ControlError, match=message):
         ParameterControl(_model(), "E", "uniform", **bounds)
+
+
+def test_a_lame_control_of_a_young_model_says_how_to_get_one():
+    with pytest.raises(ControlError, match=r"'lmbda'.*give them as lmbda=\.\.\., mu=\.\.\."):
+        ParameterControl(_model(), "lmbda", "uniform")

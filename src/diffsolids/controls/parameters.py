@@ -54,8 +54,16 @@ class ParameterControl(Control):
         map: ParameterMap | None = None,
     ) -> None:
         if name not in model.coefficients:
+            hint = ""
+            other = {("E", "nu"): ("lmbda", "mu"), ("lmbda", "mu"): ("E", "nu")}
+            if name in other.get(model.parametrisation, ()):
+                given = ", ".join(f"{p}=..." for p in other[model.parametrisation])
+                hint = (
+                    f" (its materials give {model.parametrisation}: to control {name!r}, give "
+                    f"them as {given}, e.g. ds.NeoHookean({given}))"
+                )
             raise ControlError(
-                f"the model has no coefficient {name!r}; it has {sorted(model.coefficients)}"
+                f"the model has no coefficient {name!r}; it has {sorted(model.coefficients)}" + hint
             )
         if mode not in _MODES:
             raise ControlError(f"unknown parameter mode {mode!r}; choose from {_MODES}")
