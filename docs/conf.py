@@ -21,7 +21,7 @@ import diffsolids  # noqa: E402  (loads the MPI of the DOLFINx wheel before dolf
 project = "diffsolids"
 author = "the diffsolids authors"
 copyright = "2026, the diffsolids authors"
-release = "0.2.0"
+release = "0.3.0"
 
 extensions = [
     "myst_parser",
