@@ -91,14 +91,19 @@ def _history(path):
     return [json.loads(s) for s in path.read_text().splitlines() if s.endswith("}")]
 
 
+def _wait_for_records(proc, out, count):
+    """Wait until the script's history has ``count`` records (or the script ended)."""
+    deadline = time.monotonic() + 600
+    while len(_history(out / "history.jsonl")) < count and proc.poll() is None:
+        assert time.monotonic() < deadline, "the optimisation script made no progress"
+        time.sleep(0.01)
+
+
 def test_killed_run_resumes_like_an_uninterrupted_one(tmp_path):
     iterations = 10
     ckpt, out = tmp_path / "ckpt", tmp_path / "out"
     proc = _script(ckpt, out, iterations)
-    deadline = time.monotonic() + 600
-    while len(_history(out / "history.jsonl")) < 4 and proc.poll() is None:
-        assert time.monotonic() < deadline, "the optimisation script made no progress"
-        time.sleep(0.01)
+    _wait_for_records(proc, out, 4)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert proc.returncode == -signal.SIGKILL, proc.stdout.read().decode()
@@ -125,10 +130,7 @@ def test_ctrl_c_stops_at_the_accepted_point_with_a_checkpoint(tmp_path):
     iterations = 30
     ckpt, out = tmp_path / "ckpt", tmp_path / "out"
     proc = _script(ckpt, out, iterations)
-    deadline = time.monotonic() + 600
-    while len(_history(out / "history.jsonl")) < 3 and proc.poll() is None:
-        assert time.monotonic() < deadline, "the optimisation script made no progress"
-        time.sleep(0.01)
+    _wait_for_records(proc, out, 3)
     proc.send_signal(signal.SIGINT)
     log = proc.communicate()[0].decode()
     assert proc.returncode == 0, log  # no PETSc error, no traceback: a result
