@@ -6,7 +6,8 @@ import ipctk
 import numpy as np
 import pytest
 
-from diffsolids.contact.step_bound import _pair_distances, _plane_bounds
+from diffsolids.contact.distances import pair_distances
+from diffsolids.contact.step_bound import _plane_bounds
 
 ETA = 0.1  # 1 - AdditiveCCD's conservative rescaling
 
@@ -112,7 +113,7 @@ def test_pair_distances_are_ipctks(kind):
     P[0][:100, 2] = 1e-9  # vertices (edges) just above a plane through the others
     for Q in P[1:]:
         Q[:100, 2] = 0.0
-    d = _pair_distances(P, kind)
+    d = pair_distances(P, kind)
     expected = [_distance(kind, np.array([Q[k] for Q in P])) for k in range(500)]
     assert d == pytest.approx(expected, rel=1e-9, abs=1e-15)
 

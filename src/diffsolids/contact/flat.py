@@ -18,10 +18,19 @@ vertices against the bodies' faces (edges in 2D) are dropped before the build, a
 flat vertex's share of the vertex-vertex terms the improved max approximation adds is taken
 out after it. The plane then acts through the bodies' vertices only (one-sided), as a plane
 of one triangle does.
+
+The IPC collision set (``formulation="ipc"``, the default) has one term per closest primitive
+pair: a body vertex over a face next to a coplanar face gets the face's term and the edge
+term of its neighbour (a barrier ridge along every flat edge). There the same two kinds of
+candidate are dropped and, of a body vertex's face (segment) candidates within one flat
+region, only the nearest is kept (:meth:`FlatRegions.nearest`): the vertex sees the distance
+to the region, one polygon of a plane.
 """
 
 import ipctk
 import numpy as np
+
+from diffsolids.contact.distances import pair_distances, point_segment_distances
 
 __all__ = ["FlatRegions", "flat_edge_mask", "flat_primitive_regions", "flat_vertex_mask"]
 
@@ -136,6 +145,9 @@ class FlatRegions:
         dim: 2 or 3.
         edges: Global indices of flat edges (3D; empty in 2D).
         vertices: Global indices of flat vertices.
+        primitive_region: Per face (3D) or edge (2D) of the collision mesh, the number of its
+            flat region (faces joined across flat edges, segments at flat vertices), -1 for
+            the bodies' primitives and moving obstacles'.
     """
 
     def __init__(
@@ -198,15 +210,15 @@ class FlatRegions:
             if not pairs:
                 return candidates
             ids = np.array([(c.face_id, c.vertex_id) for c in pairs], dtype=np.int64)
-            corners = x[np.asarray(mesh.faces)[ids[:, 0]]]
-            dist = _point_triangle_distance2(x[ids[:, 1]], corners)
+            a, b, c = (x[np.asarray(mesh.faces)[ids[:, 0], k]] for k in range(3))
+            dist = pair_distances([x[ids[:, 1]], a, b, c], "fv")
         else:
             pairs = candidates.ev_candidates
             if not pairs:
                 return candidates
             ids = np.array([(c.edge_id, c.vertex_id) for c in pairs], dtype=np.int64)
-            ends = x[np.asarray(mesh.edges)[ids[:, 0]]]
-            dist = _point_segment_distance2(x[ids[:, 1]], ends[:, 0], ends[:, 1])
+            a, b = (x[np.asarray(mesh.edges)[ids[:, 0], k]] for k in range(2))
+            dist = point_segment_distances(x[ids[:, 1]], a, b)
         region = self.primitive_region[ids[:, 0]]
         grouped = np.flatnonzero(region >= 0)
         order = grouped[
@@ -265,25 +277,3 @@ class FlatRegions:
                     share = (1 - n) * 0.5 * areas[p] if n > 1 else 0.0
                 c.weight = c.weight - share
         collisions.vv_collisions = vv
-
-
-def _point_segment_distance2(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Squared distances of points to segments (rows)."""
-    d = b - a
-    t = np.clip(np.einsum("ij,ij->i", p - a, d) / np.einsum("ij,ij->i", d, d), 0.0, 1.0)
-    r = p - (a + t[:, None] * d)
-    return np.einsum("ij,ij->i", r, r)
-
-
-def _point_triangle_distance2(p: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Squared distances of points to triangles (t: (m, 3, 3) corners)."""
-    a, b, c = t[:, 0], t[:, 1], t[:, 2]
-    n = np.cross(b - a, c - a)
-    nn = np.einsum("ij,ij->i", n, n)
-    side = [np.einsum("ij,ij->i", np.cross(q - o, p - o), n) for o, q in ((a, b), (b, c), (c, a))]
-    inside = (side[0] >= 0) & (side[1] >= 0) & (side[2] >= 0)
-    plane = np.einsum("ij,ij->i", p - a, n) ** 2 / nn
-    edges = np.minimum.reduce(
-        [_point_segment_distance2(p, o, q) for o, q in ((a, b), (b, c), (c, a))]
-    )
-    return np.where(inside, plane, edges)
