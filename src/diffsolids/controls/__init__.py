@@ -1,5 +1,6 @@
 """Controls: the optimisation parameters and the chain rule back from the adjoint."""
 
+from diffsolids.controls.affine import AffineControl
 from diffsolids.controls.base import Control, ControlError, ControlSet
 from diffsolids.controls.contact import FrictionControl
 from diffsolids.controls.dirichlet import DirichletControl
@@ -19,6 +20,7 @@ from diffsolids.controls.shape import ShapeControl, boundary_vertices
 
 __all__ = [
     "Affine",
+    "AffineControl",
     "CanonicalLayout",
     "Compose",
     "Control",

@@ -234,6 +234,26 @@ class PolyFEMMaterial:
         params.update(overrides)
         return Material(self.law, **params)
 
+    def lame_material(self, dim: int) -> "Material":
+        """The Material given by PolyFEM's Lamé parameters (``polyfem/assembler/MatParams.cpp``).
+
+        lambda = E nu / ((1 + nu)(1 - 2 nu)) in 3D and E nu / (1 - nu^2) in 2D (plane stress:
+        PolyFEM's 2D lambda is the one its energy uses, so the Model takes it as given, with
+        ``plane_stress=False``), mu = E / (2 (1 + nu)).
+        """
+        from diffsolids.model.materials import Material
+
+        E, nu = self.E, self.nu
+        lmbda = E * nu / ((1 + nu) * (1 - 2 * nu)) if dim == 3 else E * nu / (1 - nu * nu)
+        return Material(
+            self.law,
+            lmbda=lmbda,
+            mu=E / (2 * (1 + nu)),
+            density=self.rho,
+            damping_phi=self.phi,
+            damping_psi=self.psi,
+        )
+
 
 @dataclass(frozen=True)
 class PolyFEMBoundaryValue:
@@ -405,21 +425,33 @@ class PolyFEMScene:
         return Domain(mesh, cell_tags, facet_tags, {})
 
     def model(
-        self, domain: Domain, materials: Mapping[int, "Material"] | None = None, **kwargs: Any
+        self,
+        domain: Domain,
+        materials: Mapping[int, "Material"] | None = None,
+        lame: bool = False,
+        **kwargs: Any,
     ) -> "Model":
         """The Model: materials per body, plane stress in 2D, loads and Dirichlet conditions.
 
         Args:
             domain: From :meth:`domain`.
             materials: Optional Materials replacing the scene's, by body id.
+            lame: Give the materials as PolyFEM's Lamé parameters (coefficients ``lmbda``
+                and ``mu``, as PolyFEM's ``elastic`` optimisation variables set them; see
+                :meth:`PolyFEMMaterial.lame_material`) instead of E and nu.
             **kwargs: Further arguments of :class:`~diffsolids.Model` (``plane_stress``
-                defaults to True in 2D, PolyFEM's convention).
+                defaults to True in 2D, PolyFEM's convention; with ``lame`` to False, as
+                PolyFEM's 2D lambda is already the plane-stress one).
         """
         from diffsolids.model.model import Model
 
-        mats = {b: m.material() for b, m in self.materials.items() if b in self.body_ids}
+        mats = {
+            b: m.lame_material(domain.dim) if lame else m.material()
+            for b, m in self.materials.items()
+            if b in self.body_ids
+        }
         mats.update(materials or {})
-        kwargs.setdefault("plane_stress", domain.dim == 2)
+        kwargs.setdefault("plane_stress", domain.dim == 2 and not lame)
         model = Model(domain, mats, degree=self.degree, **kwargs)
         self._check_dim(domain.dim)
         if self.rhs is not None and any(self.rhs):
