@@ -213,3 +213,44 @@ def test_affine_control_refuses_a_matrix_of_the_wrong_shape(tmp_path):
         ds.controls.AffineControl(inner, np.ones((n + 1, 1)))
     with pytest.raises(ds.controls.ControlError, match="non-finite"):
         ds.controls.AffineControl(inner, np.full((n, 1), np.nan))
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "(y+0.3-0.7*sin(x))^2",
+        "-x^2 + atan2(y, x) - ln(2)*log10(100) + exp(-z)",
+        "if(x-0.1, sqrt(y), max(x, y)) + smooth_abs(x - y, 10) + rotate_2D_x(x, y, pi/3)",
+    ],
+)
+def test_expressions_in_ufl_equal_numpy(text):
+    from diffsolids.io.expressions import parse_expression
+
+    expression = parse_expression(text)
+    x, y, z = 0.3, 0.2, 0.1
+    assert float(expression.ufl(x, y, z)) == pytest.approx(float(expression(x, y, z)), rel=1e-14)
+
+
+@pytest.mark.parametrize("text, name", [("x % 2", "'%'"), ("floor(x)", "'floor'")])
+def test_expressions_without_ufl_form_are_named(text, name):
+    from diffsolids.io.expressions import ExpressionError, parse_expression
+
+    with pytest.raises(ExpressionError, match=f"{name} has no UFL form"):
+        parse_expression(text).ufl(0.3, 0.2)
+
+
+def test_function_target_gradient(tmp_path):
+    """int over the block's boundary of a PolyFEM expression of the deformed position."""
+    target = {
+        "type": "function-target",
+        "state": 0,
+        "target_function": "(y - 0.05 - 0.1*sin(3*x))^2",
+        "target_function_gradient": ["unused", "unused"],
+        "surface_selection": [1],
+    }
+    functional = {"type": "transient_integral", "state": 0, "static_objective": target}
+    path = write_experiment(tmp_path, "elastic", steps=8, functionals=[functional])
+    problem = read_polyfem_optimization(path).build()
+    assert problem.rf(problem.q0) > 0
+    for taylor in _taylor_both(problem):
+        _check(taylor)

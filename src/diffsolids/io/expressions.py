@@ -30,6 +30,7 @@ b)`` is a where c >= 0, else b; ``compare(a, b)`` is 1 where a < b, else 0). Tin
 """
 
 import math
+import operator
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -89,8 +90,46 @@ _FUNCTIONS: dict[str, tuple[int, Callable[..., np.ndarray]]] = {
     "sign": (1, lambda a: (a > 0).astype(float) - (a < 0).astype(float)),
 }
 _REFUSED = {"fac", "ncr", "npr"}
+_UFL = "__ufl__"  # the env key that selects the UFL implementations
+
+
+def _ufl_functions() -> dict[str, Callable]:
+    """UFL implementations of the differentiable functions (for :meth:`Expression.ufl`)."""
+    import ufl
+
+    return {
+        "abs": abs,
+        "acos": ufl.acos,
+        "asin": ufl.asin,
+        "atan": ufl.atan,
+        "atan2": ufl.atan2,
+        "cos": ufl.cos,
+        "cosh": ufl.cosh,
+        "exp": ufl.exp,
+        "ln": ufl.ln,
+        "log": lambda a: ufl.ln(a) / math.log(10.0),
+        "log10": lambda a: ufl.ln(a) / math.log(10.0),
+        "pow": lambda a, b: a**b,
+        "sin": ufl.sin,
+        "sinh": ufl.sinh,
+        "sqrt": ufl.sqrt,
+        "tan": ufl.tan,
+        "tanh": ufl.tanh,
+        "min": ufl.min_value,
+        "max": ufl.max_value,
+        "deg2rad": lambda d: d * math.pi / 180.0,
+        "rotate_2D_x": lambda x, y, th: x * ufl.cos(th) - y * ufl.sin(th),
+        "rotate_2D_y": lambda x, y, th: x * ufl.sin(th) + y * ufl.cos(th),
+        "if": lambda c, a, b: ufl.conditional(ufl.ge(c, 0), a, b),
+        "smooth_abs": lambda x, k: ufl.tanh(k * x) * x,
+        "sign": ufl.sign,
+    }
+
+
 _BINARY = {"+": np.add, "-": np.subtract, "*": np.multiply, "/": np.divide, "^": np.power}
 _BINARY["%"] = np.fmod
+_UFL_BINARY = {"+": operator.add, "-": operator.sub, "*": operator.mul, "/": operator.truediv}
+_UFL_BINARY["^"] = operator.pow
 
 _TOKEN = re.compile(
     r"(?P<space>[ \t\n\r]+)"
@@ -127,8 +166,25 @@ def _tokens(text: str) -> list[_Token]:
     return out
 
 
-def _binary(f: Callable, a: Node, b: Node) -> Node:
-    return lambda env: f(a(env), b(env))
+def _binary(op: str, a: Node, b: Node) -> Node:
+    def node(env: dict) -> np.ndarray:
+        if not env.get(_UFL):
+            return _BINARY[op](a(env), b(env))
+        if op not in _UFL_BINARY:
+            raise ExpressionError(f"the operator {op!r} has no UFL form (not differentiable)")
+        return _UFL_BINARY[op](a(env), b(env))
+
+    return node
+
+
+def _function(name: str, f: Callable, env: dict) -> Callable:
+    """The implementation of a function for the env's backend (numpy or UFL)."""
+    if not env.get(_UFL):
+        return f
+    impl = env[_UFL].get(name)
+    if impl is None:
+        raise ExpressionError(f"the function {name!r} has no UFL form (not differentiable)")
+    return impl
 
 
 class _Parser:
@@ -165,10 +221,10 @@ class _Parser:
     def binary_chain(self, ops: tuple[str, ...], operand: Callable[[], Node]) -> Node:
         node = operand()
         while self.is_op(*ops):
-            f = _BINARY[self.tok.text]
+            op = self.tok.text
             self.k += 1
             rhs = operand()
-            node = _binary(f, node, rhs)
+            node = _binary(op, node, rhs)
         return node
 
     def expr(self) -> Node:
@@ -188,7 +244,7 @@ class _Parser:
         node = self.base()
         if sign == 1:
             return node
-        return lambda env: np.negative(node(env))
+        return lambda env: -node(env)
 
     def base(self) -> Node:
         tok = self.tok
@@ -238,7 +294,7 @@ class _Parser:
             return lambda env: value
         if arity == 1:
             arg = self.power()  # TinyExpr: a one-argument function takes the next power
-            return lambda env: f(arg(env))
+            return lambda env: _function(name, f, env)(arg(env))
         if not self.is_op("("):
             raise self.error(f"expected '(' after {name} (it takes {arity} arguments)")
         args = []
@@ -250,7 +306,7 @@ class _Parser:
         if not self.is_op(")") or len(args) != arity:
             raise self.error(f"{name} takes {arity} arguments, expected ')' after them")
         self.k += 1
-        return lambda env: f(*(a(env) for a in args))
+        return lambda env: _function(name, f, env)(*(a(env) for a in args))
 
 
 class Expression:
@@ -288,6 +344,17 @@ class Expression:
         with np.errstate(all="ignore"):
             value = self._node(env)
         return np.array(np.broadcast_to(np.asarray(value, dtype=float), shape))
+
+    def ufl(self, x: object = 0.0, y: object = 0.0, z: object = 0.0, t: object = 0.0) -> object:
+        """The expression as UFL of UFL (or numeric) x, y, z, t, e.g. of the deformed position.
+
+        Raises:
+            ExpressionError: A function or operator without a UFL form (``%``, ``floor``,
+                ``ceil``, ``compare``, ``smoothstep``, ``half_smoothstep``: not differentiable).
+        """
+        env = dict(zip(VARIABLES, (x, y, z, t), strict=True))
+        env[_UFL] = _ufl_functions()
+        return self._node(env)
 
     def __repr__(self) -> str:
         return f"Expression({self.source!r})"

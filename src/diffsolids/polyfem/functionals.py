@@ -17,7 +17,10 @@ its unweighted value, at every level of nesting, and J is the sum of the entries
   ``matching: exact`` only), ``center-target`` (squared distance of the centre of mass of
   ``volume_selection`` from the target run's), ``position`` (int over ``volume_selection`` of
   the deformed coordinate ``dim``), ``volume`` (the rest volume of ``volume_selection``),
-  and ``stress_norm`` (int |P|^p of the first Piola-Kirchhoff stress, ``power`` default 2).
+  ``stress_norm`` (int |P|^p of the first Piola-Kirchhoff stress, ``power`` default 2) and
+  ``function-target`` (int over ``surface_selection`` of f(x) at the deformed position x, f a
+  PolyFEM expression of x, y, z at t = 0 (:meth:`diffsolids.io.expressions.Expression.ufl`);
+  UFL differentiates f, so ``target_function_gradient`` is not needed and not read).
 
 A static form outside a ``transient_integral`` is evaluated at the last state (a static
 scene's solution). Anything else raises :class:`~diffsolids.errors.ParameterError` naming
@@ -122,6 +125,24 @@ def _volume(ctx: FunctionalContext, spec: Mapping) -> Series:
     return Integral(integrand, "volume")
 
 
+def _function_target(ctx: FunctionalContext, spec: Mapping, where: str) -> Series:
+    from diffsolids.io.expressions import parse_expression
+
+    facets = _selection(spec, "surface_selection")
+    if not facets:
+        raise ParameterError(f"{where}: function-target needs a surface_selection")
+    expression = parse_expression(str(spec["target_function"]))
+    domain = ctx.model.domain
+    expression.ufl(*ufl.SpatialCoordinate(domain.mesh))  # refuses what UFL cannot express
+
+    def integrand(f: "StepFields") -> ufl.Form:
+        x = f.X + f.u
+        value = expression.ufl(x[0], x[1], x[2] if ctx.model.dim == 3 else 0.0, 0.0)
+        return value * f.ds(tuple(domain.facet_id(t) for t in facets))
+
+    return Integral(integrand, "function-target")
+
+
 def _static(ctx: FunctionalContext, spec: Mapping, where: str) -> Series:
     """A static form: one value per step."""
     kind = spec.get("type")
@@ -151,6 +172,9 @@ def _static(ctx: FunctionalContext, spec: Mapping, where: str) -> Series:
         p = float(spec.get("power", 2))
         bodies = _selection(spec, "volume_selection")
         series = stress_lp_norm(ctx.model, p, stress="piola", bodies=bodies) ** p
+    elif kind == "function-target":
+        _keys(spec, {"target_function", "target_function_gradient", "surface_selection"}, where)
+        series = _function_target(ctx, spec, where)
     else:
         raise ParameterError(f"{where}: unsupported static objective {kind!r}")
     return series * weight if weight != 1.0 else series
