@@ -8,7 +8,7 @@ from pathlib import Path
 import meshio
 import numpy as np
 
-__all__ = ["write_experiment", "write_rectangle"]
+__all__ = ["write_experiment", "write_rectangle", "write_shape_experiment"]
 
 
 def write_rectangle(folder: Path, n: tuple[int, int] = (8, 4)) -> Path:
@@ -107,6 +107,75 @@ def write_experiment(folder: Path, kind: str, steps: int = 12, functionals=None,
         "states": [{"path": "run.json"}, {"path": "target.json"}],
         "solver": {"nonlinear": {"solver": "L-BFGS", "max_iterations": 5, "grad_norm": 1e-8}},
         **opt,
+    }
+    path = folder / "opt.json"
+    path.write_text(json.dumps(spec, indent=1))
+    return path
+
+
+def write_shape_experiment(folder: Path) -> Path:
+    """A static 2 x 1 plate clamped on its left side (id 1), pulled down on its right (id 3):
+    the hook's forms (stress norm, soft volume bound, Laplacian smoothing, min_jacobian stop)
+    on the boundary vertices of its top and bottom (ids 2, 4)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    write_rectangle(folder)
+    scene = {
+        "geometry": [
+            {
+                "mesh": "rectangle.msh",
+                "volume_selection": 1,
+                "surface_selection": {"threshold": 1e-6},
+            }
+        ],
+        "boundary_conditions": {
+            "rhs": [0, 0],
+            "dirichlet_boundary": [{"id": 1, "value": [0, 0]}],
+            "neumann_boundary": [{"id": 3, "value": [0, -2.0]}],
+        },
+        "materials": {"type": "NeoHookean", "E": 200, "nu": 0.35},
+    }
+    (folder / "run.json").write_text(json.dumps(scene))
+    spec = {
+        "parameters": [{"number": 10}],
+        "variable_to_simulation": [
+            {
+                "type": "shape",
+                "state": 0,
+                "composite_map_type": "boundary_excluding_surface",
+                "surface_selection": [1, 3],
+                "composition": [],
+            }
+        ],
+        "functionals": [
+            {
+                "type": "power",
+                "power": 0.125,
+                "objective": {"type": "stress_norm", "state": 0, "power": 8},
+            },
+            {
+                "type": "soft_constraint",
+                "weight": 1e2,
+                "soft_bound": [0, 1.9],
+                "objective": {"type": "volume", "state": 0},
+            },
+            {
+                "type": "boundary_smoothing",
+                "state": 0,
+                "weight": 20,
+                "power": 4,
+                "surface_selection": [2, 4],
+                "scale_invariant": False,
+            },
+        ],
+        "states": [{"path": "run.json"}],
+        "stopping_conditions": [
+            {
+                "type": "plus-const",
+                "value": -1e-6,
+                "objective": {"type": "min_jacobian", "state": 0},
+            }
+        ],
+        "solver": {"nonlinear": {"solver": "L-BFGS", "max_iterations": 3, "grad_norm": 1e-8}},
     }
     path = folder / "opt.json"
     path.write_text(json.dumps(spec, indent=1))

@@ -136,7 +136,11 @@ def test_minimize_decreases_J(tmp_path):
     "edit, match",
     [
         ({"colour": 1}, r"unsupported keys \['colour'\]"),
-        ({"variable_to_simulation": [{"type": "shape", "state": 0}]}, "variable type 'shape'"),
+        (
+            {"variable_to_simulation": [{"type": "shape", "composite_map_type": "interior"}]},
+            "composite_map_type 'interior' is not supported",
+        ),
+        ({"variable_to_simulation": [{"type": "damping"}]}, "variable type 'damping'"),
         ({"parameters": [{"number": 5}]}, "the per-body vector has 5 entries; 2 bodies x 2"),
         ({"functionals": [{"type": "AMIPS", "state": 0}]}, "unsupported static objective 'AMIPS'"),
         (
@@ -254,3 +258,21 @@ def test_function_target_gradient(tmp_path):
     assert problem.rf(problem.q0) > 0
     for taylor in _taylor_both(problem):
         _check(taylor)
+
+
+def test_shape_variable_and_the_hooks_forms(tmp_path):
+    from polyfem_own_scenes import write_shape_experiment
+
+    with pytest.warns(UserWarning, match=r"parameters\[0\]\.number is 10, the shape variable has"):
+        problem = read_polyfem_optimization(write_shape_experiment(tmp_path)).build()
+    assert problem.inner_product is not None and np.all(problem.q0 == 0.0)
+    J = problem.rf(problem.q0)
+    assert J > 0
+    (value,) = problem.stopping.evaluate(problem.rf.trajectory)
+    assert value == pytest.approx((2 / 8) * (1 / 4) - 1e-6, rel=1e-12)  # 2 x cell area
+    for taylor in _taylor_both(problem):
+        _check(taylor)
+    result = ds.optimize.minimize(
+        problem.rf, problem.q0, problem.options, inner_product=problem.inner_product, progress=False
+    )
+    assert result.objective < result.history[0].objective

@@ -62,13 +62,15 @@ def _say(comm: MPI.Comm, *args: object) -> None:
 
 
 def _check_gradient(problem: "PolyFEMProblem", comm: MPI.Comm) -> dict:
+    from diffsolids.parallel import collective_comm
+
     """Central differences of J along a random direction and along -g, at three step sizes."""
     rf, q0 = problem.rf, problem.q0
     g = rf.gradient(q0)
     rng = np.random.default_rng(0)
     out = {}
     for name, d in (("random", rng.standard_normal(q0.size)), ("gradient", -g)):
-        d = comm.bcast(d / max(np.linalg.norm(d), 1e-300), root=0)
+        d = collective_comm(comm).bcast(d / max(np.linalg.norm(d), 1e-300), root=0)
         for h in (1e-3, 1e-4, 1e-5):
             fd = (rf(q0 + h * d) - rf(q0 - h * d)) / (2 * h)
             exact = float(g @ d)
@@ -118,6 +120,7 @@ def main(argv: list[str] | None = None) -> int:
         problem.rf,
         problem.q0,
         problem.options,
+        inner_product=problem.inner_product,
         stop_conditions=[problem.stopping],
         on_accept=keeper,
         output_dir=out,

@@ -22,6 +22,11 @@ its unweighted value, at every level of nesting, and J is the sum of the entries
   PolyFEM expression of x, y, z at t = 0 (:meth:`diffsolids.io.expressions.Expression.ufl`);
   UFL differentiates f, so ``target_function_gradient`` is not needed and not read).
 
+Shape terms: ``boundary_smoothing`` (:class:`~diffsolids.objectives.BoundarySmoothing`
+over the vertices of the ``surface_selection`` facets, whose untagged facets (id 0) are the
+boundary's facets of no other id; ``scale_invariant`` default true, ``power``) and, as a
+stopping condition, ``min_jacobian`` (:class:`MinJacobian`).
+
 A static form outside a ``transient_integral`` is evaluated at the last state (a static
 scene's solution). Anything else raises :class:`~diffsolids.errors.ParameterError` naming
 the form and its place in opt.json.
@@ -33,23 +38,26 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import ufl
+from mpi4py import MPI
 
 from diffsolids.errors import ParameterError
 from diffsolids.objectives import (
+    BoundarySmoothing,
     center_target,
     final_value,
     stress_lp_norm,
     target_trajectory,
     time_integral,
 )
-from diffsolids.objectives.functional import Integral, Objective, Series
+from diffsolids.objectives.functional import Integral, Objective, Regulariser, Series
+from diffsolids.parallel import collective_comm
 
 if TYPE_CHECKING:
     from diffsolids.model import Model
     from diffsolids.model.terms import StepFields
     from diffsolids.simulation import Simulation, Trajectory
 
-__all__ = ["FunctionalContext", "objective_of", "objective_sum"]
+__all__ = ["FunctionalContext", "MinJacobian", "objective_of", "objective_sum"]
 
 _COMMON = {"type", "weight", "print_energy", "state"}
 _INTEGRAL_TYPES = ("uniform", "trapezoidal", "final", "steps")
@@ -180,6 +188,45 @@ def _static(ctx: FunctionalContext, spec: Mapping, where: str) -> Series:
     return series * weight if weight != 1.0 else series
 
 
+class MinJacobian(Regulariser):
+    """The smallest Jacobian determinant of the rest mesh's cells (PolyFEM's ``min_jacobian``).
+
+    det of the affine map from the reference simplex to each cell (its vertices), the minimum
+    over all cells and ranks. Not differentiable: a stopping condition, not an objective.
+    """
+
+    name = "min_jacobian"
+
+    def evaluate(self, model: "Model") -> float:
+        """The minimum over the cells (collective)."""
+        mesh = model.domain.mesh
+        tdim = mesh.topology.dim
+        num = mesh.topology.index_map(tdim).size_local
+        nodes = mesh.geometry.dofmap[:num, : tdim + 1]
+        x = mesh.geometry.x[nodes][:, :, :tdim]
+        local = np.linalg.det(x[:, 1:] - x[:, :1]).min(initial=np.inf)
+        return float(collective_comm(mesh.comm).allreduce(local, op=MPI.MIN))
+
+    def gradient(self, model: "Model") -> dict[str, np.ndarray]:
+        """Refused: the minimum has no gradient."""
+        raise ParameterError("min_jacobian is a stopping condition; it has no gradient")
+
+
+def _smoothing(ctx: FunctionalContext, spec: Mapping, where: str) -> Objective:
+    _keys(spec, {"power", "surface_selection", "scale_invariant", "dimensions"}, where)
+    if spec.get("dimensions"):
+        raise ParameterError(f"{where}: boundary_smoothing dimensions are not supported")
+    selected = _selection(spec, "surface_selection")
+    facet_ids = ctx.model.domain.facet_ids
+    excluded = [] if selected is None else [t for t in facet_ids if t not in selected]
+    return BoundarySmoothing(
+        ctx.model,
+        p=float(spec.get("power", 2)),
+        exclude_facets=excluded,
+        scale_invariant=bool(spec.get("scale_invariant", True)),
+    )
+
+
 def _soft_constraint(inner: Objective, bounds: list, p: float) -> Objective:
     lo, hi = (float(b) for b in bounds)
     if lo > hi:
@@ -254,6 +301,11 @@ def objective_of(ctx: FunctionalContext, spec: Mapping, where: str) -> Objective
         obj = _transient(ctx, spec, where)
     elif kind in _COMPOSITES:
         obj = _composite(ctx, spec, where)
+    elif kind == "boundary_smoothing":
+        obj = _smoothing(ctx, spec, where)
+    elif kind == "min_jacobian":
+        _keys(spec, set(), where)
+        obj = MinJacobian()
     else:
         static = _static(ctx, {**spec, "weight": 1.0}, where)
         obj = final_value(static)

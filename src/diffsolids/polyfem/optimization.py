@@ -28,7 +28,7 @@ Ignored as harmless: ``output``, ``solver.max_threads``, ``solver.advanced``,
 
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -144,6 +144,8 @@ class PolyFEMProblem:
         q0: The initial parameters.
         options: The L-BFGS options of ``solver.nonlinear``.
         stopping: The stopping conditions (pass as ``stop_conditions=[problem.stopping]``).
+        inner_product: The initial inverse Hessian of L-BFGS (pass as ``inner_product``):
+            the mesh motion's Riesz map for shape variables, else None (the identity).
     """
 
     model: "Model"
@@ -156,6 +158,7 @@ class PolyFEMProblem:
     q0: np.ndarray
     options: "LBFGSOptions"
     stopping: StoppingConditions
+    inner_product: "Callable[[np.ndarray], np.ndarray] | None" = None
 
 
 @dataclass
@@ -237,6 +240,7 @@ class PolyFEMOptimization:
             ParameterError: An unsupported or inconsistent entry (named).
         """
         from diffsolids.controls import ControlSet
+        from diffsolids.optimize import MeshMotionControl, ShapeInnerProduct
         from diffsolids.reduced_functional import ReducedFunctional
 
         lame = needs_lame(self.raw["variable_to_simulation"])
@@ -267,11 +271,13 @@ class PolyFEMOptimization:
         ]
         rf = ReducedFunctional(sim, objective, controls)
         q0 = ControlSet(controls, sim).value() if self.initial is None else self.initial
-        if q0.size != self.num_parameters:
+        size = sum(c.size for c in controls)
+        if q0.size != size:
             raise ParameterError(
-                f"{self.path}: parameters[0].initial has {q0.size} values, number is "
-                f"{self.num_parameters}"
+                f"{self.path}: parameters[0].initial has {q0.size} values, the variables "
+                f"take {size}"
             )
+        shapes = [c for c in controls if isinstance(c, MeshMotionControl)]
         return PolyFEMProblem(
             model=model,
             contact=contact,
@@ -283,6 +289,7 @@ class PolyFEMOptimization:
             q0=np.asarray(q0, dtype=float),
             options=self.lbfgs_options(max_iterations),
             stopping=StoppingConditions(sim, stops),
+            inner_product=ShapeInnerProduct(rf) if shapes else None,
         )
 
     @staticmethod

@@ -18,10 +18,19 @@ An entry maps the parameter vector x through its ``composition`` (a chain of
   ParameterControls of ``lmbda`` and ``mu``, per body or per cell (input cell order, bodies
   in ``geometry[]`` order as PolyFEM's element order).
 - ``friction`` (``FrictionVariableToSimulation``: one coefficient for every pair): ``scale``.
+- ``shape`` (``ShapeVariableToSimulation``) with ``composite_map_type`` ``boundary`` or
+  ``boundary_excluding_surface`` (boundary vertices, less those of the ``surface_selection``
+  facets) and no composition: a :class:`~diffsolids.optimize.MeshMotionControl` (the interior
+  follows an elasticity extension, where PolyFEM smooths it with SLIM; shapes whose boundary
+  would fold are refused, so the line search backs off). PolyFEM's x holds the vertices'
+  positions; here q is their displacement from the initial shape (x - x0: the same gradient
+  and L-BFGS steps), and ``parameters[0].number`` is not used (the paper's files give a
+  placeholder; a warning names it).
 
 Other variables or maps raise :class:`~diffsolids.errors.ParameterError` naming them.
 """
 
+import warnings
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING
 
@@ -37,7 +46,8 @@ if TYPE_CHECKING:
 
 __all__ = ["SUPPORTED_VARIABLES", "controls_of", "needs_lame"]
 
-SUPPORTED_VARIABLES = ("initial", "elastic", "friction")
+SUPPORTED_VARIABLES = ("initial", "elastic", "friction", "shape")
+_SHAPE_MAPS = ("boundary", "boundary_excluding_surface")
 _LINEAR_MAPS = ("append-const", "append-values", "scale")
 
 
@@ -169,6 +179,41 @@ def _friction(contact: "ContactTerm | None", entry: Mapping, where: str) -> Cont
     )
 
 
+def _shape(sim: "Simulation", entry: Mapping, size: int, where: str) -> Control:
+    from diffsolids.optimize import MeshMotionControl
+
+    kind = entry.get("composite_map_type", "boundary")
+    if kind not in _SHAPE_MAPS:
+        raise ParameterError(
+            f"{where}: composite_map_type {kind!r} is not supported (supported: {_SHAPE_MAPS})"
+        )
+    if entry.get("composition"):
+        raise ParameterError(f"{where}: a shape variable with a composition is not supported")
+    domain = sim.model.domain
+    excluded = _selection_ids(entry.get("surface_selection", []), where)
+    if kind == "boundary":
+        excluded = []
+    fixed = [t for t in excluded if t in domain.facet_ids]
+    control = MeshMotionControl(
+        sim.model, "boundary", exclude_facets=fixed, refuse_intersections=True
+    )
+    if control.size != size:
+        warnings.warn(
+            f"{where}: parameters[0].number is {size}, the shape variable has {control.size} "
+            "parameters (its boundary vertices' displacements); the number is not used",
+            stacklevel=3,
+        )
+    return control
+
+
+def _selection_ids(value: object, where: str) -> list[int]:
+    if isinstance(value, int):
+        return [value]
+    if isinstance(value, list) and all(isinstance(v, int) for v in value):
+        return list(value)
+    raise ParameterError(f"{where}: surface_selection must be an id or a list of ids")
+
+
 def controls_of(
     sim: "Simulation",
     contact: "ContactTerm | None",
@@ -197,7 +242,10 @@ def controls_of(
     kind = entry.get("type")
     if int(entry.get("state", 0)) != 0:
         raise ParameterError(f"{where}: state {entry['state']} (only state 0 is optimised)")
-    unknown = sorted(set(entry) - {"type", "state", "composition"})
+    keys = {"type", "state", "composition"}
+    if kind == "shape":
+        keys |= {"composite_map_type", "surface_selection"}
+    unknown = sorted(set(entry) - keys)
     if unknown:
         raise ParameterError(f"{where} ({kind!r}): unsupported keys {unknown}")
     if kind == "initial":
@@ -206,6 +254,8 @@ def controls_of(
         controls = _elastic(sim, bodies, entry, size, where)
     elif kind == "friction":
         controls = [_friction(contact, entry, where)]
+    elif kind == "shape":
+        return [_shape(sim, entry, size, where)]
     else:
         raise ParameterError(
             f"{where}: variable type {kind!r} is not supported (supported: "

@@ -125,7 +125,7 @@ class SolverOptions:
     """
 
     rtol: float = 1e-9
-    max_iterations: int = 50
+    max_iterations: int = 100
     petsc_options: dict = field(default_factory=dict)
     prefix: str = "diffsolids_"
     prevent_inversion: bool = True
