@@ -89,6 +89,7 @@ API_MODULES = {
     "diffsolids.optimize": "Optimisation, mesh motion, remeshing",
     "diffsolids.io": "Output, figures, logging",
     "diffsolids.io.expressions": "PolyFEM value expressions",
+    "diffsolids.polyfem": "PolyFEM optimisation files (``python -m diffsolids.polyfem``)",
     "diffsolids.errors": "Errors",
     "diffsolids.parallel": "MPI helpers",
     "diffsolids.portability": "Portability (the ipctk CPU check)",
