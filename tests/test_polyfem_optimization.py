@@ -195,7 +195,8 @@ def _run_cli(*args: str) -> subprocess.CompletedProcess:
 def test_command_line_writes_its_outputs(tmp_path):
     path = write_experiment(tmp_path / "exp", "initial", steps=8)
     out = tmp_path / "out"
-    proc = _run_cli(str(path), "--out", str(out), "--max-iterations", "2", "--steps", "6")
+    args = ["--out", str(out), "--max-iterations", "2", "--steps", "6", "--area-weighting"]
+    proc = _run_cli(str(path), *args)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     result = json.loads((out / "result.json").read_text())
     assert result["iterations"] == 2 and result["objective"] < result["initial_objective"]

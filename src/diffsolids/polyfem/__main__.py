@@ -41,6 +41,12 @@ def parser() -> argparse.ArgumentParser:
         "or a number",
     )
     p.add_argument(
+        "--area-weighting",
+        action="store_true",
+        help="weight contact pairs by area (the convergent formulation's barrier; PolyFEM's "
+        "scenes without use_convergent_formulation do not)",
+    )
+    p.add_argument(
         "--check-gradient",
         action="store_true",
         help="compare the gradient with central differences at the start and stop",
@@ -102,6 +108,7 @@ def main(argv: list[str] | None = None) -> int:
             steps=args.steps,
             max_iterations=args.max_iterations,
             stiffness=_stiffness(args.kappa),
+            contact_options={"area_weighting": True} if args.area_weighting else None,
         )
     except DiffsolidsError as error:
         _say(comm, f"error: {error}")
