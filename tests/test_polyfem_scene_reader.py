@@ -8,27 +8,14 @@ load in test_paper_scenes.
 import json
 from pathlib import Path
 
-import meshio
 import numpy as np
 import pytest
 from mpi4py import MPI
+from polyfem_own_scenes import write_rectangle
 
 import diffsolids as ds
 from diffsolids.io import read_polyfem_scene
 from diffsolids.parallel import collective_comm
-
-
-def write_rectangle(folder: Path, n: tuple[int, int] = (8, 4)) -> Path:
-    """A triangulated [0, 2] x [0, 1] rectangle as gmsh 2.2 (no physical groups)."""
-    x, y = np.meshgrid(np.linspace(0, 2, n[0] + 1), np.linspace(0, 1, n[1] + 1), indexing="ij")
-    points = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
-    idx = np.arange(x.size).reshape(x.shape)
-    a, b = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel()
-    c, d = idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
-    cells = np.vstack([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
-    path = folder / "rectangle.msh"
-    meshio.write(path, meshio.Mesh(points, [("triangle", cells)]), file_format="gmsh22")
-    return path
 
 
 def static_scene(folder: Path, **geometry) -> Path:
