@@ -23,20 +23,14 @@ from pathlib import Path
 import numpy as np
 from common import ROOT
 from dynamic_common import TargetSimulation, check_invariants, finish_transient
-from mpi4py import MPI
 
 import diffsolids as ds
-from diffsolids.contact import ContactTerm
-from diffsolids.errors import IntersectionError
 from diffsolids.io.polyfem_scene import PolyFEMScene, read_polyfem_scene
 from diffsolids.objectives import center_of_mass, series_values, target_displacement, time_integral
 from diffsolids.optimize import LBFGSOptions, check_trajectories
-from diffsolids.parallel import collective_comm
-from diffsolids.simulation import Trajectory
 
 __all__ = [
     "DEFAULT_DATA",
-    "ContinuationSimulation",
     "TargetSimulation",
     "add_data_argument",
     "build",
@@ -57,65 +51,6 @@ __all__ = [
 
 # the folder holding the paper's data (its diffipc/ or json_scripts/, see DATA_LAYOUTS)
 DEFAULT_DATA = Path(os.environ.get("DIFFSOLIDS_DATA", ROOT.parent / "shared" / "data"))
-
-
-class ContinuationSimulation(TargetSimulation):
-    """A TargetSimulation whose warm start is admitted when the state it proposes is admissible.
-
-    ``warm_start`` (a Trajectory of a run at nearby parameters: the optimiser's last iterate,
-    or the base run of a finite-difference check) is the first Newton iterate of each step.
-    ``Simulation`` admits a guess only when the straight path from u^{i-1} to it (extended to
-    twice the step by the collision-free step bound) is collision-free, which a state resting
-    in contact never is: every warm start of the sliding bunny is refused, and each step is
-    solved from u^{i-1}. Here a warm-start state is admitted when it inverts no element and
-    the contact term accepts it as a configuration (no intersection, no pair closer than its
-    ``min_gap``): Newton's iterates from it are bounded by the collision-free step bound as
-    always, so every iterate stays intersection-free.
-
-    Why (measured on the Fig. 21 bunny, see ``demos/paper_sliding_bunny.py``): the impact step
-    3 has two strict local minima of the incremental potential (78 and 79 contact pairs,
-    energies 7.4e-3 apart, exact Hessian positive definite at both, an energy ridge between
-    them), and Newton from u^2 ends in either after a change of mu by 1e-4 (the projected
-    phase's 14 collision-cut iterations amplify it), so J(mu) has two branches. Started from
-    the solution at nearby parameters, Newton stays on the branch of that run (2-8
-    iterations per step instead of 12-41) and J is smooth along it.
-    """
-
-    _guess_step: int | None = None  # the step whose initial guess is being checked
-
-    def _initial_guess(self, i, traj, step) -> None:
-        self._guess_step = i
-        super()._initial_guess(i, traj, step)
-
-    def _guess_inverts(self, arr) -> bool:
-        warm = self.warm_start
-        i = self._guess_step
-        is_warm = (
-            isinstance(warm, Trajectory)
-            and i is not None
-            and i < len(warm.u)
-            and warm.u[i].shape == arr.shape
-            and np.array_equal(warm.u[i], arr)
-        )
-        # one decision for all ranks (both branches below are collective)
-        all_warm = collective_comm(self.model.domain.comm).allreduce(bool(is_warm), op=MPI.LAND)
-        if not all_warm:
-            return super()._guess_inverts(arr)
-        solver = self.solver
-        numeric = [b for b in solver.step_bounds if b in self.model.numeric_terms]
-        guards = [b for b in solver.step_bounds if b not in numeric]
-        x, dx = solver.x, solver._work
-        dx.set(0.0)
-        x.array_w[:] = arr[: len(x.array_r)]
-        if any(g.max_step(x, dx) <= 0.0 for g in guards):
-            return True
-        for term in numeric:
-            if isinstance(term, ContactTerm):
-                try:
-                    term.check_configuration(term.surface.gather(arr), i)
-                except IntersectionError:
-                    return True
-        return False
 
 
 def add_data_argument(parser) -> None:
@@ -256,7 +191,7 @@ def build(
         rtol: Newton tolerance.
         area_weighting: Weight contact pairs by area (PolyFEM: no; the 3D throw converges
             with the suggested kappa only with it, see bench_paper).
-        simulation: The Simulation class (TargetSimulation or ContinuationSimulation).
+        simulation: The Simulation class (TargetSimulation or a subclass).
         contact_options: Further ContactTerm arguments (e.g. ``hessian_projection``).
         **solver_options: Further :class:`~diffsolids.SolverOptions` (e.g.
             ``exact_hessian_below``).

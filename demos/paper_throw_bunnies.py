@@ -127,7 +127,9 @@ def throw_problem(
     cx, _, cz = center_of_mass(model, HIT)
     x_dev = (final_value(cx) - SPOT[0]) ** 2
     z_dev = (final_value(cz) - SPOT[1]) ** 2
-    return ReducedFunctional(sim, x_dev + z_dev, control), np.array(v0.value), contact
+    q0 = np.array(v0.value, dtype=float)
+    rf = ReducedFunctional(sim, x_dev + z_dev, control, branch_reference=q0)
+    return rf, q0, contact
 
 
 def top_view(model, body: int, u: np.ndarray, comm: MPI.Comm) -> np.ndarray:

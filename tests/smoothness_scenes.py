@@ -13,6 +13,9 @@ the default :class:`~diffsolids.SolverOptions` and ``formulation="convergent"`` 
 - ``slide``: a 3D block thrown along a ground of 8 coplanar triangles (a 2 x 2 grid, every
   diagonal the same way), across their shared edges; (log mu, initial speed), its final
   position.
+- ``ridge``: the drop's block landing on a roof ridge of two triangles (a genuine pair of
+  local minima per landing step: it tips to one side or the other); (log E, log mu), with the
+  branch reference of :class:`~diffsolids.ReducedFunctional` at q0.
 """
 
 from typing import NamedTuple
@@ -25,7 +28,7 @@ from diffsolids.contact import ContactTerm, Obstacle
 from diffsolids.controls import FrictionControl
 from diffsolids.objectives import center_of_mass, final_value
 
-__all__ = ["SCENES", "Scene", "drop", "drop_2d", "slide"]
+__all__ = ["SCENES", "Scene", "drop", "drop_2d", "ridge", "ridge_free", "slide"]
 
 
 class Scene(NamedTuple):
@@ -148,4 +151,56 @@ def slide(comm: MPI.Comm = MPI.COMM_WORLD, steps: int = 20, formulation: str = "
     return Scene(rf, np.array([np.log(0.3), 1.0, 0.0, 0.0]), 0.02, contact)
 
 
-SCENES = {"drop": drop, "drop_2d": drop_2d, "slide": slide}
+def ridge(
+    comm: MPI.Comm = MPI.COMM_WORLD,
+    steps: int = 12,
+    formulation: str = "ipc",
+    follow_branch: bool = True,
+    pitch: float = 0.03,
+    offset: float = 0.0,
+) -> Scene:
+    """The drop's block landing on a roof ridge: each landing step has two local minima.
+
+    The ground's two triangles meet along the diagonal under the block's diagonal vertices,
+    raised by ``pitch`` (m) at its ends: the block tips to one side or the other, and which one
+    Newton finds is decided by round-off. Parameters (log E, log mu); J = 1e3 (x - y) of the
+    final centre of mass (the side it tipped to). ``follow_branch``: the functional's branch
+    reference is q0. ``offset`` (m) moves the block along x off the ridge: the side it tips to
+    is then decided by the offset, not by round-off.
+    """
+    a, b = -1.4, 2.6
+    V = np.array([[a, a, pitch], [b, a, 0], [b, b, pitch], [a, b, 0]], float)
+    ground = Obstacle(V, faces=np.array([[0, 1, 2], [0, 2, 3]]), name="ground")
+    box = [[offset, 0.0, 0.01 + pitch], [0.2 + offset, 0.2, 0.11 + pitch]]
+    domain = ds.combine_meshes(comm, [ds.mesh.simplex_box(box, [4, 4, 2])], names={"block": 1})
+    model = ds.Model(domain, ds.NeoHookean(E=6e4, nu=0.3, density=500.0))
+    model.add_gravity(9.81)
+    contact = ContactTerm(
+        model, dhat=1e-3, friction=0.2, obstacles=[ground], formulation=formulation
+    )
+    model.add_numeric_term(contact)
+    sim = ds.Simulation(model, ds.BDF(2, 0.01, steps), ds.SolverOptions(), progress=False)
+    controls = [
+        ds.ParameterControl(model, "E", "uniform", log=True),
+        FrictionControl(contact, pairs=[("block", "ground")], log=True),
+    ]
+    q0 = np.log([6e4, 0.2])
+    com = center_of_mass(model, "block")
+    objective = final_value((com[0] - com[1]) * 1e3)
+    reference = q0 if follow_branch else None
+    rf = ds.ReducedFunctional(sim, objective, controls, branch_reference=reference)
+    return Scene(rf, q0, 0.02, contact)
+
+
+def ridge_free(comm: MPI.Comm = MPI.COMM_WORLD, **kwargs) -> Scene:
+    """:func:`ridge` without the branch reference (J jumps between the two sides)."""
+    return ridge(comm, follow_branch=False, **kwargs)
+
+
+SCENES = {
+    "drop": drop,
+    "drop_2d": drop_2d,
+    "slide": slide,
+    "ridge": ridge,
+    "ridge_free": ridge_free,
+}

@@ -48,6 +48,19 @@ def test_variables_give_verified_gradients(tmp_path, kind):
         _check(taylor)
 
 
+def test_follow_branch_starts_from_the_initial_parameters_run(tmp_path):
+    path = write_experiment(tmp_path, "friction")
+    plain = read_polyfem_optimization(path).build()
+    problem = read_polyfem_optimization(path).build(follow_branch=True)
+    assert plain.rf.branch_reference is None
+    assert np.array_equal(problem.rf.branch_reference, problem.q0)
+    J, J_plain = problem.rf(problem.q0), plain.rf(plain.q0)
+    assert abs(J - J_plain) <= 1e-8 * abs(J_plain)
+    assert problem.simulation.branch_reference is not None
+    for taylor in _taylor_both(problem):
+        _check(taylor)
+
+
 def test_initial_velocity_layout_follows_geometry_order(tmp_path):
     """x = [ground (vx, vy), block (vx, vy)]: the block's entries start it at (1, -0.5)."""
     problem = read_polyfem_optimization(write_experiment(tmp_path, "initial")).build()
@@ -196,6 +209,7 @@ def test_command_line_writes_its_outputs(tmp_path):
     path = write_experiment(tmp_path / "exp", "initial", steps=8)
     out = tmp_path / "out"
     args = ["--out", str(out), "--max-iterations", "2", "--steps", "6", "--area-weighting"]
+    args.append("--follow-branch")
     proc = _run_cli(str(path), *args)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     result = json.loads((out / "result.json").read_text())

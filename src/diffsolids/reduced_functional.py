@@ -54,6 +54,14 @@ class ReducedFunctional:
             :class:`~diffsolids.adjoint.checkpointing.Checkpointing`). Checkpointed runs give the
             gradient of the all-in-memory run; their ``trajectory`` holds u^0, u^N and the
             records only, and does not warm-start later runs.
+        branch_reference: Parameters q_ref whose forward run (solved once, when first needed)
+            becomes the simulation's ``branch_reference``: every later forward starts each
+            step's Newton solve at the reference run's state when that state is admissible.
+            Use it where a contact step has several local minima (J would jump between
+            branches under tiny changes of q): J is then one deterministic function of q,
+            smooth near q_ref, independent of the evaluation history, and the optimiser's
+            warm start is not used. None (default): each step is solved from the
+            simulation's own initial guess.
 
     Raises:
         ObjectiveError: ``objective`` is not an Objective.
@@ -73,6 +81,7 @@ class ReducedFunctional:
         adjoint_options: AdjointSolverOptions | None = None,
         factor_memory_mb: float | None = None,
         checkpointing: Checkpointing | None = None,
+        branch_reference: npt.ArrayLike | None = None,
     ) -> None:
         if checkpointing is not None and not isinstance(checkpointing, Checkpointing):
             raise ParameterError(
@@ -105,6 +114,29 @@ class ReducedFunctional:
         self._run: CheckpointedRun | None = None  # of the last forward, when checkpointed
         self._state = None  # (q, trajectory, table, reg values, J)
         self.timings: dict[str, float] = {}
+        self.branch_reference = self._reference_parameters(branch_reference)
+        self._reference_run: Trajectory | None = None  # solved on the first forward
+
+    def _reference_parameters(self, q_ref: npt.ArrayLike | None) -> np.ndarray | None:
+        if q_ref is None:
+            return None
+        q_ref = np.array(q_ref, dtype=float).ravel()
+        if q_ref.shape != (self.size,) or not np.all(np.isfinite(q_ref)):
+            raise ParameterError(
+                f"branch_reference must be {self.size} finite parameters, got {q_ref.tolist()}"
+            )
+        return q_ref
+
+    def _follow_reference(self) -> None:
+        """Install this functional's branch reference in the simulation (solved the first time)."""
+        sim = self.simulation
+        if self.branch_reference is not None and self._reference_run is None:
+            sim.branch_reference = None
+            self.controls.assign(self.branch_reference)
+            t0 = time.perf_counter()
+            self._reference_run = sim.run()
+            logger.info("branch reference solved (%.2fs)", time.perf_counter() - t0)
+        sim.branch_reference = self._reference_run
 
     @property
     def size(self) -> int:
@@ -129,8 +161,9 @@ class ReducedFunctional:
     def forward(self, q: npt.ArrayLike) -> float:
         """Assign q, run the simulation and evaluate J."""
         q = np.array(q, dtype=float)
-        self.controls.assign(q)
         self._close_run()
+        self._follow_reference()
+        self.controls.assign(q)
         t0 = time.perf_counter()
         policy = self.checkpointing.resolve(self.simulation)
         if policy.policy == "all":
@@ -223,6 +256,7 @@ class ReducedFunctional:
                 self.simulation, self.leaves, self.controls.targets(), self.adjoint_options
             )
         t0 = time.perf_counter()
+        self.simulation.branch_reference = self._reference_run  # replays solve as the forward
         run = getattr(traj, "run", None)
         if run is None:
             sens = self._sweep.run(traj, leaf_weights)

@@ -8,9 +8,11 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from dolfinx import fem
+from mpi4py import MPI
 
 from diffsolids.errors import InvertedElementError, NewtonConvergenceError, ParameterError
 from diffsolids.integrators import Integrator, TimeStep
+from diffsolids.parallel import collective_comm
 from diffsolids.solvers import NewtonSolver, SolverOptions
 
 if TYPE_CHECKING:
@@ -215,7 +217,16 @@ class Simulation:
         warm_start: Optional Trajectory (e.g. of the previous optimisation iterate) whose
             u^i is tried first as the initial Newton guess of step i (same dof layout; skipped
             where it does not fit or is not admissible). Only the guess changes: the converged
-            states agree with a cold start to the Newton tolerance.
+            states agree with a cold start to the Newton tolerance. Ignored while a
+            :attr:`branch_reference` is set.
+        branch_reference: Optional Trajectory of a run at fixed reference parameters whose
+            u^i is Newton's first iterate of step i whenever it is an admissible state (no
+            inverted element, every numeric term :meth:`admits
+            <diffsolids.model.NumericTerm.admits>` it), without the straight-path test from
+            u^{i-1} that other guesses pass. Where a step's incremental potential has several
+            local minima, Newton then ends in the minimum of the reference's branch, so J is a
+            smooth function of the parameters near the reference, whatever was evaluated
+            before. Set it through ``ReducedFunctional(..., branch_reference=q_ref)``.
         max_substeps: Intermediate solves allowed per step to reach Dirichlet values that
             cannot be applied in one admissible move (see ``_dirichlet_continuation``).
         substeps: Intermediate solves of the last run, by step (steps that needed any).
@@ -264,6 +275,7 @@ class Simulation:
         self.callback = callback
         self.trajectory: Trajectory | None = None
         self.warm_start: Trajectory | None = None
+        self.branch_reference: Trajectory | None = None
         self.max_substeps = 50
         self.substeps: dict[int, int] = {}
         # the solver compiled the model's forms and collected its step bounds: a term added
@@ -305,6 +317,8 @@ class Simulation:
         """
         u = self.model.fields.u
         prev = traj.u[i - 1]
+        if self._reference_guess(i, prev):
+            return
         choice = getattr(self.solver.options, "initial_guess", "predictor")
         if choice == "predictor":
             candidates = [step.extrapolation(traj.u, traj.v), prev]
@@ -316,7 +330,7 @@ class Simulation:
             raise ParameterError(
                 f"SolverOptions.initial_guess = {choice!r}: not 'predictor', 'previous' or 'zero'"
             )
-        warm = self.warm_start
+        warm = None if self.branch_reference is not None else self.warm_start
         # only a full Trajectory warm-starts (a checkpointed one does not hold every state)
         if isinstance(warm, Trajectory) and i < len(warm.u) and warm.u[i].shape == prev.shape:
             candidates.insert(0, warm.u[i])
@@ -327,6 +341,31 @@ class Simulation:
                 return
         u.x.array[:] = prev
         self._dirichlet_continuation(i)
+
+    def _reference_guess(self, i: int, prev: np.ndarray) -> bool:
+        """Start step ``i`` at the branch reference's u^i if it is admissible; whether it was.
+
+        The decision is collective: a reference that does not fit the dof layout on some rank
+        (another mesh) is not used on any.
+        """
+        ref = self.branch_reference
+        fits = ref is not None and i < len(ref.u) and ref.u[i].shape == prev.shape
+        everywhere = collective_comm(self.model.domain.comm).allreduce(bool(fits), op=MPI.LAND)
+        if not everywhere:
+            return False
+        u = self.model.fields.u
+        u.x.array[:] = ref.u[i]
+        self._apply_dirichlet(u)
+        if not self.solver.step_bounds:
+            return True
+        numeric = [b for b in self.solver.step_bounds if b in self.model.numeric_terms]
+        guards = [b for b in self.solver.step_bounds if b not in numeric]
+        x, dx = self.solver.x, self.solver._work
+        dx.set(0.0)
+        x.array_w[:] = u.x.array[: len(x.array_r)]
+        if any(g.max_step(x, dx) <= 0.0 for g in guards):
+            return False
+        return all(term.admits(u.x.array, i) for term in self.model.numeric_terms)
 
     def _dirichlet_continuation(self, i: int) -> None:
         """Reach the step's Dirichlet values from u^{i-1} through intermediate equilibria.

@@ -43,7 +43,6 @@ one rank this is the serial code with the identity for every reduction.
 
 import contextlib
 import logging
-import os
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING
 
@@ -80,7 +79,7 @@ from diffsolids.contact.step_bound import (  # noqa: F401  (test_soft_barrier im
 from diffsolids.contact.stiffness import suggest_barrier_stiffness
 from diffsolids.contact.surface import CollisionSurface
 from diffsolids.contact.timing import timed, timed_kernel, timing_summary
-from diffsolids.errors import ParameterError
+from diffsolids.errors import IntersectionError, ParameterError
 from diffsolids.model.numeric import NumericTerm
 
 if TYPE_CHECKING:
@@ -115,7 +114,10 @@ class ContactTerm(NumericTerm):
         narrow_phase: "additive" (AdditiveCCD) or "tight_inclusion" (TightInclusionCCD(1e-6, 1000)).
         area_weighting: Weight each pair by its surface area (paper sec. 8.2).
         min_gap: Initial configurations closer than ``min_gap * dhat`` are refused.
-        num_threads: ipctk threads (default: cores divided by MPI ranks).
+        num_threads: ipctk threads (default 1). ipctk sums its threads' shares of the
+            barrier and friction derivatives in the order the threads finish, so with more
+            than one the states of two runs at the same parameters differ in the last bits
+            (J by ~1e-11, relative); with one they are equal to the last bit.
         obstacles: Kinematic :class:`~diffsolids.contact.obstacle.Obstacle` s (collision-only,
             no dofs, fixed or moving); each is a body of the contact term with the next body id
             after the domain's (``body_ids``), named by its ``name`` in friction tables.
@@ -182,10 +184,10 @@ class ContactTerm(NumericTerm):
         self.area_weighting = bool(area_weighting)
         self.min_gap = float(min_gap)
         self.projection = projection_method(hessian_projection)
-        if num_threads is None and self.comm.size > 1:
-            num_threads = max(1, (os.cpu_count() or 1) // self.comm.size)
-        if num_threads is not None:
-            ipctk.set_num_threads(int(num_threads))
+        threads = 1 if num_threads is None else num_threads
+        if not (isinstance(threads, int | np.integer) and threads >= 1):
+            raise ParameterError(f"contact num_threads = {num_threads!r} must be an integer >= 1")
+        ipctk.set_num_threads(int(threads))
         self.obstacles = checked_obstacles(obstacles, model.domain.names)
         self.surface = CollisionSurface(model.domain, model.V, self.obstacles, boundary)
         self.surface.obstacle_displacement(0.0)  # a bad motion fails here, not in a step
@@ -542,6 +544,14 @@ class ContactTerm(NumericTerm):
             U[nb:] = self.obstacle_moves.at(step)[nb:]
         x = np.asfortranarray(self.surface.rest_positions + U)
         return bool(ipctk.has_intersections(self.surface.mesh, x, ipctk.LBVH()))
+
+    def admits(self, u: np.ndarray, step: int) -> bool:
+        """Whether ``u`` is a configuration :meth:`check_configuration` accepts (collective)."""
+        try:
+            self.check_configuration(self.surface.gather(u), step)
+        except IntersectionError:
+            return False
+        return True
 
     # -- output ---------------------------------------------------------------------------------
     def end_step(self, i: int, traj: "StateHistory") -> ContactRecord:

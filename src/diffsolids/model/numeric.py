@@ -99,6 +99,15 @@ class NumericTerm(ABC):
         """Largest admissible fraction of the step ``x -> x + dx`` (inf: no bound)."""
         return np.inf
 
+    def admits(self, u: np.ndarray, step: int) -> bool:
+        """Whether the state ``u`` (a local V array) is admissible at step ``step`` (collective).
+
+        Asked of a Newton start that is not reached from u^{i-1} along a checked path (the
+        branch reference, ``Simulation.branch_reference``); Newton's own steps are bounded
+        by :meth:`max_step`. Default: every state is.
+        """
+        return True
+
     def failure_report(self) -> str | None:
         """What a failed Newton solve should tell the user about this term (None: nothing)."""
         return None

@@ -47,6 +47,12 @@ def parser() -> argparse.ArgumentParser:
         "scenes without use_convergent_formulation do not)",
     )
     p.add_argument(
+        "--follow-branch",
+        action="store_true",
+        help="start every step's Newton solve at the initial parameters' run where admissible "
+        "(J smooth where contact steps have several local minima)",
+    )
+    p.add_argument(
         "--check-gradient",
         action="store_true",
         help="compare the gradient with central differences at the start and stop",
@@ -109,6 +115,7 @@ def main(argv: list[str] | None = None) -> int:
             max_iterations=args.max_iterations,
             stiffness=_stiffness(args.kappa),
             contact_options={"area_weighting": True} if args.area_weighting else None,
+            follow_branch=args.follow_branch,
         )
     except DiffsolidsError as error:
         _say(comm, f"error: {error}")

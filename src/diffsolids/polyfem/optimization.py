@@ -221,6 +221,7 @@ class PolyFEMOptimization:
         max_iterations: int | None = None,
         stiffness: float | str | None = "suggest",
         contact_options: Mapping[str, Any] | None = None,
+        follow_branch: bool = False,
     ) -> PolyFEMProblem:
         """Build the problem: state 0's simulation, the target runs, controls and objective.
 
@@ -235,6 +236,9 @@ class PolyFEMOptimization:
                 means it, :mod:`diffsolids.contact.polyfem`) or a number.
             contact_options: Further ContactTerm arguments of every state (e.g.
                 ``area_weighting``).
+            follow_branch: Make the run at the initial parameters the branch reference of
+                every forward (``ReducedFunctional(..., branch_reference=q0)``): for scenes
+                whose contact steps have several local minima.
 
         Raises:
             ParameterError: An unsupported or inconsistent entry (named).
@@ -269,7 +273,6 @@ class PolyFEMOptimization:
             objective_of(ctx, s, f"stopping_conditions[{k}]")
             for k, s in enumerate(self.raw.get("stopping_conditions", []))
         ]
-        rf = ReducedFunctional(sim, objective, controls)
         q0 = ControlSet(controls, sim).value() if self.initial is None else self.initial
         size = sum(c.size for c in controls)
         if q0.size != size:
@@ -277,6 +280,8 @@ class PolyFEMOptimization:
                 f"{self.path}: parameters[0].initial has {q0.size} values, the variables "
                 f"take {size}"
             )
+        reference = np.asarray(q0, dtype=float) if follow_branch else None
+        rf = ReducedFunctional(sim, objective, controls, branch_reference=reference)
         shapes = [c for c in controls if isinstance(c, MeshMotionControl)]
         return PolyFEMProblem(
             model=model,

@@ -97,8 +97,8 @@ class SolverOptions:
             and no choice of Hessian here (CLAMP, ABS, exact from the start) or of tolerance
             decides deterministically which one Newton from u^2 reaches: the paths part in
             the projected phase, whose first 14 iterations are all cut by the collision
-            bound. Starting from the solution at nearby parameters (a warm start) keeps J on
-            one branch (``demos/paper_common.ContinuationSimulation``).
+            bound. Starting each step at the run of fixed reference parameters keeps J on
+            one branch (``ReducedFunctional(..., branch_reference=q_ref)``).
             ``inf``: the exact Hessian from the start (the default before); ``0``: always
             projected (with the same retry).
         initial_guess: Where a dynamic step's Newton iteration starts (read by the Simulation;
@@ -690,8 +690,10 @@ class NewtonSolver:
         return guards[0].max_step(self.x, self._work) <= 0.0
 
     def reset(self) -> None:
-        """Forget cached Jacobians (parameters or the shape may have changed)."""
+        """Forget cached Jacobians and contact matrix entries (before a new run)."""
         self._jacobian_key = None
+        if self.patterns.active:
+            self._use_matrix(self.patterns.restart(self.A))
 
     def set_reference_force(self) -> float:
         """Use the residual norm at the current ``u`` as the simulation's characteristic force."""

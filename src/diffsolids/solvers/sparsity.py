@@ -198,6 +198,19 @@ class GrowingPattern:
         self.rebuild_seconds += elapsed
         return B
 
+    def restart(self, A: PETSc.Mat) -> PETSc.Mat:
+        """A matrix with the FE pattern only (A itself if it has no other entries).
+
+        A run that starts from the FE pattern grows the same patterns whatever ran before,
+        so its factorisations, and its states, are the same to the last bit.
+        """
+        if self._fe_keys is None or len(self._present(A)) == len(self._fe_keys):
+            return A
+        B = matrix_with_pattern(A, self._fe_keys)
+        self._keys[B.handle] = self._fe_keys
+        self.rebuilds += 1
+        return B
+
     def forget(self, A: PETSc.Mat) -> None:
         """Drop cached keys of a matrix that is about to be destroyed."""
         self._keys.pop(A.handle, None)

@@ -1,0 +1,88 @@
+"""The branch reference: J one smooth function of q where a contact step has two local minima.
+
+The scene (``smoothness_scenes.ridge``): a block lands on a roof ridge under its diagonal and
+tips to one side or the other; which one Newton finds from u^{i-1} is decided by round-off,
+so J (the side it tipped to) jumps under tiny changes of q. With
+``ReducedFunctional(..., branch_reference=q_ref)`` every step starts at the reference run's
+state: J and its gradient are the same whatever was evaluated before, smooth near q_ref, and
+central differences verify the adjoint.
+"""
+
+import numpy as np
+import pytest
+from contact_checks import central_differences
+from smoothness_scenes import ridge
+
+import diffsolids as ds
+from diffsolids.verification import line_scan
+
+STEPS = 9  # the block lands in step 5 and tips over the next steps
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return ridge(steps=STEPS)
+
+
+def test_reference_run_starts_every_step(scene):
+    rf = scene.rf
+    J0, g = rf.value_and_gradient(scene.q0)
+    sim = rf.simulation
+    assert sim.branch_reference is not None
+    assert sim.branch_reference.num_steps == STEPS
+    # at q_ref each step starts at its own converged state
+    its = [r.iterations for r in rf.trajectory.records]
+    assert max(its) <= 1, its
+    assert abs(J0) > 0 and np.all(np.isfinite(g))
+
+
+def test_gradient_against_central_differences(scene):
+    rf, q = scene.rf, scene.q0
+    _, g = rf.value_and_gradient(q)
+    rows, report = central_differences(rf, q, g, scene.contact, (1e-3, 1e-4), seed=3)
+    errors = {(r.direction, r.h): r.error for r in rows}
+    for direction in ("random", "gradient"):
+        assert errors[direction, 1e-4] <= 1e-5, report
+
+
+def test_value_independent_of_history(scene):
+    rf, q = scene.rf, scene.q0
+    dq = np.array([0.004, -0.003])
+    J1 = rf(q + dq)
+    for step in (0.02, -0.015, 0.007):  # other points in between
+        rf(q + step * np.array([1.0, 0.5]))
+    rf.simulation.warm_start = rf.trajectory  # an optimiser's warm start is not used
+    try:
+        J2 = rf(q + dq)
+    finally:
+        rf.simulation.warm_start = None
+    assert pytest.approx(J1, rel=1e-12, abs=0.0) == J2
+    fresh = ridge(steps=STEPS)
+    assert fresh.rf(q + dq) == J1
+
+
+def test_no_jump_along_a_line(scene):
+    scan = line_scan(scene.rf, scene.q0, np.array([1.0, 0.0]), 0.02, 9)
+    assert scan.jumps.size == 0, (scan.values, scan.deviations)
+    # the block tipped to the same side everywhere
+    assert len({np.sign(v) for v in scan.values}) == 1, scan.values
+
+
+def test_another_functional_on_the_simulation_has_no_reference(scene):
+    rf = scene.rf
+    rf(scene.q0)
+    plain = ds.ReducedFunctional(rf.simulation, rf.objective, rf.controls.controls)
+    assert plain.branch_reference is None
+    plain(scene.q0 + 0.001)
+    assert rf.simulation.branch_reference is None
+    rf(scene.q0 - 0.001)
+    assert rf.simulation.branch_reference is not None
+
+
+@pytest.mark.parametrize("q_ref", [[1.0], [1.0, np.nan], [[1.0, 2.0, 3.0]]])
+def test_bad_reference_refused(scene, q_ref):
+    rf = scene.rf
+    with pytest.raises(ds.ParameterError, match="branch_reference must be 2 finite"):
+        ds.ReducedFunctional(
+            rf.simulation, rf.objective, rf.controls.controls, branch_reference=q_ref
+        )
