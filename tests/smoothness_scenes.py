@@ -16,6 +16,8 @@ the default :class:`~diffsolids.SolverOptions` and ``formulation="convergent"`` 
 - ``ridge``: the drop's block landing on a roof ridge of two triangles (a genuine pair of
   local minima per landing step: it tips to one side or the other); (log E, log mu), with the
   branch reference of :class:`~diffsolids.ReducedFunctional` at q0.
+- ``damping``: PolyFEM's damping-transient test (a disk thrown along a clamped slab), (log psi,
+  log phi), with the suggested barrier or PolyFEM's (``damping_polyfem``).
 """
 
 from typing import NamedTuple
@@ -28,7 +30,17 @@ from diffsolids.contact import ContactTerm, Obstacle
 from diffsolids.controls import FrictionControl
 from diffsolids.objectives import center_of_mass, final_value
 
-__all__ = ["SCENES", "Scene", "drop", "drop_2d", "ridge", "ridge_free", "slide"]
+__all__ = [
+    "SCENES",
+    "Scene",
+    "damping",
+    "damping_polyfem",
+    "drop",
+    "drop_2d",
+    "ridge",
+    "ridge_free",
+    "slide",
+]
 
 
 class Scene(NamedTuple):
@@ -192,6 +204,59 @@ def ridge(
     return Scene(rf, q0, 0.02, contact)
 
 
+def damping(
+    comm: MPI.Comm = MPI.COMM_WORLD,
+    steps: int = 40,
+    formulation: str = "ipc",
+    polyfem_barrier: bool = False,
+) -> Scene:
+    """PolyFEM's ``damping-transient`` gradient test on meshes of our own (log psi, log phi).
+
+    A disk (radius 0.25, centre (-1.5, 0.3)) thrown at 5 m/s along a clamped 3 x 0.02 slab
+    under gravity, NeoHookean E = 1e6, nu = 0.3, rho = 1000, damping psi = phi = 10, friction
+    0.5, BDF2 with dt = 0.01; J the disk's trajectory misfit to a target run at psi = 5,
+    phi = 20. ``polyfem_barrier``: the scene's barrier as PolyFEM means it (kappa 1e5, pairs
+    not area weighted); else the suggested stiffness with area weights.
+    """
+    slab = ds.mesh.simplex_box([[-1.5, -0.01], [1.5, 0.01]], [60, 1])
+    disk = ds.mesh.simplex_ball([-1.5, 0.3], 0.25, 0.06)
+    domain = ds.combine_meshes(comm, [slab, disk], names={"slab": 1, "disk": 2})
+    material = ds.NeoHookean(E=1e6, nu=0.3, density=1000.0, damping_psi=10.0, damping_phi=10.0)
+    model = ds.Model(domain, material)
+    model.add_gravity(9.8)
+    model.add_dirichlet(lambda x: x[1] < 0.01 + 1e-9, 0.0)
+    contact = ContactTerm(
+        model,
+        dhat=1e-3,
+        stiffness=1e5 if polyfem_barrier else None,
+        friction=0.5,
+        area_weighting=not polyfem_barrier,
+        min_gap=1e-12,
+        formulation=formulation,
+    )
+    model.add_numeric_term(contact)
+    X = model.V.tabulate_dof_coordinates()[:, :2]
+    v0 = np.zeros_like(X)
+    v0[X[:, 1] > 0.02, 0] = 5.0
+    integrator = ds.BDF(2, 0.01, steps)
+    sim = ds.Simulation(model, integrator, ds.SolverOptions(), v0=v0.ravel(), progress=False)
+    controls = [
+        ds.ParameterControl(model, "damping_psi", "uniform", log=True),
+        ds.ParameterControl(model, "damping_phi", "uniform", log=True),
+    ]
+    for control, value in zip(controls, (5.0, 20.0), strict=True):
+        control.assign(np.array([np.log(value)]))
+    target = sim.run()
+    misfit = ds.time_integral(ds.target_trajectory(sim, target, bodies="disk"), "uniform")
+    rf = ds.ReducedFunctional(sim, misfit * 1e9, controls)
+    return Scene(rf, np.log([10.0, 10.0]), 0.02, contact)
+
+
+def damping_polyfem(comm: MPI.Comm = MPI.COMM_WORLD, **kwargs) -> Scene:
+    """:func:`damping` with PolyFEM's barrier (kappa 1e5, no area weights)."""
+    return damping(comm, polyfem_barrier=True, **kwargs)
+
+
 def ridge_free(comm: MPI.Comm = MPI.COMM_WORLD, **kwargs) -> Scene:
     """:func:`ridge` without the branch reference (J jumps between the two sides)."""
     return ridge(comm, follow_branch=False, **kwargs)
@@ -203,4 +268,6 @@ SCENES = {
     "slide": slide,
     "ridge": ridge,
     "ridge_free": ridge_free,
+    "damping": damping,
+    "damping_polyfem": damping_polyfem,
 }

@@ -34,7 +34,17 @@ def _parse(argv):
     p.add_argument(
         "--scenes",
         nargs="+",
-        default=["drop", "drop_2d", "slide", "ridge", "ridge_free", "sliding_bunny", "throw"],
+        default=[
+            "drop",
+            "drop_2d",
+            "slide",
+            "ridge",
+            "ridge_free",
+            "damping",
+            "damping_polyfem",
+            "sliding_bunny",
+            "throw",
+        ],
         help="scenes to scan",
     )
     p.add_argument("--points", type=int, default=41, help="points of each line scan")

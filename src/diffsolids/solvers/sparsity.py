@@ -204,7 +204,11 @@ class GrowingPattern:
         A run that starts from the FE pattern grows the same patterns whatever ran before,
         so its factorisations, and its states, are the same to the last bit.
         """
-        if self._fe_keys is None or len(self._present(A)) == len(self._fe_keys):
+        if self._fe_keys is None:
+            return A
+        grown = len(self._present(A)) != len(self._fe_keys)  # this rank's rows
+        grown = collective_comm(A.getComm().tompi4py()).allreduce(grown, op=MPI.LOR)
+        if not grown:
             return A
         B = matrix_with_pattern(A, self._fe_keys)
         self._keys[B.handle] = self._fe_keys
