@@ -358,12 +358,7 @@ class Simulation:
         self._apply_dirichlet(u)
         if not self.solver.step_bounds:
             return True
-        numeric = [b for b in self.solver.step_bounds if b in self.model.numeric_terms]
-        guards = [b for b in self.solver.step_bounds if b not in numeric]
-        x, dx = self.solver.x, self.solver._work
-        dx.set(0.0)
-        x.array_w[:] = u.x.array[: len(x.array_r)]
-        if any(g.max_step(x, dx) <= 0.0 for g in guards):
+        if self._inverts(u.x.array):
             return False
         return all(term.admits(u.x.array, i) for term in self.model.numeric_terms)
 
@@ -429,21 +424,26 @@ class Simulation:
         Step bounds of numeric terms (contact CCD) check the straight path from the previous
         state, which is intersection-free, to the guess.
         """
-        numeric = [b for b in self.solver.step_bounds if b in self.model.numeric_terms]
-        guards = [b for b in self.solver.step_bounds if b not in numeric]
-        dx = self.solver._work
-        dx.set(0.0)
-        x = self.solver.x
-        n = len(x.array_r)
-        x.array_w[:] = arr[:n]
-        if any(g.max_step(x, dx) <= 0.0 for g in guards):
+        if self._inverts(arr):
             return True
+        numeric = [b for b in self.solver.step_bounds if b in self.model.numeric_terms]
         if not numeric:
             return False
+        x, dx = self.solver.x, self.solver._work
+        n = len(x.array_r)
         prev = self._guess_origin
         x.array_w[:] = prev[:n]
         dx.array_w[:] = arr[:n] - prev[:n]
         return min(b.max_step(x, dx) for b in numeric) <= 1.0
+
+    def _inverts(self, arr: np.ndarray) -> bool:
+        """Whether the state ``arr`` fails a step bound that is not a numeric term's (inversion)."""
+        numeric = self.model.numeric_terms
+        guards = [b for b in self.solver.step_bounds if b not in numeric]
+        x, dx = self.solver.x, self.solver._work
+        dx.set(0.0)
+        x.array_w[:] = arr[: len(x.array_r)]
+        return any(g.max_step(x, dx) <= 0.0 for g in guards)
 
     # -- run -----------------------------------------------------------------------------
     def run(

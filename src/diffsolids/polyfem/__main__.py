@@ -74,9 +74,9 @@ def _say(comm: MPI.Comm, *args: object) -> None:
 
 
 def _check_gradient(problem: "PolyFEMProblem", comm: MPI.Comm) -> dict:
+    """Central differences of J along a random direction and along -g, at three step sizes."""
     from diffsolids.parallel import collective_comm
 
-    """Central differences of J along a random direction and along -g, at three step sizes."""
     rf, q0 = problem.rf, problem.q0
     g = rf.gradient(q0)
     rng = np.random.default_rng(0)
