@@ -22,6 +22,7 @@ from diffsolids.contact.surface import _vertex_blocks
 from diffsolids.mesh.scene import combine_meshes
 from diffsolids.simulation import Trajectory
 from diffsolids.solvers.sparsity import matrix_with_pattern
+from diffsolids.states import Phase, StepContext
 
 H = 1e-7
 TOL = 1e-6
@@ -52,9 +53,15 @@ def _scene(dim: int, degree: int, order: int, eps_v: float = 100.0, comm=MPI.COM
     )
     u = fem.Function(V)
     u.x.array[:] = field(0.003, 7.0, sink=0.01)
-    coeffs = ds.BDF(order, 0.01, 10).coefficients(order)
-    contact.begin_step(order, traj, coeffs)
+    integ = ds.BDF(order, 0.01, 10)
+    coeffs = integ.coefficients(order)
+    contact.begin_step(StepContext(order, coeffs, traj, integ, Phase.FORWARD))
     return model, contact, traj, u, coeffs
+
+
+def _context(i, traj, coeffs):
+    """Step i of the kernels' scene, set up as the forward does (u^i not known yet)."""
+    return StepContext(i, coeffs, traj, ds.BDF(len(coeffs.alpha), coeffs.dt, 10), Phase.FORWARD)
 
 
 class _Checker:
@@ -160,11 +167,11 @@ def test_contact_derivative_kernels(dim, degree, order, eps_v):
             def f(t, j=j, p=p):
                 moved = [a.copy() for a in traj.u]
                 moved[order - j] = moved[order - j] + t * p
-                contact.begin_step(order, Trajectory(traj.times, moved, traj.v), coeffs)
+                contact.begin_step(_context(order, Trajectory(traj.times, moved, traj.v), coeffs))
                 return chk.dot(lam, chk.residual())
 
             chk.assert_close(chk.central(f), chk.dot(g, p), f"history j={j}")
-    contact.begin_step(order, traj, coeffs)
+    contact.begin_step(_context(order, traj, coeffs))
 
     # friction coefficient per pair of bodies (force linear in mu)
     gmu = contact.adjoint_friction(u, lam)
@@ -200,7 +207,7 @@ def test_contact_derivative_kernels(dim, degree, order, eps_v):
             model.domain.mesh.geometry.x[:, :dim] = (
                 x0[:, :dim] + t * th.x.array.reshape(-1, dim)[node_blocks]
             )
-            contact.begin_step(order, traj, coeffs)
+            contact.begin_step(_context(order, traj, coeffs))
             return chk.dot(lam, chk.residual())
 
         exact = comm.allreduce(float(gX[:nS] @ th.x.array[:nS]), op=MPI.SUM)

@@ -26,6 +26,7 @@ from diffsolids.contact.surface import block_pattern
 from diffsolids.mesh import read_mesh
 from diffsolids.mesh.scene import combine_meshes, simplex_box
 from diffsolids.simulation import Trajectory
+from diffsolids.states import Phase, StepContext
 
 COMM = MPI.COMM_WORLD
 DHAT = 1e-3
@@ -169,7 +170,7 @@ def test_coarse_obstacle_pattern_follows_the_pairs_within_reach(monkeypatch):
     bc = model.dirichlet_dofs()
     u = fem.Function(model.V)
     for i in range(1, integ.num_steps + 1):
-        contact.begin_step(i, traj, integ.coefficients(i))
+        contact.begin_step(StepContext.of(integ, i, traj, Phase.BACKWARD))
         u.x.array[:] = traj.u[i]
         pairs = _vertex_pairs(contact, *contact.matrix_pattern(u, bc))
         a, b = pairs.T
@@ -266,7 +267,7 @@ def test_fig1_pool_pattern_is_sparse():
     v0 = fem.Function(model.V)
     v0.x.array.reshape(-1, 3)[model.V.dofmap.list[domain.cell_tags.find(2)]] = [2.0, 0.5, 0.0]
     traj = Trajectory(times=[0.0], u=[np.zeros_like(v0.x.array)], v=[v0.x.array.copy()])
-    contact.begin_step(1, traj, ds.BDF(1, 0.05, 1).coefficients(1))
+    contact.begin_step(StepContext.of(ds.BDF(1, 0.05, 1), 1, traj))
     surf = contact.surface
     nv = surf.num_vertices
     free = np.flatnonzero(~surf.static)

@@ -13,6 +13,7 @@ from diffsolids.errors import IntersectionError, ParameterError
 from diffsolids.mesh import Domain, gmsh_session, tag_facets
 from diffsolids.mesh.scene import combine_meshes, simplex_ball, simplex_box
 from diffsolids.simulation import Trajectory
+from diffsolids.states import StepContext
 
 COMM = MPI.COMM_WORLD
 DHAT = 1e-3
@@ -158,7 +159,7 @@ def _two_boxes(overlap: float):
 
 def _begin(model, contact):
     traj = Trajectory(times=[0.0], u=[np.zeros(len(model.fields.u.x.array))], v=[])
-    contact.begin_step(1, traj, ds.Static().coefficients(1))
+    contact.begin_step(StepContext.of(ds.Static(), 1, traj))
 
 
 @pytest.mark.parametrize(

@@ -46,6 +46,7 @@ from diffsolids.controls import (
 from diffsolids.mesh.scene import combine_meshes, simplex_box
 from diffsolids.objectives import Integral, final_value, time_integral
 from diffsolids.reduced_functional import ReducedFunctional
+from diffsolids.states import Phase, StepContext
 from diffsolids.verification import finite_difference_check, taylor_test
 
 FD_TOLERANCE = 1e-5
@@ -183,7 +184,7 @@ def test_shape_static_two_bodies(dim):
         if traj is None:
             rf.forward(q)
             traj = rf.trajectory
-        contact.begin_step(1, traj, sim.integrator.coefficients(1))
+        contact.begin_step(StepContext.of(sim.integrator, 1, traj, Phase.BACKWARD))
         ev = contact._evaluate(traj.u[1])
         rest = contact.surface.rest_positions
         assert any(True for _ in _mollified_pairs(ev.collisions, contact.surface.mesh, rest, ev.x))

@@ -18,6 +18,7 @@ from diffsolids.controls import InitialCondition, ParameterControl
 from diffsolids.model import NumericTerm
 from diffsolids.objectives import Integral, final_value, time_integral
 from diffsolids.reduced_functional import ReducedFunctional
+from diffsolids.states import Phase, StepContext
 from diffsolids.verification import finite_difference_check, taylor_test
 
 # the how-to's numeric term (docs/examples/howto_extend.py), checked here in depth
@@ -93,3 +94,51 @@ def test_a_failed_contact_solve_names_the_contact_state():
     assert "contact: kappa = 1, dhat = 0.001" in text
     assert "settles at a distance ~2 kappa dhat^4 / f" in text
     assert "the barrier is too soft for this load" in text
+
+
+class _PhaseLog(GroundSpring):
+    """The ground spring that records the step contexts it is given."""
+
+    def __init__(self, model, k):
+        super().__init__(model, k)
+        self.seen: list[tuple[int, Phase, float]] = []
+
+    def begin_step(self, context: StepContext) -> None:
+        self.seen.append((context.index, context.phase, context.time(context.index)))
+
+
+def test_numeric_terms_are_told_the_step_and_the_phase():
+    model = build_model(SCENES["2d-p1-nh-damped"], MPI.COMM_SELF)
+    term = _PhaseLog(model, 2.0e3)
+    model.add_numeric_term(term)
+    sim = ds.Simulation(model, ds.BDF(2, 0.05, 3), NEWTON, v0=np.array([0.0, 0.3]), progress=False)
+    rf = _reduced(sim)
+    q0 = rf.initial_parameters()
+    rf(q0)
+    assert term.seen == [(i, Phase.FORWARD, pytest.approx(0.05 * i)) for i in (1, 2, 3)]
+    term.seen.clear()
+    rf.gradient(q0)  # the objective's values are known: only the backward sweep sets steps up
+    assert [(i, p) for i, p, _ in term.seen] == [(i, Phase.BACKWARD) for i in (3, 2, 1)]
+
+
+def test_a_begin_step_of_the_old_form_warns_and_still_runs():
+    with pytest.warns(DeprecationWarning, match=r"begin_step\(self, context\)"):
+
+        class OldSpring(GroundSpring):
+            def begin_step(self, i, traj, coeffs, sim=None):
+                self.calls.append((i, len(traj.u), coeffs.dt, sim))
+
+    model = build_model(SCENES["2d-p1-nh-damped"], MPI.COMM_SELF)
+    term = OldSpring(model, 2.0e3)
+    term.calls = []
+    model.add_numeric_term(term)
+    ds.Simulation(model, ds.BDF(1, 0.05, 2), NEWTON, progress=False).run()
+    assert term.calls == [(1, 1, 0.05, None), (2, 2, 0.05, None)]
+
+
+def test_simulation_begin_step_is_deprecated():
+    sim, _ = _spring_simulation(MPI.COMM_SELF)
+    traj = sim.run()
+    with pytest.warns(DeprecationWarning, match="prepare_step"):
+        step = sim.begin_step(2, traj)
+    assert step.index == 2

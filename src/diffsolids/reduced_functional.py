@@ -21,9 +21,11 @@ from diffsolids.objectives.terms import objective_terms
 from diffsolids.parallel import collective_comm
 from diffsolids.solvers import compile_form
 from diffsolids.solvers.factor_store import FactorStore
+from diffsolids.states import Phase
 
 if TYPE_CHECKING:
-    from diffsolids.simulation import Simulation, StateHistory, Trajectory
+    from diffsolids.simulation import Simulation
+    from diffsolids.states import StateHistory, Trajectory
 
 __all__ = ["AdjointError", "ReducedFunctional"]
 
@@ -199,7 +201,7 @@ class ReducedFunctional:
             return
         f = self.model.fields
         if i > 0:
-            self.simulation.load_step(i, traj)
+            self.simulation.prepare_step(i, traj, Phase.EVALUATION)
         else:
             self.model.update_time(0.0)
         f.u.x.array[:] = traj.u[i]

@@ -2,9 +2,10 @@
 
 import logging
 import time
+import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from dolfinx import fem
@@ -14,6 +15,14 @@ from diffsolids.errors import InvertedElementError, NewtonConvergenceError, Para
 from diffsolids.integrators import Integrator, TimeStep
 from diffsolids.parallel import collective_comm
 from diffsolids.solvers import NewtonSolver, SolverOptions
+from diffsolids.states import (
+    Phase,
+    StateHistory,
+    StateRecorder,
+    StepContext,
+    StepRecord,
+    Trajectory,
+)
 
 if TYPE_CHECKING:
     import os
@@ -32,80 +41,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger("diffsolids")
-
-
-@dataclass
-class StepRecord:
-    """Log of one step."""
-
-    step: int
-    time: float
-    order: int
-    iterations: int
-    residual: float
-    energy: float
-    seconds: float
-
-
-class StateHistory(Protocol):
-    """The states a step reads: u^k, v^k by absolute step k (local arrays incl. ghosts).
-
-    A :class:`Trajectory`, or the view of a checkpointed run that holds the states the step
-    reads (u^{i-j}, v^{i-j} for j = 1..d); the forward appends the step's state to a
-    :class:`StateRecorder`.
-    """
-
-    @property
-    def u(self) -> Sequence[np.ndarray]:
-        """Displacements by step."""
-
-    @property
-    def v(self) -> Sequence[np.ndarray]:
-        """Velocities by step."""
-
-
-class StateRecorder(StateHistory, Protocol):
-    """A :class:`StateHistory` a forward step appends its state to.
-
-    A :class:`Trajectory`, or the view of a checkpointed run that keeps the states its
-    schedule needs.
-    """
-
-    def append_state(self, t: float, u: np.ndarray, v: np.ndarray, record: StepRecord) -> None:
-        """Append u^i, v^i of the step at time ``t`` and its record."""
-        ...
-
-
-@dataclass
-class Trajectory:
-    """States u^i, v^i (local arrays incl. ghosts) for i = 0..N and per-step records.
-
-    ``rest_geometry`` is the mesh's ``geometry.x`` (this rank's nodes) the run started from, so
-    that output written after a shape change shows the trajectory on its own rest shape (None:
-    the mesh's current geometry).
-    """
-
-    times: list[float] = field(default_factory=list)
-    u: list[np.ndarray] = field(default_factory=list)
-    v: list[np.ndarray] = field(default_factory=list)
-    records: list[StepRecord] = field(default_factory=list)
-    rest_geometry: np.ndarray | None = None
-
-    @property
-    def num_steps(self) -> int:
-        """N (the trajectory holds N + 1 states)."""
-        return len(self.u) - 1
-
-    def newton_iterations(self) -> int:
-        """Total Newton iterations over all steps."""
-        return sum(r.iterations for r in self.records)
-
-    def append_state(self, t: float, u: np.ndarray, v: np.ndarray, record: StepRecord) -> None:
-        """Append the state of the next step and its record."""
-        self.times.append(t)
-        self.u.append(u)
-        self.v.append(v)
-        self.records.append(record)
 
 
 @dataclass(frozen=True)
@@ -296,12 +231,29 @@ class Simulation:
         step.set_fields(self.model.fields, traj.u, traj.v)
         return step
 
+    def prepare_step(self, i: int, traj: StateHistory, phase: Phase) -> StepContext:
+        """Set step ``i`` up for the forward solve, an objective evaluation or the adjoint.
+
+        :meth:`load_step`, then (forward and backward phases) the numeric terms'
+        :meth:`~diffsolids.model.NumericTerm.begin_step` hooks with the step's context. The one
+        set-up the three drivers share.
+        """
+        context = StepContext(i, self.load_step(i, traj), traj, self.integrator, phase)
+        if phase is not Phase.EVALUATION:
+            for term in self.model.numeric_terms:
+                term.begin_step(context)
+        return context
+
     def begin_step(self, i: int, traj: StateHistory) -> TimeStep:
-        """:meth:`load_step`, then the numeric terms' ``begin_step`` hooks (forward and adjoint)."""
-        step = self.load_step(i, traj)
-        for term in self.model.numeric_terms:
-            term.begin_step(i, traj, step, self)
-        return step
+        """Deprecated: :meth:`prepare_step` with the phase named."""
+        warnings.warn(
+            "Simulation.begin_step(i, traj) is deprecated: use "
+            "Simulation.prepare_step(i, traj, diffsolids.states.Phase.FORWARD or BACKWARD)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        phase = Phase.FORWARD if len(traj.u) == i else Phase.BACKWARD
+        return self.prepare_step(i, traj, phase).step
 
     def _initial_guess(self, i: int, traj: StateHistory, step: TimeStep) -> None:
         """The step's first Newton iterate, with the step's Dirichlet values applied.
@@ -513,7 +465,7 @@ class Simulation:
 
     def _step(self, i: int, traj: StateRecorder, replay: bool = False) -> None:
         t0 = time.perf_counter()
-        c = self.begin_step(i, traj)
+        c = self.prepare_step(i, traj, Phase.REPLAY if replay else Phase.FORWARD).step
         if i == len(self.startup) + 1:  # first solved step
             u = self.model.fields.u
             u.x.array[:] = traj.u[i - 1]

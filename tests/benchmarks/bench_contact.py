@@ -141,6 +141,8 @@ def newton_cost(comm, obstacle: str, steps: int, stiffness: float | None = None)
     import numpy as np
     from petsc4py import PETSc
 
+    from diffsolids.states import Phase, StepContext
+
     sim, contact = bunnies_scene(comm, obstacle, steps, stiffness)
     t0, c0 = time.perf_counter(), time.process_time()
     traj = sim.run()
@@ -151,7 +153,7 @@ def newton_cost(comm, obstacle: str, steps: int, stiffness: float | None = None)
     free = ~surf.static
     pairs, free_pairs = [], []
     for i in range(1, steps + 1):  # each step's pattern again, as the run made it
-        contact.begin_step(i, traj, sim.integrator.coefficients(i))
+        contact.begin_step(StepContext.of(sim.integrator, i, traj, Phase.BACKWARD))
         a, b = np.divmod(contact.pattern.reach(contact._step), nv)
         pairs.append(int(np.count_nonzero(a < b)))
         free_pairs.append(int(np.count_nonzero((a < b) & free[a] & free[b])))

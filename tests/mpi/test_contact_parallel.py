@@ -10,6 +10,8 @@ from contact_checks import crate_on_incline
 from dolfinx import fem
 from mpi4py import MPI
 
+from diffsolids.states import Phase, StepContext
+
 DHAT = 1e-3
 
 
@@ -39,7 +41,7 @@ def _run(comm):
     }
     # kernels at the last state, lagged from the one before
     i = integ.num_steps
-    contact.begin_step(i, traj, integ.coefficients(i))
+    contact.begin_step(StepContext.of(integ, i, traj, Phase.BACKWARD))
     u = fem.Function(model.V)
     u.x.array[:] = traj.u[i]
     b = fem_petsc.create_vector(model.V)

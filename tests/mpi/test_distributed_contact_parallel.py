@@ -25,6 +25,7 @@ from diffsolids.controls import FrictionControl, InitialCondition, ShapeControl
 from diffsolids.objectives import Integral, final_value, time_integral
 from diffsolids.reduced_functional import ReducedFunctional
 from diffsolids.solvers.sparsity import matrix_with_pattern, sorted_unique
+from diffsolids.states import Phase, StepContext
 
 RTOL = 1e-10
 
@@ -76,7 +77,7 @@ def _kernels(build, comm) -> dict:
     d = model.dim
     V = model.V
     i = sim.integrator.num_steps
-    contact.begin_step(i, traj, sim.integrator.coefficients(i))
+    contact.begin_step(StepContext.of(sim.integrator, i, traj, Phase.BACKWARD))
     u = fem.Function(V)
     u.x.array[:] = traj.u[i]
     bc = model.dirichlet_dofs()

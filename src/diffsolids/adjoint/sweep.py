@@ -41,11 +41,13 @@ from diffsolids.integrators import TimeStep
 from diffsolids.io.progress import ProgressBar, progress_bar
 from diffsolids.parallel import collective_comm
 from diffsolids.solvers.packing import CoefficientGathers, FormPacker
+from diffsolids.states import Phase
 
 if TYPE_CHECKING:
     from diffsolids.adjoint.checkpointing import CheckpointedRun
     from diffsolids.objectives import Integral, NumericIntegral
-    from diffsolids.simulation import Simulation, StateHistory, Trajectory
+    from diffsolids.simulation import Simulation
+    from diffsolids.states import StateHistory, Trajectory
 
 __all__ = ["BackwardSweep"]
 
@@ -222,7 +224,7 @@ class BackwardSweep:
         """Adjoint of step i: reads u^{i-d..i}, v^{i-d..i} of ``traj``."""
         forms = self.forms
         ubar, vbar, sens = self._ubar, self._vbar, self._sens
-        step = self.sim.begin_step(i, traj)  # the forward's set-up of step i
+        step = self.sim.prepare_step(i, traj, Phase.BACKWARD).step  # as the forward set it up
         self._load_state(traj, i)
         active = forms.set_weights(self._weights, i)
         if active:

@@ -39,8 +39,7 @@ from diffsolids.contact.timing import timed
 from diffsolids.errors import ParameterError
 
 if TYPE_CHECKING:
-    from diffsolids.integrators import TimeStep
-    from diffsolids.simulation import Simulation
+    from diffsolids.integrators import Integrator
 
 __all__ = ["ObstacleMoves"]
 
@@ -72,13 +71,10 @@ class ObstacleMoves:
         self.dynamic = True
         self.moved_with_guess: list[int] = []
 
-    def follow(self, sim: "Simulation | None", coeffs: "TimeStep") -> None:
-        """Take the times of the steps from the simulation's integrator (or k dt without)."""
-        if sim is not None:
-            self.clock = sim.integrator.time
-            self.dynamic = sim.integrator.dynamic
-        elif self.clock is None:
-            self.clock = lambda k, dt=coeffs.dt: k * dt
+    def follow(self, integrator: "Integrator") -> None:
+        """Take the times of the steps from the run's integrator."""
+        self.clock = integrator.time
+        self.dynamic = integrator.dynamic
 
     def at(self, k: int) -> np.ndarray:
         """(num_vertices, dim): zero body rows, the obstacles' displacements at step ``k``."""

@@ -83,9 +83,9 @@ from diffsolids.errors import IntersectionError, ParameterError
 from diffsolids.model.numeric import NumericTerm
 
 if TYPE_CHECKING:
-    from diffsolids.integrators import Integrator, TimeStep
+    from diffsolids.integrators import Integrator
     from diffsolids.model import Model
-    from diffsolids.simulation import Simulation, StateHistory
+    from diffsolids.states import StateHistory, StepContext
 
 __all__ = ["ContactRecord", "ContactTerm"]
 
@@ -306,23 +306,22 @@ class ContactTerm(NumericTerm):
         self.potential.set_stiffness(suggest_barrier_stiffness(self, integrator, state))
         logger.info("contact: barrier stiffness chosen: kappa = %.4g", self.stiffness)
 
-    def begin_step(
-        self, i: int, traj: "StateHistory", coeffs: "TimeStep", sim: "Simulation | None" = None
-    ) -> None:
+    def begin_step(self, context: "StepContext") -> None:
         """Lag friction from u^{i-1} and store the BDF history of step ``i`` (collective)."""
+        i, traj, coeffs = context.index, context.history, context.step
         surf = self.surface
         if surf.update_rest_positions():
             self._token += 1
         self._update_static()
-        self.obstacle_moves.follow(sim, coeffs)
+        self.obstacle_moves.follow(context.integrator)
         if self.stiffness is None:
-            self._choose_stiffness(sim.integrator if sim is not None else None, traj.u[i - 1])
+            self._choose_stiffness(context.integrator, traj.u[i - 1])
         m = len(coeffs.alpha)
         obstacle = [self.obstacle_moves.at(i - j) for j in range(m + 1)]
         hist = [surf.gather(traj.u[i - j]) + obstacle[j] for j in range(1, m + 1)]
         beta_dt = coeffs.beta_dt
         v_offset = sum(a * U for a, U in zip(coeffs.alpha, hist, strict=True)) / beta_dt
-        forward = len(traj.u) == i  # else a backward sweep's step
+        forward = context.forward
         self._step = ContactStep(
             index=i,
             forward=forward,

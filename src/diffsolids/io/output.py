@@ -19,7 +19,7 @@ from diffsolids.solvers.forms import compile_expression
 
 if TYPE_CHECKING:
     from diffsolids.model import Model
-    from diffsolids.simulation import Trajectory
+    from diffsolids.states import Trajectory
 
 __all__ = ["TrajectoryWriter", "at_rest_geometry", "von_mises_field", "write_trajectory"]
 

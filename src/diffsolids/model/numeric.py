@@ -17,7 +17,10 @@ Jacobian may need entries outside the finite-element sparsity, see :meth:`matrix
 may walk down to the term itself, see :meth:`continuation_factors`).
 """
 
+import inspect
+import warnings
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
@@ -25,10 +28,27 @@ from dolfinx import fem
 from petsc4py import PETSc
 
 if TYPE_CHECKING:
-    from diffsolids.integrators import TimeStep
-    from diffsolids.simulation import Simulation, StateHistory
+    from diffsolids.states import StateHistory, StepContext
 
 __all__ = ["NumericTerm"]
+
+
+def _legacy_begin_step(cls: type, hook: Callable) -> Callable:
+    """``begin_step(i, traj, coeffs, sim=None)`` of an older subclass, called with a context."""
+    warnings.warn(
+        f"{cls.__name__}.begin_step(i, traj, coeffs, sim) is deprecated: override "
+        "begin_step(self, context) with a diffsolids.states.StepContext (index, step, history, "
+        "integrator, phase); the old form is called as hook(context.index, context.history, "
+        "context.step) until 0.5",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+
+    def begin_step(self: "NumericTerm", context: "StepContext") -> None:
+        hook(self, context.index, context.history, context.step)
+
+    begin_step.__doc__ = hook.__doc__
+    return begin_step
 
 
 class NumericTerm(ABC):
@@ -50,6 +70,13 @@ class NumericTerm(ABC):
     grows_pattern: ClassVar[bool] = False
     has_stiffness_continuation: ClassVar[bool] = False
     parameter_names: ClassVar[tuple[str, ...]] = ()
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """Adapt an overridden ``begin_step`` of the pre-0.4 form (i, traj, coeffs, sim)."""
+        super().__init_subclass__(**kwargs)
+        hook = cls.__dict__.get("begin_step")
+        if hook is not None and len(inspect.signature(hook).parameters) > 2:
+            cls.begin_step = _legacy_begin_step(cls, hook)
 
     # -- the Newton solve ------------------------------------------------------------------
     @abstractmethod
@@ -125,10 +152,8 @@ class NumericTerm(ABC):
         raise NotImplementedError(f"{self.name} has no stiffness continuation")
 
     # -- per-step hooks --------------------------------------------------------------------
-    def begin_step(  # noqa: B027 - optional hook
-        self, i: int, traj: "StateHistory", coeffs: "TimeStep", sim: "Simulation | None" = None
-    ) -> None:
-        """Called before step ``i`` is solved (forward) or differentiated (backward)."""
+    def begin_step(self, context: "StepContext") -> None:  # noqa: B027 - optional hook
+        """Called before step ``context.index`` is solved, or differentiated (``context.phase``)."""
 
     def end_step(self, i: int, traj: "StateHistory") -> Any:
         """Called after step ``i`` converged; may return a record of the step."""

@@ -21,10 +21,12 @@ from diffsolids.objectives.functional import NumericIntegral, Objective, Objecti
 from diffsolids.objectives.terms import series_label
 from diffsolids.parallel import collective_comm
 from diffsolids.solvers.forms import compile_form
+from diffsolids.states import Phase
 
 if TYPE_CHECKING:
     from diffsolids.reduced_functional import ReducedFunctional
-    from diffsolids.simulation import Simulation, StateHistory
+    from diffsolids.simulation import Simulation
+    from diffsolids.states import StateHistory
 
 __all__ = ["objective_series", "series_values", "step_values"]
 
@@ -85,7 +87,7 @@ def series_values(
     try:
         for i in sorted(set(wanted)):
             if i > 0:
-                simulation.load_step(i, trajectory)
+                simulation.prepare_step(i, trajectory, Phase.EVALUATION)
             else:
                 model.update_time(0.0)
                 # no motion before the start: the history fields of state 0 hold u^0
