@@ -64,7 +64,7 @@ nitpicky = True
 nitpick_ignore_regex = [
     ("py:.*", r"(numpy|np|dolfinx|petsc4py|PETSc|ufl|mpi4py|MPI|scipy|basix|ipctk)(\..*)?"),
     ("py:.*", r"(checkpoint_schedules|h5py|matplotlib|tqdm)(\..*)?"),
-    ("py:.*", r"(collections\.abc|typing|types|os|pathlib|abc|contextlib)\..*"),
+    ("py:.*", r"(collections\.abc|typing|types|os|pathlib|abc|contextlib|enum)\..*"),
 ]
 
 # The modules whose ``__all__`` the reference documents, with the title of their page.
@@ -74,6 +74,7 @@ API_MODULES = {
     "diffsolids.model": "Model: materials, terms, boundary conditions",
     "diffsolids.integrators": "Time integrators",
     "diffsolids.simulation": "Simulation and trajectories",
+    "diffsolids.states": "Trajectories and the set-up of a step",
     "diffsolids.solvers": "Newton solver",
     "diffsolids.solvers.factor_store": "Factorisations kept for the adjoint",
     "diffsolids.solvers.linear_options": "Linear solvers of the Newton steps (LU or multigrid)",

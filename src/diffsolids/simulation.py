@@ -31,14 +31,9 @@ if TYPE_CHECKING:
     from diffsolids.io.output import TrajectoryWriter
     from diffsolids.model import Model
 
-__all__ = [
-    "CanonicalValues",
-    "Simulation",
-    "StateHistory",
-    "StateRecorder",
-    "StepRecord",
-    "Trajectory",
-]
+# Trajectory, StateHistory, StateRecorder and StepRecord live in diffsolids.states (importable
+# from here too)
+__all__ = ["CanonicalValues", "Simulation"]
 
 logger = logging.getLogger("diffsolids")
 

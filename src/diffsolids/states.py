@@ -106,8 +106,8 @@ class Phase(enum.Enum):
 
     #: The forward run solves the step (its state u^i is not known yet).
     FORWARD = "forward"
-    #: The backward sweep solves the step again from a checkpoint (the run is known: nothing is
-    #: recorded or checked again).
+    #: The backward sweep solves the step again from a checkpoint; nothing is recorded or
+    #: checked again.
     REPLAY = "replay"
     #: An objective is evaluated on the step's known state.
     EVALUATION = "evaluation"
