@@ -44,6 +44,7 @@ docs: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/lint-imports --no-cache
 
 test-serial: $(STAMP)
 	$(PY) -m pytest -n $(NPROC) --dist loadfile --max-worker-restart 0 tests

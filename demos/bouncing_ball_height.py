@@ -26,9 +26,9 @@ from mpi4py import MPI
 
 import diffsolids as ds
 from diffsolids.controls import ParameterControl
-from diffsolids.controls.ordering import CanonicalLayout
 from diffsolids.io import deformed_triangles
 from diffsolids.mesh import from_geo
+from diffsolids.mesh.ordering import CanonicalLayout
 from diffsolids.objectives import (
     MaterialSmoothing,
     center_of_mass,

@@ -25,9 +25,9 @@ from common import ROOT
 from dynamic_common import TargetSimulation, check_invariants, finish_transient
 
 import diffsolids as ds
-from diffsolids.io.polyfem_scene import PolyFEMScene, read_polyfem_scene
 from diffsolids.objectives import center_of_mass, series_values, target_displacement, time_integral
 from diffsolids.optimize import LBFGSOptions, check_trajectories
+from diffsolids.polyfem.scene import PolyFEMScene, read_polyfem_scene
 
 __all__ = [
     "DEFAULT_DATA",

@@ -63,8 +63,8 @@ from paper_common import (
 
 import diffsolids as ds
 from diffsolids.controls import FrictionControl
-from diffsolids.io.polyfem_scene import read_polyfem_scene
 from diffsolids.objectives import center_of_mass, final_value, series_values
+from diffsolids.polyfem import read_polyfem_scene
 from diffsolids.reduced_functional import ReducedFunctional
 
 FOLDER = "fig21_friction_bunny"

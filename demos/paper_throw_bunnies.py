@@ -47,10 +47,10 @@ from paper_common import add_data_argument, build, experiment, scenes
 
 from diffsolids.contact import ContactTerm
 from diffsolids.controls import RigidVelocity
-from diffsolids.io import PolyFEMScene, read_polyfem_scene
 from diffsolids.objectives import center_of_mass, final_value, series_values
 from diffsolids.optimize import LBFGSOptions, check_trajectories
 from diffsolids.parallel import collective_comm
+from diffsolids.polyfem import PolyFEMScene, read_polyfem_scene
 from diffsolids.reduced_functional import ReducedFunctional
 
 FOLDER = "fig1_bunnies"

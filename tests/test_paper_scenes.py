@@ -18,8 +18,8 @@ from dolfinx import fem
 from mpi4py import MPI
 
 import diffsolids as ds
-from diffsolids.io.polyfem_scene import read_polyfem_scene
 from diffsolids.mesh import read_mesh
+from diffsolids.polyfem import read_polyfem_scene
 
 COMM = MPI.COMM_WORLD
 DATA = Path(

@@ -8,7 +8,7 @@ from mpi4py import MPI
 
 import diffsolids as ds
 from diffsolids.controls import InitialCondition
-from diffsolids.controls.ordering import CanonicalLayout
+from diffsolids.mesh.ordering import CanonicalLayout
 from diffsolids.objectives.functional import TimeGrid, step_weights
 from diffsolids.simulation import CanonicalValues
 

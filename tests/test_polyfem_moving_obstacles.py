@@ -24,9 +24,9 @@ from mpi4py import MPI
 import diffsolids as ds
 from diffsolids.controls import RigidVelocity
 from diffsolids.io.expressions import ExpressionError, parse_expression
-from diffsolids.io.polyfem_scene import read_polyfem_scene
 from diffsolids.objectives import Integral, final_value
 from diffsolids.optimize.invariants import check_trajectories
+from diffsolids.polyfem import read_polyfem_scene
 from diffsolids.reduced_functional import ReducedFunctional
 from diffsolids.verification import finite_difference_check
 

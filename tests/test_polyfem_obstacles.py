@@ -16,8 +16,8 @@ from mpi4py import MPI
 
 import diffsolids as ds
 from diffsolids.controls import RigidVelocity
-from diffsolids.io.polyfem_scene import PolyFEMBoundaryValue, read_polyfem_scene
 from diffsolids.objectives import Integral, final_value
+from diffsolids.polyfem import PolyFEMBoundaryValue, read_polyfem_scene
 from diffsolids.reduced_functional import ReducedFunctional
 from diffsolids.verification import finite_difference_check
 

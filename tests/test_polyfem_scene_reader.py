@@ -14,8 +14,8 @@ from mpi4py import MPI
 from polyfem_own_scenes import write_rectangle
 
 import diffsolids as ds
-from diffsolids.io import read_polyfem_scene
 from diffsolids.parallel import collective_comm
+from diffsolids.polyfem import read_polyfem_scene
 
 
 def static_scene(folder: Path, **geometry) -> Path:

@@ -56,6 +56,32 @@ def test_moved_scene_helpers_keep_a_warning_alias():
         scenes.nothing  # noqa: B018
 
 
+def test_moved_polyfem_scene_reader_keeps_warning_aliases():
+    import importlib
+
+    import diffsolids.io
+    import diffsolids.polyfem
+
+    old_module = importlib.import_module("diffsolids.io.polyfem_scene")
+    for name in ("read_polyfem_scene", "PolyFEMScene", "PolyFEMSetup", "BoxSideSelection"):
+        for holder in (diffsolids.io, old_module):
+            with pytest.warns(DeprecationWarning, match=f"moved to diffsolids.polyfem.{name}"):
+                assert getattr(holder, name) is getattr(diffsolids.polyfem, name)
+    with pytest.raises(AttributeError, match="no attribute 'nothing'"):
+        diffsolids.io.nothing  # noqa: B018
+
+
+def test_moved_canonical_layout_keeps_a_warning_alias():
+    import importlib
+
+    import diffsolids.controls
+
+    old_module = importlib.import_module("diffsolids.controls.ordering")
+    with pytest.warns(DeprecationWarning, match="moved to diffsolids.mesh.CanonicalLayout"):
+        assert old_module.CanonicalLayout is ds.mesh.CanonicalLayout
+    assert diffsolids.controls.CanonicalLayout is ds.mesh.CanonicalLayout
+
+
 def test_peak_rss_mb_sees_an_allocation():
     import subprocess
     import sys

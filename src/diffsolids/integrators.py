@@ -18,16 +18,31 @@ from abc import ABC, abstractmethod
 from collections.abc import MutableMapping, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
-from typing import TYPE_CHECKING, override
+from typing import Any, Protocol, override
 
 import numpy as np
 
 from diffsolids.errors import ParameterError
 
-if TYPE_CHECKING:
-    from diffsolids.model.terms import StepFields
+__all__ = ["BDF", "Integrator", "Static", "StepFieldTargets", "TimeStep", "bdf_coefficients"]
 
-__all__ = ["BDF", "Integrator", "Static", "TimeStep", "bdf_coefficients"]
+
+class _ValueHolder(Protocol):
+    value: Any
+
+
+class _ArrayHolder(Protocol):
+    @property
+    def x(self) -> Any: ...
+
+
+class StepFieldTargets(Protocol):
+    """What :meth:`TimeStep.set_fields` writes (met by :class:`diffsolids.model.StepFields`)."""
+
+    dt: _ValueHolder
+    beta_dt: _ValueHolder
+    u_prev: _ArrayHolder
+    u_tilde: _ArrayHolder
 
 
 def bdf_coefficients(order: int) -> tuple[list[float], float]:
@@ -136,7 +151,7 @@ class TimeStep:
         return prev + self.dt * v[self.index - 1] if self.inertial else prev.copy()
 
     def set_fields(
-        self, fields: "StepFields", u: Sequence[np.ndarray], v: Sequence[np.ndarray]
+        self, fields: StepFieldTargets, u: Sequence[np.ndarray], v: Sequence[np.ndarray]
     ) -> None:
         """Write the step's ``dt``, ``beta_dt``, ``u_prev`` and ``u_tilde`` into the fields.
 

@@ -13,10 +13,13 @@ from mpi4py import MPI
 
 from diffsolids.errors import InvertedElementError, NewtonConvergenceError, ParameterError
 from diffsolids.integrators import Integrator, TimeStep
+from diffsolids.mesh.ordering import CanonicalLayout
 from diffsolids.parallel import collective_comm
 from diffsolids.solvers import NewtonSolver, SolverOptions
 from diffsolids.states import (
     Phase,
+    RunDriver,
+    RunRecord,
     StateHistory,
     StateRecorder,
     StepContext,
@@ -27,7 +30,6 @@ from diffsolids.states import (
 if TYPE_CHECKING:
     import os
 
-    from diffsolids.adjoint.checkpointing import CheckpointedRun, CheckpointedTrajectory
     from diffsolids.io.output import TrajectoryWriter
     from diffsolids.model import Model
 
@@ -42,7 +44,7 @@ logger = logging.getLogger("diffsolids")
 class CanonicalValues:
     """Nodal values of the displacement space in the canonical (partition-independent) order.
 
-    The order of the controls' parameter vectors (``diffsolids.controls.ordering``): P1
+    The order of the controls' parameter vectors (``diffsolids.mesh.ordering``): P1
     nodes in the input vertex order, other spaces in the lexicographic order of their node
     coordinates, the components of a node after each other. The array has the global length
     (number of nodes x dimension), or the shape (number of nodes, dimension), and the same
@@ -100,8 +102,6 @@ def _initial_array(V: fem.FunctionSpace, value: InitialValue, name: str) -> np.n
 
 def _scatter_canonical(f: fem.Function, value: CanonicalValues, name: str) -> None:
     """Write canonical nodal values into ``f`` (the same on every rank: errors are collective)."""
-    from diffsolids.controls.ordering import CanonicalLayout  # controls import this module
-
     layout = CanonicalLayout(f.function_space)
     vec = np.asarray(value.values, dtype=float)
     if vec.size != layout.size or vec.ndim > 2 or (vec.ndim == 2 and vec.shape[1] != layout.bs):
@@ -393,15 +393,13 @@ class Simulation:
         return any(g.max_step(x, dx) <= 0.0 for g in guards)
 
     # -- run -----------------------------------------------------------------------------
-    def run(
-        self, checkpoints: "CheckpointedRun | None" = None
-    ) -> "Trajectory | CheckpointedTrajectory":
+    def run(self, checkpoints: RunDriver | None = None) -> Trajectory | RunRecord:
         """Solve all steps and return the trajectory (also kept as ``self.trajectory``).
 
         Args:
-            checkpoints: Optional :class:`~diffsolids.adjoint.checkpointing.CheckpointedRun`
-                that drives the steps by its schedule and keeps only its checkpoints; the
-                returned trajectory is then its
+            checkpoints: Optional driver of the steps by its own schedule that keeps only its
+                checkpoints (:class:`~diffsolids.adjoint.checkpointing.CheckpointedRun`); the
+                returned record is then its
                 :class:`~diffsolids.adjoint.checkpointing.CheckpointedTrajectory`.
         """
         from diffsolids.io.progress import progress_bar

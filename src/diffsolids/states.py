@@ -9,7 +9,7 @@ the phase, so that no term has to guess which driver called it.
 """
 
 import enum
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -19,6 +19,8 @@ from diffsolids.integrators import Integrator, TimeStep
 
 __all__ = [
     "Phase",
+    "RunDriver",
+    "RunRecord",
     "StateHistory",
     "StateRecorder",
     "StepContext",
@@ -66,6 +68,43 @@ class StateRecorder(StateHistory, Protocol):
 
     def append_state(self, t: float, u: np.ndarray, v: np.ndarray, record: StepRecord) -> None:
         """Append u^i, v^i of the step at time ``t`` and its record."""
+        ...
+
+
+class RunRecord(StateHistory, Protocol):
+    """What a run returns: times, step records and the states it keeps.
+
+    A :class:`Trajectory` keeps every state; a checkpointed run's record
+    (:class:`diffsolids.adjoint.checkpointing.CheckpointedTrajectory`) only some.
+    """
+
+    times: list[float]
+    records: list[StepRecord]
+    rest_geometry: np.ndarray | None
+
+    @property
+    def num_steps(self) -> int:
+        """N (the run has N + 1 states)."""
+        ...
+
+    def newton_iterations(self) -> int:
+        """Total Newton iterations over all steps."""
+        ...
+
+
+class RunDriver(Protocol):
+    """Drives the steps of a run by its own schedule (checkpointing).
+
+    :meth:`diffsolids.simulation.Simulation.run` calls :meth:`start` for the record of state 0,
+    then :meth:`forward`, which advances the simulation through all steps.
+    """
+
+    def start(self) -> RunRecord:
+        """Begin the run: the record holding state 0."""
+        ...
+
+    def forward(self, stepped: Callable[[int, StateHistory], None] | None = None) -> None:
+        """Advance through all steps, calling ``stepped(i, states)`` after step i."""
         ...
 
 

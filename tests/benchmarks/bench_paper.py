@@ -1,6 +1,6 @@
 """The paper's experiments on the paper's data, timed next to the paper's Table 4.
 
-Scenes read from their PolyFEM JSON (``diffsolids.io.polyfem_scene``; data in
+Scenes read from their PolyFEM JSON (``diffsolids.polyfem.scene``; data in
 ``$DIFFSOLIDS_DATA/diffipc`` or ``--data``), each with the paper's objective and control:
 
 - ``puzzle`` (Fig. 14): run-new.json, 30 BDF1 steps, 740 dofs; the piece's initial velocity;

@@ -5,7 +5,7 @@ import numpy as np
 from mpi4py import MPI
 from test_polyfem_scene_reader import right_side_displacement, static_scene
 
-from diffsolids.io import read_polyfem_scene
+from diffsolids.polyfem import read_polyfem_scene
 
 
 def test_static_scene_world_equals_self(tmp_path):

@@ -7,7 +7,7 @@ elasticity with coefficient 1 (energies divided by (beta dt)^2), so the nodal "m
 m / (beta dt)^2 for BDF steps and, for static steps, the nodal elastic stiffness E h^(dim-2).
 """
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import dolfinx.la
 import ipctk
@@ -21,11 +21,22 @@ from diffsolids.parallel import collective_comm
 from diffsolids.solvers.forms import compile_form
 
 if TYPE_CHECKING:
-    from diffsolids.contact.term import ContactTerm
+    from diffsolids.contact.collisions import CollisionBuilder
+    from diffsolids.contact.surface import CollisionSurface
     from diffsolids.integrators import Integrator
     from diffsolids.model import Model
 
-__all__ = ["suggest_barrier_stiffness"]
+__all__ = ["BarrierContact", "suggest_barrier_stiffness"]
+
+
+class BarrierContact(Protocol):
+    """What :func:`suggest_barrier_stiffness` reads of a contact term (met by ContactTerm)."""
+
+    model: "Model"
+    surface: "CollisionSurface"
+    builder: "CollisionBuilder"
+    dhat: float
+    area_weighting: bool
 
 
 def _young_modulus(model: "Model") -> Expr:
@@ -37,7 +48,7 @@ def _young_modulus(model: "Model") -> Expr:
 
 
 def suggest_barrier_stiffness(
-    contact: "ContactTerm", integrator: "Integrator | None" = None, u: fem.Function | None = None
+    contact: BarrierContact, integrator: "Integrator | None" = None, u: fem.Function | None = None
 ) -> float:
     """Suggest a fixed barrier stiffness kappa for a ContactTerm (collective).
 

@@ -14,14 +14,13 @@ from diffsolids.controls.maps import (
     Power,
     Simp,
 )
-from diffsolids.controls.ordering import CanonicalLayout
 from diffsolids.controls.parameters import ParameterControl
 from diffsolids.controls.shape import ShapeControl, boundary_vertices
+from diffsolids.mesh.ordering import CanonicalLayout as CanonicalLayout  # documented in mesh
 
 __all__ = [
     "Affine",
     "AffineControl",
-    "CanonicalLayout",
     "Compose",
     "Control",
     "ControlError",

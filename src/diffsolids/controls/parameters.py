@@ -10,8 +10,8 @@ from mpi4py import MPI
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.controls.base import Control, ControlError
 from diffsolids.controls.maps import ParameterMap, as_map
-from diffsolids.controls.ordering import CanonicalLayout
 from diffsolids.controls.transfer import interpolate_nonmatching
+from diffsolids.mesh.ordering import CanonicalLayout
 from diffsolids.parallel import collective_comm
 
 if TYPE_CHECKING:

@@ -1,4 +1,11 @@
-"""Output (VTX/XDMF series), geometry for figures, logging, progress bars, PolyFEM scenes."""
+"""Output (VTX/XDMF series), geometry for figures, logging, progress bars.
+
+The PolyFEM scene reader moved to :mod:`diffsolids.polyfem`; its names are still reachable here
+with a DeprecationWarning until 0.5.
+"""
+
+import importlib
+from typing import Any
 
 from diffsolids.io.geometry import (
     boundary_edges,
@@ -13,24 +20,9 @@ from diffsolids.io.output import (
     von_mises_field,
     write_trajectory,
 )
-from diffsolids.io.polyfem_scene import (
-    BoxSideSelection,
-    PolyFEMBoundaryValue,
-    PolyFEMGeometry,
-    PolyFEMMaterial,
-    PolyFEMScene,
-    PolyFEMSetup,
-    read_polyfem_scene,
-)
 from diffsolids.io.progress import ProgressBar, progress_bar
 
 __all__ = [
-    "BoxSideSelection",
-    "PolyFEMBoundaryValue",
-    "PolyFEMGeometry",
-    "PolyFEMMaterial",
-    "PolyFEMScene",
-    "PolyFEMSetup",
     "ProgressBar",
     "TrajectoryWriter",
     "at_rest_geometry",
@@ -39,8 +31,14 @@ __all__ = [
     "deformed_triangles",
     "nodal_displacement",
     "progress_bar",
-    "read_polyfem_scene",
     "silhouette_edges",
     "von_mises_field",
     "write_trajectory",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    polyfem_scene = importlib.import_module("diffsolids.io.polyfem_scene")
+    if name in polyfem_scene.MOVED:
+        return polyfem_scene.moved(__name__, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -3,6 +3,7 @@
 from diffsolids.mesh.arrays import MeshArrays, boundary_facets, create_domain
 from diffsolids.mesh.domain import Domain, create_box, create_rectangle, tag_facets
 from diffsolids.mesh.gmsh_session import gmsh_session
+from diffsolids.mesh.ordering import CanonicalLayout
 from diffsolids.mesh.quality import (
     check_orientation,
     inverted_cells,
@@ -30,6 +31,7 @@ from diffsolids.mesh.selections import (
 __all__ = [
     "AxisPlaneSelection",
     "BoxSelection",
+    "CanonicalLayout",
     "Domain",
     "MeshArrays",
     "PlaneSelection",

@@ -43,11 +43,17 @@ from diffsolids.objectives.targets import (
     step_selector,
     target_trajectory,
 )
-from diffsolids.objectives.values import objective_series, series_values, step_values
+from diffsolids.objectives.values import (
+    EvaluatedFunctional,
+    objective_series,
+    series_values,
+    step_values,
+)
 
 __all__ = [
     "BoundarySmoothing",
     "DeformedCollisionBarrier",
+    "EvaluatedFunctional",
     "Integral",
     "MaterialSmoothing",
     "NumericIntegral",

@@ -13,8 +13,8 @@ import dolfinx.mesh
 import numpy as np
 from mpi4py import MPI
 
-from diffsolids.controls.ordering import CanonicalLayout
 from diffsolids.errors import ParameterError
+from diffsolids.mesh.ordering import CanonicalLayout
 from diffsolids.objectives.functional import ObjectiveError, Regulariser
 from diffsolids.parallel import collective_comm
 

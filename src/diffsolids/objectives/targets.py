@@ -36,6 +36,7 @@ from ufl.core.expr import Expr
 
 from diffsolids import forms
 from diffsolids.errors import ParameterError
+from diffsolids.mesh.ordering import CanonicalLayout
 from diffsolids.model.terms import BodyForce, Traction
 from diffsolids.objectives.functional import Integral, ObjectiveError, Series
 from diffsolids.objectives.library import (
@@ -309,8 +310,6 @@ def _selected_nodes(
             "the mesh file; numbering='canonical' selects any node)"
         )
     else:
-        from diffsolids.controls.ordering import CanonicalLayout
-
         ids = CanonicalLayout(Q).positions.astype(np.int64)
         total = Q.dofmap.index_map.size_global
         what = (

@@ -11,7 +11,7 @@ integrals, soft minima) along the last forward run of a ReducedFunctional, by la
 """
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from dolfinx import fem
@@ -24,11 +24,29 @@ from diffsolids.solvers.forms import compile_form
 from diffsolids.states import Phase
 
 if TYPE_CHECKING:
-    from diffsolids.reduced_functional import ReducedFunctional
     from diffsolids.simulation import Simulation
     from diffsolids.states import StateHistory
 
-__all__ = ["objective_series", "series_values", "step_values"]
+__all__ = ["EvaluatedFunctional", "objective_series", "series_values", "step_values"]
+
+
+class EvaluatedFunctional(Protocol):
+    """A functional after its forward run (met by :class:`~diffsolids.ReducedFunctional`)."""
+
+    @property
+    def objective(self) -> Objective:
+        """The objective J."""
+        ...
+
+    @property
+    def simulation(self) -> "Simulation":
+        """The simulation whose run J reads."""
+        ...
+
+    @property
+    def trajectory(self) -> "StateHistory | None":
+        """The last forward run's states (None before the first run)."""
+        ...
 
 
 def _state_indices(steps: Sequence[int] | None, num_states: int) -> list[int]:
@@ -140,7 +158,7 @@ def objective_series(objective: Objective) -> dict[str, Series]:
     return out
 
 
-def step_values(rf: "ReducedFunctional") -> dict[str, np.ndarray]:
+def step_values(rf: EvaluatedFunctional) -> dict[str, np.ndarray]:
     """Per-state values of the series of an objective along the last forward run (collective).
 
     Every state 0..N is evaluated (also those the objective gives zero weight, so there is no

@@ -32,9 +32,9 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from diffsolids.controls.base import ControlError
-from diffsolids.controls.ordering import CanonicalLayout
 from diffsolids.controls.shape import ShapeControl, boundary_vertices
 from diffsolids.mesh import Domain, signed_cell_volumes
+from diffsolids.mesh.ordering import CanonicalLayout
 from diffsolids.parallel import collective_comm
 from diffsolids.solvers.factor_store import lu_solver
 from diffsolids.solvers.forms import compile_form

@@ -202,7 +202,7 @@ class MinJacobian(Regulariser):
         mesh = model.domain.mesh
         tdim = mesh.topology.dim
         num = mesh.topology.index_map(tdim).size_local
-        nodes = mesh.geometry.dofmap[:num, : tdim + 1]
+        nodes = mesh.geometry.dofmaps[0][:num, : tdim + 1]
         x = mesh.geometry.x[nodes][:, :, :tdim]
         local = np.linalg.det(x[:, 1:] - x[:, :1]).min(initial=np.inf)
         return float(collective_comm(mesh.comm).allreduce(local, op=MPI.MIN))

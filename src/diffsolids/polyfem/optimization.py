@@ -2,7 +2,7 @@
 
 :func:`read_polyfem_optimization` reads an ``opt.json`` (PolyFEM's ``json-specs/
 opt-input-spec.json``) and the scenes of its ``states`` (``{"path": ...}``, relative to the
-file; read by :func:`~diffsolids.io.read_polyfem_scene`, bodies as written).
+file; read by :func:`~diffsolids.polyfem.read_polyfem_scene`, bodies as written).
 :meth:`PolyFEMOptimization.build` makes the problem: state 0 is the optimised run, every other
 state a target run (solved once at build, on the same mesh); ``variable_to_simulation``
 becomes controls (:mod:`diffsolids.polyfem.variables`), ``functionals`` the objective
@@ -37,8 +37,8 @@ import numpy as np
 from mpi4py import MPI
 
 from diffsolids.errors import ParameterError
-from diffsolids.io.polyfem_scene import PolyFEMScene, read_polyfem_scene
 from diffsolids.polyfem.functionals import FunctionalContext, objective_of, objective_sum
+from diffsolids.polyfem.scene import PolyFEMScene, read_polyfem_scene
 from diffsolids.polyfem.variables import controls_of, needs_lame
 
 if TYPE_CHECKING:

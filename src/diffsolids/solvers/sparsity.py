@@ -10,19 +10,32 @@ the direct solver keeps its symbolic factorisation.
 """
 
 import time
-from typing import TYPE_CHECKING
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Protocol
 
 import dolfinx.fem.petsc as fem_petsc
 import numpy as np
+from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
 
 from diffsolids.parallel import collective_comm
 
 if TYPE_CHECKING:
-    from diffsolids.solvers.newton import NewtonSolver
+    from diffsolids.model import Model
+    from diffsolids.model.numeric import NumericTerm
 
-__all__ = ["GrowingPattern", "matrix_with_pattern", "sorted_unique"]
+__all__ = ["GrowingPattern", "JacobianOwner", "matrix_with_pattern", "sorted_unique"]
+
+
+class JacobianOwner(Protocol):
+    """What :class:`GrowingPattern` reads of its solver (met by :class:`NewtonSolver`)."""
+
+    A: PETSc.Mat
+    jacobian_form: fem.Form
+    model: "Model"
+    u: fem.Function
+    numeric_terms: "Sequence[NumericTerm]"
 
 
 def sorted_unique(*arrays: np.ndarray) -> np.ndarray:
@@ -92,7 +105,7 @@ class GrowingPattern:
         rebuild_seconds: Part of ``seconds`` spent creating matrices.
     """
 
-    def __init__(self, solver: "NewtonSolver") -> None:
+    def __init__(self, solver: JacobianOwner) -> None:
         self.solver = solver
         self.terms = [t for t in solver.numeric_terms if t.grows_pattern]
         self._keys: dict[int, np.ndarray] = {}
