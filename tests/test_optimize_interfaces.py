@@ -69,3 +69,19 @@ def test_petsc_tao_blmvm(bar2):
     for v in (x, g, lower, upper):
         v.destroy()
     rf.controls.assign(q0)
+
+
+def test_the_optimiser_contract(bar2):
+    """minimize takes what provides OptimizableFunctional and refuses anything else by name."""
+    import diffsolids as ds
+    from diffsolids.optimize import OptimizableFunctional, OptimizationError
+
+    rf, _ = bar2
+    assert isinstance(rf, OptimizableFunctional)
+
+    class HalfAFunctional:
+        def forward(self, q):
+            return float(np.sum(q**2))
+
+    with pytest.raises(OptimizationError, match="OptimizableFunctional.*HalfAFunctional"):
+        ds.minimize(HalfAFunctional(), np.zeros(2))

@@ -9,6 +9,7 @@ checks of those invariants in :mod:`diffsolids.optimize.invariants`.
 """
 
 from diffsolids.optimize.checkpoint import Checkpoint
+from diffsolids.optimize.contract import OptimizableFunctional
 from diffsolids.optimize.hooks import RebuildableInnerProduct, RemeshCheckpoints, RemeshHook
 from diffsolids.optimize.invariants import (
     BoundaryIntersection,
@@ -49,6 +50,7 @@ __all__ = [
     "LBFGSOptions",
     "MeshMotion",
     "MeshMotionControl",
+    "OptimizableFunctional",
     "OptimizationError",
     "OptimizationOutput",
     "OptimizationResult",

@@ -50,6 +50,7 @@ from diffsolids.optimize.bounds import (
     step_limit,
 )
 from diffsolids.optimize.checkpoint import Checkpoint
+from diffsolids.optimize.contract import OptimizableFunctional
 from diffsolids.optimize.hooks import (
     RebuildableInnerProduct,
     RemeshCheckpoints,
@@ -70,7 +71,6 @@ from diffsolids.parallel import collective_comm
 
 if TYPE_CHECKING:
     from diffsolids.adjoint.checkpointing import CheckpointedTrajectory
-    from diffsolids.reduced_functional import ReducedFunctional
     from diffsolids.simulation import Trajectory
 
 __all__ = ["LBFGS", "OptimizationResult", "minimize"]
@@ -146,8 +146,9 @@ class LBFGS:
     """Bound-constrained L-BFGS on a ReducedFunctional.
 
     Args:
-        rf: The ReducedFunctional (``forward``, ``derivative``, ``value_and_gradient``,
-            ``bounds``, ``controls``, ``simulation``, ``comm``).
+        rf: The functional: a :class:`~diffsolids.ReducedFunctional`, or any
+            :class:`~diffsolids.optimize.OptimizableFunctional` (the members the optimiser
+            calls).
         options: Algorithm and stopping options.
         inner_product: ``g -> M^{-1} g`` for an SPD M, the initial inverse Hessian.
         remesher: Optional remeshing hook (see the module docstring).
@@ -181,7 +182,7 @@ class LBFGS:
 
     def __init__(
         self,
-        rf: "ReducedFunctional",
+        rf: OptimizableFunctional,
         options: LBFGSOptions | None = None,
         *,
         inner_product: Callable[[np.ndarray], np.ndarray] | None = None,
@@ -199,6 +200,11 @@ class LBFGS:
         iterate_every: int = 0,
         iterate_format: str = "bp",
     ) -> None:
+        if not isinstance(rf, OptimizableFunctional):
+            raise OptimizationError(
+                f"LBFGS needs a reduced functional (diffsolids.optimize.OptimizableFunctional: "
+                f"forward, derivative, bounds, controls, ...), got {type(rf).__name__}"
+            )
         self.rf = rf
         self.options = options or LBFGSOptions()
         self.options.validate()
@@ -700,7 +706,7 @@ _MESSAGES = {
 
 
 def minimize(
-    rf: "ReducedFunctional",
+    rf: OptimizableFunctional,
     q0: npt.ArrayLike | None = None,
     options: LBFGSOptions | None = None,
     **kwargs,
