@@ -130,33 +130,84 @@ def test_max_factors_must_be_positive():
         FactorStore(max_factors=0)
 
 
-@pytest.mark.parametrize("kwargs", [{"budget_mb": -1.0}, {"reserve": 1.0}, {"reserve": -0.1}])
+@pytest.mark.parametrize(
+    "kwargs", [{"budget_mb": -1.0}, {"reserve": 1.0}, {"reserve": -0.1}, {"node_share": 0.0}]
+)
 def test_memory_settings_are_checked(kwargs):
     with pytest.raises(ValueError, match=next(iter(kwargs))):
         FactorStore(**kwargs)
 
 
-def test_default_budget_keeps_factors_while_the_node_has_memory_to_spare(monkeypatch):
-    """Without a budget, factors are kept until the node's available memory nears the reserve."""
+def _fake_node(monkeypatch, rf, memory):
+    """Replace the node's memory by ``memory(per_factor, store) -> (available, total)``."""
     import diffsolids.solvers.factor_store as factor_store
 
-    rf = _reduced_functional(steps=10)
     store = rf.simulation.solver.factor_store
-    assert store.budget_mb is None  # the ReducedFunctional's default
     state = {"per_factor": None}
 
     def fake_memory():
-        # a node of 1000 MB whose available memory shrinks by what the store keeps, starting
-        # 3.5 factorisations above the reserve (25 % of the total); at the first call the SNES
-        # still holds the factors of step 1
+        # at the first call (the first kept step) the SNES holds the factors of step 1
         if state["per_factor"] is None:
             ksp = rf.simulation.solver.snes.getKSP()
             state["per_factor"] = factor_memory_mb(ksp.getPC().getFactorMatrix())
-        return 250.0 + 3.5 * state["per_factor"] - store.used_mb, 1000.0
+        return memory(state["per_factor"], store)
 
     monkeypatch.setattr(factor_store, "node_memory_mb", fake_memory)
+    return state
+
+
+def test_default_store_keeps_the_factors_on_disk(tmp_path):
+    """The default store writes MUMPS' factors out of core and the gradient stays exact."""
+    rf = _reduced_functional(steps=6)
+    default = rf.simulation.solver.factor_store
+    assert default.out_of_core and default.budget_mb is None
+    store = rf.simulation.solver.factor_store = FactorStore(directory=tmp_path)
     rf.forward(rf.initial_parameters())
-    assert len(store.factors) == 3  # the fourth would leave less than the reserve
+    assert sorted(store.factors) == list(range(1, 7))
+    files = list(tmp_path.iterdir())
+    assert files  # each kept factorisation's files
+    assert store.node_claim_mb(1000.0, 2000.0, 1) == 0.0  # no memory claimed
+    assert 0 < store.used_mb <= store.run_budget_mb
+    for error in _fd_errors(rf):
+        assert error <= FD_TOLERANCE
+    store.clear()
+    gc.collect()
+    assert len(list(tmp_path.iterdir())) < len(files)
+
+
+def test_out_of_core_directory_must_be_writable(tmp_path):
+    with pytest.raises(ValueError, match="not writable"):
+        FactorStore(directory=tmp_path / "missing")
+
+
+def test_default_budget_is_a_share_of_the_available_memory(monkeypatch):
+    """Without a budget, factors in memory take at most node_share of the available memory."""
+    rf = _reduced_functional(steps=10)
+    store = rf.simulation.solver.factor_store = FactorStore(out_of_core=False)
+    assert store.budget_mb is None and store.node_share == 0.1
+    # a node with 35 factorisations available: 3.5 of them are the store's share
+    state = _fake_node(monkeypatch, rf, lambda pf, store: (35.0 * pf, 40.0 * pf))
+    rf.forward(rf.initial_parameters())
+    per_factor = state["per_factor"]
+    assert store.run_budget_mb == pytest.approx(3.5 * per_factor)
+    assert store.used_mb <= store.run_budget_mb
+    kept = sorted(store.factors)
+    # 10 steps into room for 3: thinned to stride 4, not the first three steps
+    assert store.stride == 4 and kept == [4, 8]
+    for error in _fd_errors(rf):
+        assert error <= FD_TOLERANCE
+
+
+def test_default_budget_keeps_the_reserve_available(monkeypatch):
+    """Memory taken by others lowers what the store keeps: never below the node's reserve."""
+    rf = _reduced_functional(steps=10)
+    store = rf.simulation.solver.factor_store = FactorStore(out_of_core=False)
+    # the node's available memory shrinks by what the store keeps, starting 1.5 factorisations
+    # above the reserve (25 % of the total); the share (10 % of 1000 MB) is no limit
+    _fake_node(monkeypatch, rf, lambda pf, store: (250.0 + 1.5 * pf - store.used_mb, 1000.0))
+    rf.forward(rf.initial_parameters())
+    # each new factorisation leaves room for one: thinned down to the last multiple of 8
+    assert sorted(store.factors) == [8] and store.stride == 8
     for error in _fd_errors(rf):
         assert error <= FD_TOLERANCE
 

@@ -315,3 +315,9 @@ def test_blocked_newton_step_is_not_success(square):
         solver.solve(1)
     assert solver.residual_norm() == pytest.approx(initial_residual)  # no progress was possible
     assert initial_residual > 0.1
+
+
+def test_static_and_bdf_argument_orders_are_named_in_the_error():
+    """Static(dt, num_steps) (the BDF order of dt first) is refused with both signatures."""
+    with pytest.raises(ds.ParameterError, match=r"Static\(num_steps, dt\) and BDF\(order, dt"):
+        ds.Static(0.1, 10)

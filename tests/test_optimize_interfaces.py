@@ -83,5 +83,5 @@ def test_the_optimiser_contract(bar2):
         def forward(self, q):
             return float(np.sum(q**2))
 
-    with pytest.raises(OptimizationError, match="OptimizableFunctional.*HalfAFunctional"):
+    with pytest.raises(OptimizationError, match=r"OptimizableFunctional.*HalfAFunctional"):
         ds.minimize(HalfAFunctional(), np.zeros(2))

@@ -225,7 +225,10 @@ class Integrator(ABC):
         if not (isinstance(dt, numbers.Real) and math.isfinite(dt)) or dt <= 0:
             raise ParameterError(f"time step dt = {dt} must be a positive finite number")
         if not isinstance(num_steps, int) or num_steps < 1:
-            raise ParameterError(f"num_steps = {num_steps} must be a positive integer")
+            raise ParameterError(
+                f"num_steps = {num_steps} must be a positive integer (the arguments are "
+                "Static(num_steps, dt) and BDF(order, dt, num_steps); keywords avoid the mix-up)"
+            )
         self.dt = float(dt)
         self.num_steps = num_steps
 

@@ -45,9 +45,9 @@ class ReducedFunctional:
         controls: One Control or a sequence (concatenated into one parameter vector).
         adjoint_options: Options of the adjoint linear solves.
         factor_memory_mb: Memory (per rank) for keeping each forward step's last Newton
-            factorisation as the adjoint preconditioner of that step (0 disables; None, the
-            default, keeps factors while the node has a quarter of its memory available:
-            see :class:`~diffsolids.solvers.factor_store.FactorStore`).
+            factorisation in memory as the adjoint preconditioner of that step (0 disables;
+            None, the default, keeps them on disk, MUMPS out-of-core: see
+            :class:`~diffsolids.solvers.factor_store.FactorStore`).
         checkpointing: Which forward states the adjoint keeps: a
             :class:`~diffsolids.adjoint.checkpointing.Checkpointing` policy (all in memory, a
             fixed number of checkpoints in memory, or disk); None (default) is

@@ -439,7 +439,7 @@ class Simulation:
         self.solver.reset()
         self.substeps = {}
         if self.solver.factor_store is not None:
-            self.solver.factor_store.clear()
+            self.solver.factor_store.begin_run(self.solver.snes)
 
     def advance(self, i: int, traj: StateRecorder, replay: bool = False) -> None:
         """Solve (or prescribe) step ``i`` from the states of ``traj`` and append u^i, v^i.

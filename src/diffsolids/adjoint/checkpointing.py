@@ -91,8 +91,9 @@ class Checkpointing:
         ``"auto"`` (default): chosen at each forward run from the memory this node has
         available (``MemAvailable`` of ``/proc/meminfo``, or the container's cgroup limit):
         the states of all ranks on the node may take ``memory_fraction`` of what the factor
-        store leaves (available - reserve x total, reserve = the store's 0.25 when it keeps
-        factors by spare memory, or available - its fixed budget x ranks on the node).
+        store leaves (:meth:`~diffsolids.solvers.factor_store.FactorStore.spare_mb`: with the
+        default store, the memory above the node's reserve of 25% of its total, less the
+        store's 10% of the available memory).
         Every state in memory when N + 1 states fit, or when they take at most 1% of the
         available memory whatever the store claims (a small run is never checkpointed because
         the node is busy: its recomputation would cost more than the memory); else Revolve
@@ -189,12 +190,7 @@ def _state_budget_mb(simulation: "Simulation", fraction: float) -> float:
     ranks = node.size
     node.Free()
     store = simulation.solver.factor_store
-    if store is None:
-        spare = available
-    elif store.budget_mb is not None:
-        spare = available - store.budget_mb * ranks
-    else:
-        spare = available - store.reserve * total
+    spare = available if store is None else store.spare_mb(available, total, ranks)
     # a small run is never checkpointed because the store claims the spare memory
     return max(max(spare, 0.0) * fraction, _SMALL_RUN_SHARE * available) / ranks
 
@@ -312,9 +308,11 @@ class _States(Sequence[np.ndarray]):
 class _StateView:
     """Trajectory-like view of a dict of states (what ``Simulation.advance`` reads and writes).
 
-    ``length`` is the trajectory length the numeric terms see: the number of states so far in
-    the first forward (so that a contact term knows it runs forward and records its steps), and
-    N + 1 in recomputations and in the backward sweep.
+    ``length`` is the trajectory length a step's reader sees: the number of states so far in
+    the first forward and N + 1 in recomputations and in the backward sweep, as with a
+    :class:`~diffsolids.states.Trajectory`. Terms take their phase from the
+    :class:`~diffsolids.states.StepContext`; the length keeps terms with the deprecated
+    ``begin_step(i, traj, ...)`` hook, which told the phases apart by it, working until 0.5.
     """
 
     def __init__(

@@ -82,6 +82,7 @@ class AdjointLinearSolver:
         self.action = JacobianAction(newton) if matrix_free else None
         self._factor_ksps: dict = {}
         self._precond = None  # (PETSc.PC, index of the frozen matrix or -1 for the forward one)
+        self._precond_step: int | None = None  # the step whose Jacobian it factorised
         self.stats = {"krylov_iterations": 0, "factorisations": 0, "direct_solves": 0}
         self._gmres = PETSc.KSP().create(self.comm)
         self._gmres.setType("fgmres")  # no final preconditioner application
@@ -101,6 +102,7 @@ class AdjointLinearSolver:
         self._stored = dict(store.factors) if store is not None else {}
         # Without a store the SNES's KSP still holds the factors of the last Newton iterate.
         self._precond = None if store is not None else (self.newton.snes.getKSP().getPC(), -1)
+        self._precond_step = None
         self.stats = {"krylov_iterations": 0, "factorisations": 0, "direct_solves": 0}
         self._quadratic_cache = {}
 
@@ -123,8 +125,7 @@ class AdjointLinearSolver:
             return self._solve_iterative(b, x, step)
         if self.newton.quadratic:
             return self._solve_quadratic(b, x)
-        if step in self._stored:  # the forward's own last factors of this step
-            self._precond = (self._stored[step].getPC(), -1)
+        self._nearest_stored(step)
         frozen = -1 if self._precond is None else self._precond[1]
         work = 1 if frozen == 0 else 0
         A = self._assembled(work) if self.action is None else None
@@ -140,11 +141,26 @@ class AdjointLinearSolver:
                 self._factor_ksps[work].destroy()
             self._factor_ksps[work] = ksp
             self._precond = (ksp.getPC(), work)
+            self._precond_step = step
             if its is None:
                 ksp.solve(b, x)
                 self.stats["direct_solves"] += 1
                 its = 0
         return its
+
+    def _nearest_stored(self, step: int) -> None:
+        """Precondition with the stored factors of the step nearest to ``step`` (later on a tie).
+
+        Kept when they are nearer than the current preconditioner's step: a store thinned to
+        every k-th step then preconditions each step with factors at most k / 2 steps away.
+        """
+        if not self._stored:
+            return
+        nearest = min(self._stored, key=lambda k: (abs(k - step), -k))
+        current = self._precond_step
+        if self._precond is None or current is None or abs(nearest - step) < abs(current - step):
+            self._precond = (self._stored[nearest].getPC(), -1)
+            self._precond_step = nearest
 
     def _assembled(self, work: int) -> PETSc.Mat:
         """Exact Jacobian in work matrix ``work`` (its pattern grown for contact if needed)."""

@@ -1,6 +1,10 @@
 """Forward factorisations kept for the adjoint, within the memory the machine can spare."""
 
 import gc
+import os
+import shutil
+import tempfile
+import weakref
 from pathlib import Path
 from typing import ClassVar
 
@@ -9,8 +13,9 @@ from petsc4py import PETSc
 
 from diffsolids.errors import ParameterError
 from diffsolids.parallel import collective_comm
+from diffsolids.solvers.linear_options import delete_options
 
-__all__ = ["FactorStore", "factor_memory_mb", "lu_solver", "node_memory_mb"]
+__all__ = ["FactorStore", "factor_disk_mb", "factor_memory_mb", "lu_solver", "node_memory_mb"]
 
 
 def lu_solver(comm: MPI.Comm, A: PETSc.Mat) -> PETSc.KSP:
@@ -71,18 +76,22 @@ def _cgroup_memory_mb(root: Path) -> tuple[float, float] | None:
     return None
 
 
-def factor_memory_mb(factor: PETSc.Mat) -> float:
-    """Memory (MB) held by this rank's part of a MUMPS factorisation.
-
-    MUMPS' own report, or the size of its factor entries when the report rounds to 0 MB.
-    """
+def factor_disk_mb(factor: PETSc.Mat) -> float:
+    """Size (MB) of this rank's part of a MUMPS factorisation's entries (its out-of-core files)."""
 
     def count(k: int) -> float:  # MUMPS reports counts above 2^31 negative, in millions
         n = factor.getMumpsInfo(k)
         return float(n) if n >= 0 else -1e6 * n
 
-    entries_mb = (8.0 * count(9) + 4.0 * count(10)) / 2**20  # real and integer entries
-    return max(float(factor.getMumpsInfo(22)), entries_mb)
+    return (8.0 * count(9) + 4.0 * count(10)) / 2**20  # real and integer entries
+
+
+def factor_memory_mb(factor: PETSc.Mat) -> float:
+    """Memory (MB) held by this rank's part of a MUMPS factorisation.
+
+    MUMPS' own report, or the size of its factor entries when the report rounds to 0 MB.
+    """
+    return max(float(factor.getMumpsInfo(22)), factor_disk_mb(factor))
 
 
 class FactorStore:
@@ -93,10 +102,21 @@ class FactorStore:
     of the same type. The adjoint then preconditions the exact Jacobian of step i with the
     factors of step i: a Krylov solve of one or two iterations.
 
-    Memory: with a fixed ``budget_mb`` the factors of each rank stay within it. Without one
-    (the default) factors are kept while the node keeps ``reserve`` of its total memory
-    available (all ranks on the node counted); where the node's memory is unknown (no
-    ``/proc/meminfo``) the budget is 2000 MB per rank.
+    Storage: ``out_of_core=True`` (the default without a ``budget_mb``) keeps the factors on
+    disk (MUMPS out-of-core, files in ``directory``, removed with the factorisation): the
+    Newton solves write them as they factorise, the adjoint's solves read them back, and the
+    memory stays that of the forward. The stored factors of all ranks on the node then take
+    at most half of the free disk space of ``directory`` when the run starts.
+
+    Memory (``out_of_core=False``): with a fixed ``budget_mb`` the factors of each rank stay
+    within it. Without one the factors of all ranks on the node together take at most
+    ``node_share`` of the memory the node has available when the run starts (each rank its
+    share), and never leave less than ``reserve`` of the node's total memory available. Where
+    the node's memory is unknown (no ``/proc/meminfo``) the budget is 2000 MB per rank.
+
+    A store whose next factorisation would exceed its budget thins to evenly spaced steps
+    (below) instead of keeping only the first steps, and the adjoint preconditions each step
+    with the nearest stored factors.
 
     Every MUMPS instance holds several MPI communicators, and an MPI library has a few thousand
     (MPICH: 2048 per process; MUMPS does not check for failure and corrupts memory when they run
@@ -108,9 +128,13 @@ class FactorStore:
 
     Args:
         budget_mb: Memory for stored factors per rank (estimated from MUMPS' report), or None
-            for the node's spare memory.
+            for ``node_share`` of the node's available memory.
         max_factors: Most factorisations this store keeps.
         reserve: Fraction of the node's total memory left available (``budget_mb=None``).
+        node_share: Fraction of the node's available memory at the start of a run that the
+            factors of all its ranks may take together (``budget_mb=None``, in memory).
+        out_of_core: Keep the factors on disk; None: on disk unless ``budget_mb`` is given.
+        directory: Directory of the out-of-core files (default: the system's temporary one).
 
     Attributes:
         max_live: Most stored factorisations of all stores of the process together.
@@ -120,7 +144,13 @@ class FactorStore:
     _live: ClassVar[int] = 0
 
     def __init__(
-        self, budget_mb: float | None = None, max_factors: int = 64, reserve: float = 0.25
+        self,
+        budget_mb: float | None = None,
+        max_factors: int = 64,
+        reserve: float = 0.25,
+        node_share: float = 0.1,
+        out_of_core: bool | None = None,
+        directory: str | os.PathLike | None = None,
     ) -> None:
         if max_factors < 1:
             raise ParameterError(f"max_factors must be at least 1, got {max_factors}")
@@ -128,11 +158,19 @@ class FactorStore:
             raise ParameterError(f"budget_mb must be None or >= 0, got {budget_mb}")
         if not 0 <= reserve < 1:
             raise ParameterError(f"reserve must be a fraction in [0, 1), got {reserve}")
-        if budget_mb is None and node_memory_mb() is None:
+        if not 0 < node_share <= 1:
+            raise ParameterError(f"node_share must be a fraction in (0, 1], got {node_share}")
+        self.out_of_core = budget_mb is None if out_of_core is None else bool(out_of_core)
+        self.directory = str(directory) if directory is not None else tempfile.gettempdir()
+        if self.out_of_core and not os.access(self.directory, os.W_OK | os.X_OK):
+            raise ParameterError(f"out-of-core factors: directory {self.directory} is not writable")
+        if budget_mb is None and not self.out_of_core and node_memory_mb() is None:
             budget_mb = 2000.0
         self.budget_mb = budget_mb
         self.max_factors = max_factors
         self.reserve = reserve
+        self.node_share = node_share
+        self.run_budget_mb: float | None = budget_mb  # per rank, fixed at a run's first keep
         self.factors: dict[int, PETSc.KSP] = {}
         self.sizes_mb: dict[int, float] = {}
         self.used_mb = 0.0
@@ -151,6 +189,35 @@ class FactorStore:
         self.sizes_mb.clear()
         self.used_mb = 0.0
         self.stride = 1
+        self.run_budget_mb = self.budget_mb
+
+    def node_claim_mb(self, available: float, total: float, ranks_on_node: int) -> float:
+        """Memory (MB) the stores of all ranks on a node may claim together.
+
+        Args:
+            available: The node's available memory (MB).
+            total: The node's total memory (MB).
+            ranks_on_node: Ranks of the job on the node.
+        """
+        if self.out_of_core:
+            return 0.0
+        if self.budget_mb is not None:
+            return self.budget_mb * ranks_on_node
+        return min(self.node_share * available, self._headroom_mb(available, total))
+
+    def spare_mb(self, available: float, total: float, ranks_on_node: int) -> float:
+        """Memory (MB) of the node the job may use besides the stores (checkpointed states).
+
+        With a fixed budget: what it leaves available. Without one: what the stores leave of
+        the memory above the node's reserve (none on a node that is already below it).
+        """
+        claim = self.node_claim_mb(available, total, ranks_on_node)
+        if self.budget_mb is not None and not self.out_of_core:
+            return available - claim
+        return self._headroom_mb(available, total) - claim
+
+    def _headroom_mb(self, available: float, total: float) -> float:
+        return max(available - self.reserve * total, 0.0)
 
     def discard_after(self, step: int) -> None:
         """Free the factorisations of steps after ``step`` (collective: same steps on all ranks).
@@ -184,17 +251,40 @@ class FactorStore:
             self._thin()
         return True
 
+    def _make_room(self, size_mb: float, comm: MPI.Comm) -> bool:
+        """Thin until factors of ``size_mb`` per rank fit; False if they do not fit alone."""
+        while not self._fits(size_mb, comm):
+            if not self.factors:
+                return False
+            self._thin()
+        return True
+
     def _fits(self, size_mb: float, comm: MPI.Comm) -> bool:
         """Whether factors of ``size_mb`` per rank fit the budget (collective)."""
-        if self.budget_mb is not None:
-            return self.used_mb + size_mb <= self.budget_mb
+        if self.run_budget_mb is None:
+            self.run_budget_mb = self._node_budget_mb(comm)
+        fits = self.used_mb + size_mb <= self.run_budget_mb
+        if self.budget_mb is None and not self.out_of_core:  # others may have taken memory
+            available, total = node_memory_mb()
+            fits = fits and available - size_mb * self._ranks(comm) >= self.reserve * total
+        return collective_comm(comm).allreduce(fits, op=MPI.LAND)
+
+    def _ranks(self, comm: MPI.Comm) -> int:
         if self._ranks_on_node is None:
             node = comm.Split_type(MPI.COMM_TYPE_SHARED)
             self._ranks_on_node = node.size
             node.Free()
+        return self._ranks_on_node
+
+    def _node_budget_mb(self, comm: MPI.Comm) -> float:
+        """This rank's share of :meth:`node_claim_mb` now (the same on all ranks)."""
+        ranks = self._ranks(comm)
+        if self.out_of_core:
+            claim = 0.5 * shutil.disk_usage(self.directory).free / 2**20 / ranks
+            return float(collective_comm(comm).allreduce(claim, op=MPI.MIN))
         available, total = node_memory_mb()
-        fits = available - size_mb * self._ranks_on_node >= self.reserve * total
-        return collective_comm(comm).allreduce(fits, op=MPI.LAND)
+        claim = self.node_claim_mb(available, total, ranks) / ranks
+        return float(collective_comm(comm).allreduce(claim, op=MPI.MIN))
 
     def keep(self, step: int, snes: PETSc.SNES) -> None:
         """Store the current KSP of ``snes`` for ``step`` if it fits; give SNES a new KSP."""
@@ -209,16 +299,45 @@ class FactorStore:
         comm = old.comm.tompi4py()
         if not self._room(comm) or step % self.stride:  # thinning may have doubled the stride
             return
-        size_mb = collective_comm(comm).allreduce(
-            factor_memory_mb(pc.getFactorMatrix()), op=MPI.MAX
-        )
-        if not self._fits(size_mb, comm):
+        factor = pc.getFactorMatrix()
+        local_mb = factor_disk_mb(factor) if self.out_of_core else factor_memory_mb(factor)
+        size_mb = collective_comm(comm).allreduce(local_mb, op=MPI.MAX)
+        if not self._make_room(size_mb, comm) or step % self.stride:
             return
         pc.setReusePreconditioner(True)
         self.factors[step] = old
         self.sizes_mb[step] = size_mb
         self.used_mb += size_mb
         FactorStore._live += 1
+        self._fresh_ksp(snes)
+
+    def begin_run(self, snes: PETSc.SNES) -> None:
+        """Free the last run's factorisations and set ``snes`` up to factorise as stored.
+
+        Out of core: MUMPS writes the factors of ``snes``'s next factorisations to
+        :attr:`directory` (options under the SNES's own prefix; a KSP that has factorised
+        already is replaced by a fresh one, which reads them).
+        """
+        self.clear()
+        prefix = snes.getOptionsPrefix() or ""
+        opts = PETSc.Options(prefix)
+        factorises = opts.getString("pc_type", "") in ("lu", "cholesky") and (
+            opts.getString("pc_factor_mat_solver_type", "") == "mumps"
+        )
+        if not self.out_of_core or not factorises or opts.hasName("mat_mumps_icntl_22"):
+            return
+        opts["mat_mumps_icntl_22"] = 1
+        opts["mat_mumps_ooc_tmpdir"] = self.directory
+        names = ["mat_mumps_icntl_22", "mat_mumps_ooc_tmpdir"]
+        weakref.finalize(snes, delete_options, prefix, names)  # with the solver's own options
+        pc = snes.getKSP().getPC()
+        if pc.getType() == "lu" and pc.getFactorSolverType() == "mumps":
+            self._fresh_ksp(snes)
+
+    @staticmethod
+    def _fresh_ksp(snes: PETSc.SNES) -> None:
+        """Give ``snes`` a new LU (MUMPS) KSP of the same type and options prefix."""
+        old = snes.getKSP()
         new = PETSc.KSP().create(old.comm)
         new.setOptionsPrefix(old.getOptionsPrefix())
         new.setType(old.getType())

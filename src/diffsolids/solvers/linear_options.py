@@ -18,6 +18,7 @@ from petsc4py import PETSc
 __all__ = [
     "FACTORISATIONS",
     "KRYLOV_DEFAULTS",
+    "delete_options",
     "krylov_solver",
     "reason_name",
     "rigid_body_modes",
@@ -93,11 +94,12 @@ def solver_prefix(owner: object, base: str, defaults: dict, user: dict) -> str:
     opts = PETSc.Options(prefix)
     for k, v in merged.items():
         opts[k] = v
-    weakref.finalize(owner, _delete_options, prefix, list(merged))
+    weakref.finalize(owner, delete_options, prefix, list(merged))
     return prefix
 
 
-def _delete_options(prefix: str, names: list[str]) -> None:
+def delete_options(prefix: str, names: list[str]) -> None:
+    """Remove ``names`` under ``prefix`` from the options database (if PETSc still runs)."""
     if PETSc.Sys.isFinalized():
         return
     opts = PETSc.Options(prefix)
