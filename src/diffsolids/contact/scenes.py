@@ -1,7 +1,7 @@
 """Deprecated: scene assembly moved to :mod:`diffsolids.mesh.scene` (0.1, December 2026).
 
 ``from diffsolids.contact.scenes import combine_meshes`` still works and warns; import from
-``diffsolids.mesh`` (or ``diffsolids``) instead. The alias goes in 0.4.
+``diffsolids.mesh`` (or ``diffsolids``) instead. The alias goes in 0.5.
 """
 
 import warnings
@@ -18,7 +18,7 @@ def __getattr__(name: str) -> Any:
     if name in _MOVED:
         warnings.warn(
             f"diffsolids.contact.scenes.{name} moved to diffsolids.mesh.{name} "
-            "(diffsolids.contact.scenes goes in 0.4)",
+            "(diffsolids.contact.scenes goes in 0.5)",
             DeprecationWarning,
             stacklevel=2,
         )
