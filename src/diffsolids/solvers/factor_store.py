@@ -106,7 +106,9 @@ class FactorStore:
     disk (MUMPS out-of-core, files in ``directory``, removed with the factorisation): the
     Newton solves write them as they factorise, the adjoint's solves read them back, and the
     memory stays that of the forward. The stored factors of all ranks on the node then take
-    at most half of the free disk space of ``directory`` when the run starts.
+    at most half of the free disk space of ``directory`` when the run starts. (Where the
+    temporary directory is a memory file system, tmpfs, the files take memory: give a
+    ``directory`` on disk.)
 
     Memory (``out_of_core=False``): with a fixed ``budget_mb`` the factors of each rank stay
     within it. Without one the factors of all ranks on the node together take at most
