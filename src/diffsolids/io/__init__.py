@@ -39,6 +39,6 @@ __all__ = [
 
 def __getattr__(name: str) -> Any:
     polyfem_scene = importlib.import_module("diffsolids.io.polyfem_scene")
-    if name in polyfem_scene.MOVED:
+    if not name.startswith("__") and name in polyfem_scene.moved_names():
         return polyfem_scene.moved(__name__, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

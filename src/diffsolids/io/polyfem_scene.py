@@ -10,15 +10,15 @@ from typing import Any
 
 __all__: list[str] = []  # only the deprecated names below, reached through __getattr__
 
-MOVED = (
-    "BoxSideSelection",
-    "PolyFEMBoundaryValue",
-    "PolyFEMGeometry",
-    "PolyFEMMaterial",
-    "PolyFEMScene",
-    "PolyFEMSetup",
-    "read_polyfem_scene",
-)
+
+def moved_names() -> list[str]:
+    """The public names of :mod:`diffsolids.polyfem.scene`, reachable here with a warning."""
+    return _scene().__all__
+
+
+def _scene() -> Any:
+    # the importer sits above the core (diffsolids.polyfem): the alias reaches up by name
+    return importlib.import_module("diffsolids.polyfem.scene")
 
 
 def moved(module: str, name: str) -> Any:
@@ -28,11 +28,10 @@ def moved(module: str, name: str) -> Any:
         DeprecationWarning,
         stacklevel=3,
     )
-    # the importer sits above the core (diffsolids.polyfem): the alias reaches up by name
-    return getattr(importlib.import_module("diffsolids.polyfem.scene"), name)
+    return getattr(_scene(), name)
 
 
 def __getattr__(name: str) -> Any:
-    if name in MOVED:
+    if not name.startswith("__") and name in moved_names():
         return moved(__name__, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
