@@ -27,7 +27,7 @@ from common import MESHES, DemoReport, run_demo
 from dolfinx import fem
 from mpi4py import MPI
 from shape_tools import (
-    check_invariants,
+    check_iterates,
     design_vertex_coordinates,
     optimise_shape,
     plot_shapes_2d,
@@ -128,7 +128,7 @@ def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
         relative_error=relative,
         parameters=rf.size,
     )
-    check_invariants(report, opt.monitor)
+    check_iterates(report, opt.monitor)
     if not args.tiny:
         report.check(
             "max vertex error / perturbation",

@@ -1,9 +1,7 @@
 """Helpers of the transient contact demos (throw, sliding friction, puzzle, shock protection).
 
-A contact term with the suggested barrier stiffness, the nodes of a body, the output of the
-runs, the invariants every run checks (no inverted element and no intersection in any
-reported state; the counts come from ``diffsolids.optimize.check_trajectories``), and the
-closing figures and summary line every run prints.
+The nodes of a body, the output of the runs, and the closing figures and summary line every
+run prints.
 """
 
 import time
@@ -11,50 +9,15 @@ from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
-from common import check_decrease
-from dolfinx import fem
 
-import diffsolids as ds
-from diffsolids.contact import ContactTerm
 from diffsolids.io import write_trajectory
-from diffsolids.optimize import StateChecks
 
 __all__ = [
-    "TargetSimulation",
-    "add_contact",
     "body_nodes",
-    "check_invariants",
     "finish_transient",
     "scene_figure",
     "write_runs",
 ]
-
-
-class TargetSimulation(ds.Simulation):
-    """A Simulation that also loads the target displacement of step i into a Function.
-
-    ``load_step`` is called by the forward run, the objective evaluation and the adjoint
-    sweep before anything of step i is assembled, so a ``target_displacement`` objective with
-    ``self.target`` compares u^i with the target of the same step.
-    """
-
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        self.target = fem.Function(self.model.V, name="target")
-        self.targets: list[np.ndarray] | None = None
-
-    def load_step(self, i, traj):
-        """Set step ``i`` (see Simulation.load_step) and the target displacement u^i_target."""
-        if self.targets is not None:
-            self.target.x.array[:] = self.targets[i]
-        return super().load_step(i, traj)
-
-
-def add_contact(model, dhat: float, **kwargs) -> ContactTerm:
-    """A ContactTerm in the model; it chooses its barrier stiffness at its first step."""
-    contact = ContactTerm(model, dhat=dhat, **kwargs)
-    model.add_numeric_term(contact)
-    return contact
 
 
 def body_nodes(model, body) -> np.ndarray:
@@ -69,25 +32,6 @@ def write_runs(model, runs: Mapping[str, object], args, prefix: str) -> list[Pat
     for path, traj in zip(paths, runs.values(), strict=True):
         write_trajectory(model, traj, path)
     return paths
-
-
-def check_invariants(report, *checks: StateChecks) -> None:
-    """Add the checks every run makes: objective decreased, no inverted element, no intersection.
-
-    ``checks`` are the results of ``check_trajectories`` for the reported runs.
-    """
-    inverted = sum(c.inverted for c in checks)
-    intersecting = sum(c.intersecting for c in checks)
-    gap = min(c.min_distance for c in checks)
-    check_decrease(report)
-    report.check("no inverted element", inverted, 0, inverted == 0, "(states with one)")
-    report.check(
-        "no intersection",
-        intersecting,
-        0,
-        intersecting == 0,
-        f"(intersecting states; smallest gap {gap:.2e} m)",
-    )
 
 
 def scene_figure(height: float, heights: tuple, widths: tuple | None, plots: int):

@@ -11,7 +11,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from common import check_decrease
 from dolfinx import fem
 
 from diffsolids.io import write_trajectory
@@ -19,29 +18,10 @@ from diffsolids.io import write_trajectory
 __all__ = [
     "body_cell_mask",
     "cell_values",
-    "check_invariants",
     "check_recovered",
     "finish_material",
     "write_states",
 ]
-
-
-def check_invariants(
-    report, volume_ratio: float, volume_text: str, free: bool | None = None, free_text: str = ""
-) -> None:
-    """Record: objective decreased, (with ``free``) no intersection, no inverted element.
-
-    Args:
-        report: The DemoReport.
-        volume_ratio: Smallest deformed/rest cell volume ratio of the reported states.
-        volume_text: Which states that ratio covers.
-        free: Whether no reported state intersects (contact scenes; None: not checked).
-        free_text: Which states were checked for intersections.
-    """
-    check_decrease(report)
-    if free is not None:
-        report.check("no intersection", float(free), 1.0, free, free_text)
-    report.check("no inverted element", volume_ratio, 0.0, volume_ratio > 0, volume_text)
 
 
 def check_recovered(report, start: dict, found: dict, true: dict, max_error: float) -> None:

@@ -21,17 +21,16 @@ import os
 from pathlib import Path
 
 import numpy as np
-from common import ROOT
-from dynamic_common import TargetSimulation, check_invariants, finish_transient
+from common import ROOT, check_invariants
+from dynamic_common import finish_transient
 
 import diffsolids as ds
-from diffsolids.objectives import center_of_mass, series_values, target_displacement, time_integral
+from diffsolids.objectives import center_of_mass, series_values, target_trajectory, time_integral
 from diffsolids.optimize import LBFGSOptions, check_trajectories
 from diffsolids.polyfem.scene import PolyFEMScene, read_polyfem_scene
 
 __all__ = [
     "DEFAULT_DATA",
-    "TargetSimulation",
     "add_data_argument",
     "build",
     "contact_figures",
@@ -154,19 +153,24 @@ def paper_functional(
     return functional, static
 
 
-def target_objective(sim: TargetSimulation, opt: dict):
+def target_objective(sim: ds.Simulation, opt: dict, target: ds.Trajectory):
     """The paper's objective of opt.json: ``transient_integral`` of a ``target`` term.
 
     PolyFEM's ``target`` with ``surface_selection`` is int_Gamma |x - x_target|^2 ds over the
     selected boundary (same meshes: |u - u_target|^2); its ``transient_integral`` (uniform)
     skips t = 0 and weights each later step by dt; ``weight`` multiplies the whole.
 
+    Args:
+        sim: The simulation the objective is evaluated on.
+        opt: opt.json's contents.
+        target: The target run (same mesh and steps).
+
     Raises:
         ds.ParameterError: opt.json holds another objective.
     """
     functional, static = paper_functional(opt, "uniform", "target", default_integral="uniform")
     facets = static["surface_selection"]
-    misfit = target_displacement(sim.model, sim.target, facets=facets)
+    misfit = target_trajectory(sim, target, facets=facets, match="displacement")
     return time_integral(misfit, "uniform") * float(functional.get("weight", 1.0))
 
 
@@ -177,11 +181,10 @@ def build(
     kappa=None,
     rtol: float = 1e-9,
     area_weighting: bool = False,
-    simulation: type = TargetSimulation,
     contact_options: dict | None = None,
     **solver_options: float | str,
 ):
-    """The scene's model, contact term and a TargetSimulation of its first ``steps`` steps.
+    """The scene's model, contact term and a Simulation of its first ``steps`` steps.
 
     Args:
         scene: The run scene.
@@ -191,7 +194,6 @@ def build(
         rtol: Newton tolerance.
         area_weighting: Weight contact pairs by area (PolyFEM: no; the 3D throw converges
             with the suggested kappa only with it, see bench_paper).
-        simulation: The Simulation class (TargetSimulation or a subclass).
         contact_options: Further ContactTerm arguments (e.g. ``hessian_projection``).
         **solver_options: Further :class:`~diffsolids.SolverOptions` (e.g.
             ``exact_hessian_below``).
@@ -212,7 +214,7 @@ def build(
         area_weighting=area_weighting,
         **(contact_options or {}),
     )
-    sim = simulation(
+    sim = ds.Simulation(
         model,
         integrator,
         ds.SolverOptions(rtol=rtol, **solver_options),

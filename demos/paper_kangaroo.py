@@ -67,7 +67,7 @@ from paper_common import (
 )
 
 from diffsolids.adjoint.checkpointing import Checkpointing
-from diffsolids.controls import ParameterControl
+from diffsolids.controls import ControlSet, ParameterControl
 from diffsolids.optimize import (
     IterationRecord,
     OptimizationOutput,
@@ -266,14 +266,13 @@ def setup(args, comm):
         ParameterControl(model, "E", "bodies", [KANGAROO], log=True, lower=np.log(1e4)),
         ParameterControl(model, "nu", "bodies", [KANGAROO], lower=0.0, upper=0.5),
     ]
-    objective = target_objective(sim, opt)
+    true, q0 = parameters_of(target_scene), parameters_of(run_scene)
+    ControlSet(controls, sim).assign(true)
+    target = sim.run()
     # 61 states of 462 dofs: all in memory (the "auto" policy checkpoints on a loaded node, and
     # the figure and the invariant checks read every state of the kept trajectories)
+    objective = target_objective(sim, opt, target)
     rf = ReducedFunctional(sim, objective, controls, checkpointing=Checkpointing("all"))
-    true, q0 = parameters_of(target_scene), parameters_of(run_scene)
-    rf.controls.assign(true)
-    target = sim.run()
-    sim.targets = [u.copy() for u in target.u]
     rf.controls.assign(q0)
     return model, contact, sim, rf, target, true, q0, opt
 

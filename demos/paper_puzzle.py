@@ -76,9 +76,8 @@ def setup(args, comm):
     q0 = velocity_of(run_scene, PIECE)
     control.assign(true)
     target = sim.run()
-    sim.targets = [u.copy() for u in target.u]
     control.assign(q0)
-    rf = ReducedFunctional(sim, target_objective(sim, opt), control)
+    rf = ReducedFunctional(sim, target_objective(sim, opt, target), control)
     return model, contact, sim, rf, target, true, q0, opt
 
 

@@ -36,7 +36,7 @@ from diffsolids.reduced_functional import ReducedFunctional
 __all__ = [
     "ShapeRun",
     "StressProblem",
-    "check_invariants",
+    "check_iterates",
     "check_stress_reduction",
     "design_vertex_coordinates",
     "max_von_mises",
@@ -165,7 +165,7 @@ def optimise_shape(
     return ShapeRun(result, monitor, files, initial, final)
 
 
-def check_invariants(
+def check_iterates(
     report, monitor: InvariantMonitor, rest: str = "iterates with self-intersecting boundaries"
 ) -> None:
     """Record: objective decreased, no iterate with inverted cells or intersecting boundaries.
@@ -348,7 +348,7 @@ class StressProblem:
             volume_final=V1,
             **self.extra(opt.result),
         )
-        check_invariants(report, opt.monitor, self.rest_check)
+        check_iterates(report, opt.monitor, self.rest_check)
         if not args.tiny:
             check_stress_reduction(report, stress0, stress1, self.min_reduction)
             self.check(report, V1)

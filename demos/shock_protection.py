@@ -28,13 +28,22 @@ Run ``python demos/shock_protection.py`` or under ``mpiexec -n 2``.
 from typing import override
 
 import numpy as np
-from common import MESHES, DemoReport, DemoRun, plot_history, run_demo, save_figure
+from common import (
+    MESHES,
+    DemoReport,
+    DemoRun,
+    check_invariants,
+    plot_history,
+    run_demo,
+    save_figure,
+)
 from dolfinx import fem
-from dynamic_common import add_contact, body_nodes, check_invariants, finish_transient, write_runs
+from dynamic_common import body_nodes, finish_transient, write_runs
 from mpi4py import MPI
 
 import diffsolids as ds
 from diffsolids import forms
+from diffsolids.contact import ContactTerm
 from diffsolids.controls import ShapeControl
 from diffsolids.io import boundary_edges
 from diffsolids.mesh import from_geo
@@ -125,7 +134,7 @@ def build_scene(args, comm):
     model.add_gravity(9.81)
     model.add_dirichlet("base", 0.0)
     integrator = ds.BDF(2, args.dt, args.steps)
-    contact = add_contact(model, DHAT, friction=FRICTION, eps_v=EPS_V)
+    contact = model.add_numeric_term(ContactTerm(model, DHAT, friction=FRICTION, eps_v=EPS_V))
     v0 = np.zeros_like(model.fields.u.x.array)
     v0.reshape(-1, 2)[body_nodes(model, "load"), 1] = -SPEED
     options = ds.SolverOptions(rtol=1e-8, max_iterations=100)

@@ -20,8 +20,16 @@ Run ``python demos/sliding_friction.py`` or ``mpiexec -n 2 python demos/sliding_
 """
 
 import numpy as np
-from common import MESHES, DemoReport, DemoRun, plot_history, run_demo, save_figure
-from dynamic_common import add_contact, body_nodes, check_invariants, finish_transient, write_runs
+from common import (
+    MESHES,
+    DemoReport,
+    DemoRun,
+    check_invariants,
+    plot_history,
+    run_demo,
+    save_figure,
+)
+from dynamic_common import body_nodes, finish_transient, write_runs
 from mpi4py import MPI
 
 import diffsolids as ds
@@ -68,7 +76,9 @@ def build_scene(args, comm):
     # kappa of the sliding run's integrator (the settling run below would otherwise choose it)
     kappa = suggest_barrier_stiffness(ContactTerm(model, dhat=DHAT, stiffness=1.0), integrator)
     friction = {("ramp", "block"): args.mu_start}
-    contact = add_contact(model, DHAT, stiffness=kappa, friction=friction, eps_v=EPS_V)
+    contact = model.add_numeric_term(
+        ContactTerm(model, DHAT, stiffness=kappa, friction=friction, eps_v=EPS_V)
+    )
     options = ds.SolverOptions(rtol=1e-8)
     u0 = settle(model, contact, args.dt, options)
     sim = ds.Simulation(model, integrator, options, u0=u0, progress=False)

@@ -21,11 +21,20 @@ Run ``python demos/throw.py`` or ``mpiexec -n 2 python demos/throw.py``.
 """
 
 import numpy as np
-from common import MESHES, DemoReport, DemoRun, plot_history, run_demo, save_figure
-from dynamic_common import add_contact, body_nodes, check_invariants, finish_transient, write_runs
+from common import (
+    MESHES,
+    DemoReport,
+    DemoRun,
+    check_invariants,
+    plot_history,
+    run_demo,
+    save_figure,
+)
+from dynamic_common import body_nodes, finish_transient, write_runs
 from mpi4py import MPI
 
 import diffsolids as ds
+from diffsolids.contact import ContactTerm
 from diffsolids.controls import RigidVelocity
 from diffsolids.io import boundary_edges
 from diffsolids.mesh import from_geo
@@ -97,7 +106,7 @@ def build_scene(args, comm):
     up = args.dim - 1
     model.add_dirichlet(lambda x: x[up] < 1e-9, 0.0)  # the ground: every node with z <= 0
     integrator = ds.BDF(2, args.dt, args.steps)
-    contact = add_contact(model, DHAT, friction=FRICTION, eps_v=EPS_V)
+    contact = model.add_numeric_term(ContactTerm(model, DHAT, friction=FRICTION, eps_v=EPS_V))
     options = ds.SolverOptions(rtol=1e-8)
     sim = ds.Simulation(
         model, integrator, options, u0=settle(model, args.dt, options), progress=False

@@ -27,8 +27,8 @@ GroundSpring = load_docs_example("howto_extend").GroundSpring
 
 def _spring_simulation(comm, k: float = 2.0e3) -> tuple[ds.Simulation, GroundSpring]:
     model = build_model(SCENES["2d-p1-nh-damped"], comm)
-    spring = GroundSpring(model, k)
-    model.add_numeric_term(spring)
+    spring = model.add_numeric_term(GroundSpring(model, k))
+    assert type(spring) is GroundSpring and model.numeric_terms[-1] is spring
     v0 = np.array([0.0, 0.3])
     return ds.Simulation(model, ds.BDF(2, 0.05, 4), NEWTON, v0=v0, progress=False), spring
 

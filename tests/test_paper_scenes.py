@@ -229,9 +229,7 @@ def paper_gradient_scene(name: str, comm=COMM):
         truth = [np.log(target.materials[1].E), target.materials[1].nu]
         for c, value in zip(controls, truth, strict=True):
             c.assign(np.array([value]))
-    traj = sim.run()
-    sim.targets = [u.copy() for u in traj.u]
-    rf = ReducedFunctional(sim, common.target_objective(sim, opt), controls)
+    rf = ReducedFunctional(sim, common.target_objective(sim, opt, sim.run()), controls)
     rf(q)
     return rf, q, contact
 

@@ -10,6 +10,7 @@ import contextlib
 import functools
 import numbers
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from typing import TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -35,6 +36,8 @@ from diffsolids.model.terms import (
     Traction,
 )
 from diffsolids.parallel import collective_comm
+
+NumericTermT = TypeVar("NumericTermT", bound=NumericTerm)
 
 __all__ = ["Model"]
 
@@ -374,8 +377,11 @@ class Model:
         self.dirichlet.append(bc)
         return bc
 
-    def add_numeric_term(self, term: NumericTerm) -> None:
+    def add_numeric_term(self, term: NumericTermT) -> NumericTermT:
         """Add a non-UFL term (e.g. contact) answering the same questions numerically.
+
+        Returns:
+            The term, so that ``contact = model.add_numeric_term(ContactTerm(model, ...))``.
 
         Raises:
             ParameterError: A Simulation already uses the model, or ``term`` is not a
@@ -388,6 +394,7 @@ class Model:
                 f"not {type(term).__name__}"
             )
         self.numeric_terms.append(term)
+        return term
 
     # -- queries used by integrators, solvers and the adjoint ----------------------------
     @property
