@@ -150,7 +150,7 @@ def test_without_factor_store_the_gradient_is_still_that_of_all_in_memory():
     rf = ReducedFunctional(
         sim, J, controls(), factor_memory_mb=0, checkpointing=Checkpointing("memory", snaps=3)
     )
-    assert sim.solver.factor_store is None
+    assert rf.factor_store is None and sim.solver.factor_store is None
     assert _relative(rf.gradient(q), g_ref) <= RTOL
     assert _relative(rf.derivative(), g_ref) <= RTOL  # again: a new forward, the same factors
 

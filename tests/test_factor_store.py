@@ -53,7 +53,7 @@ def _fd_errors(rf) -> list[float]:
 
 def test_store_thins_to_evenly_spaced_steps_and_gradient_stays_exact():
     rf = _reduced_functional(steps=13)
-    store = rf.simulation.solver.factor_store
+    store = rf.factor_store
     store.max_factors = 4
     rf.forward(rf.initial_parameters())
     kept = sorted(store.factors)
@@ -82,7 +82,7 @@ def test_process_wide_cap_holds_over_several_stores(monkeypatch):
     for rf in rfs:
         rf.forward(rf.initial_parameters())
         assert FactorStore._live <= FactorStore.max_live
-    stores = [rf.simulation.solver.factor_store for rf in rfs]
+    stores = [rf.factor_store for rf in rfs]
     assert sum(len(s.factors) for s in stores) <= 3
     for error in _fd_errors(rfs[1]):
         assert error <= FD_TOLERANCE
@@ -92,7 +92,7 @@ def test_a_long_trajectory_keeps_few_factorisations():
     # before the cap: 450 live MUMPS instances ran out of MPI communicators and crashed
     rf = _reduced_functional(steps=450, nx=2)
     rf.forward(rf.initial_parameters())
-    store = rf.simulation.solver.factor_store
+    store = rf.factor_store
     assert len(store.factors) <= store.max_factors
     assert FactorStore._live <= FactorStore.max_live
     g = rf.gradient(rf.initial_parameters())
@@ -113,15 +113,18 @@ def test_solvers_are_freed_with_their_communicators():
             c.Free()
         return len(comms)
 
-    gc.collect()
-    before = free_communicators()
-    for _ in range(3):
+    def solve_and_drop() -> None:
         rf = _reduced_functional(steps=4)
         rf.gradient(rf.initial_parameters())
         solver = weakref.ref(rf.simulation.solver)
         del rf
         gc.collect()
         assert solver() is None
+
+    solve_and_drop()  # once-per-process communicators (e.g. collective_comm's) made here
+    before = free_communicators()
+    for _ in range(3):
+        solve_and_drop()
     assert free_communicators() == before
 
 
@@ -142,7 +145,7 @@ def _fake_node(monkeypatch, rf, memory):
     """Replace the node's memory by ``memory(per_factor, store) -> (available, total)``."""
     import diffsolids.solvers.factor_store as factor_store
 
-    store = rf.simulation.solver.factor_store
+    store = rf.factor_store
     state = {"per_factor": None}
 
     def fake_memory():
@@ -159,9 +162,9 @@ def _fake_node(monkeypatch, rf, memory):
 def test_default_store_keeps_the_factors_on_disk(tmp_path):
     """The default store writes MUMPS' factors out of core and the gradient stays exact."""
     rf = _reduced_functional(steps=6)
-    default = rf.simulation.solver.factor_store
+    default = rf.factor_store
     assert default.out_of_core and default.budget_mb is None
-    store = rf.simulation.solver.factor_store = FactorStore(directory=tmp_path)
+    store = rf.factor_store = FactorStore(directory=tmp_path)
     rf.forward(rf.initial_parameters())
     assert sorted(store.factors) == list(range(1, 7))
     files = list(tmp_path.iterdir())
@@ -183,7 +186,7 @@ def test_out_of_core_directory_must_be_writable(tmp_path):
 def test_default_budget_is_a_share_of_the_available_memory(monkeypatch):
     """Without a budget, factors in memory take at most node_share of the available memory."""
     rf = _reduced_functional(steps=10)
-    store = rf.simulation.solver.factor_store = FactorStore(out_of_core=False)
+    store = rf.factor_store = FactorStore(out_of_core=False)
     assert store.budget_mb is None and store.node_share == 0.1
     # a node with 35 factorisations available: 3.5 of them are the store's share
     state = _fake_node(monkeypatch, rf, lambda pf, store: (35.0 * pf, 40.0 * pf))
@@ -201,7 +204,7 @@ def test_default_budget_is_a_share_of_the_available_memory(monkeypatch):
 def test_default_budget_keeps_the_reserve_available(monkeypatch):
     """Memory taken by others lowers what the store keeps: never below the node's reserve."""
     rf = _reduced_functional(steps=10)
-    store = rf.simulation.solver.factor_store = FactorStore(out_of_core=False)
+    store = rf.factor_store = FactorStore(out_of_core=False)
     # the node's available memory shrinks by what the store keeps, starting 1.5 factorisations
     # above the reserve (25 % of the total); the share (10 % of 1000 MB) is no limit
     _fake_node(monkeypatch, rf, lambda pf, store: (250.0 + 1.5 * pf - store.used_mb, 1000.0))
@@ -236,3 +239,34 @@ def test_a_container_limit_lowers_the_node_memory(tmp_path):
     assert node_memory_mb(meminfo, v1.parent) == pytest.approx((1024.0, 2048.0))
     (v1 / "memory.limit_in_bytes").write_text("9223372036854771712\n")  # v1's "no limit"
     assert node_memory_mb(meminfo, v1.parent) == pytest.approx(host)
+
+
+def test_a_functional_keeps_its_factor_store_to_itself(tmp_path):
+    """Creating a ReducedFunctional leaves the solver alone; its store is the solver's only
+    while it runs, so two functionals of one simulation keep their own factorisations."""
+    first = _reduced_functional(steps=4)
+    sim = first.simulation
+    assert sim.solver.factor_store is None and first.factor_store is not None
+    second = ReducedFunctional(
+        sim, first.objective, first.controls.controls, factor_store=FactorStore(directory=tmp_path)
+    )
+    q = first.initial_parameters()
+    g_first = first.gradient(q)
+    assert sim.solver.factor_store is None
+    assert sorted(first.factor_store.factors) == [1, 2, 3, 4]
+    second.forward(q)
+    assert sorted(second.factor_store.factors) == [1, 2, 3, 4]
+    assert sorted(first.factor_store.factors) == [1, 2, 3, 4]  # untouched by the other's run
+    kept = dict(second.factor_store.factors)
+    sim.run()  # a plain run keeps nothing
+    assert second.factor_store.factors == kept
+    np.testing.assert_allclose(second.derivative(), g_first, rtol=1e-8)
+    for error in _fd_errors(second):
+        assert error <= FD_TOLERANCE
+
+
+def test_factor_store_argument_is_checked():
+    rf = _reduced_functional(steps=2)
+    for bad in ({"factor_store": "disk"}, {"factor_store": FactorStore(), "factor_memory_mb": 10}):
+        with pytest.raises(ds.ParameterError, match="factor_store must be a FactorStore"):
+            ReducedFunctional(rf.simulation, rf.objective, rf.controls.controls, **bad)

@@ -1,8 +1,9 @@
 """J(q): forward simulation, objective and adjoint gradient behind one callable."""
 
+import contextlib
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -48,6 +49,9 @@ class ReducedFunctional:
             factorisation in memory as the adjoint preconditioner of that step (0 disables;
             None, the default, keeps them on disk, MUMPS out-of-core: see
             :class:`~diffsolids.solvers.factor_store.FactorStore`).
+        factor_store: The store of those factorisations, for settings ``factor_memory_mb``
+            does not cover (e.g. ``FactorStore(directory=...)``); it is the solver's only while
+            this functional runs its forward and adjoint (``rf.factor_store``).
         checkpointing: Which forward states the adjoint keeps: a
             :class:`~diffsolids.adjoint.checkpointing.Checkpointing` policy (all in memory, a
             fixed number of checkpoints in memory, or disk); None (default) is
@@ -82,6 +86,7 @@ class ReducedFunctional:
         controls: Control | Sequence[Control],
         adjoint_options: AdjointSolverOptions | None = None,
         factor_memory_mb: float | None = None,
+        factor_store: FactorStore | None = None,
         checkpointing: Checkpointing | None = None,
         branch_reference: npt.ArrayLike | None = None,
     ) -> None:
@@ -108,16 +113,27 @@ class ReducedFunctional:
             if not isinstance(leaf, NumericIntegral)
         }
         self._sweep: BackwardSweep | None = None
-        if factor_memory_mb != 0 and simulation.integrator.num_steps > 1:
-            simulation.solver.factor_store = FactorStore(factor_memory_mb)
-        elif factor_memory_mb == 0:  # disabled: not another functional's store either
-            simulation.solver.factor_store = None
+        self.factor_store = self._factor_store(factor_memory_mb, factor_store)
         self.checkpointing = checkpointing or Checkpointing()
         self._run: CheckpointedRun | None = None  # of the last forward, when checkpointed
         self._state = None  # (q, trajectory, table, reg values, J)
         self.timings: dict[str, float] = {}
         self.branch_reference = self._reference_parameters(branch_reference)
         self._reference_run: Trajectory | None = None  # solved on the first forward
+
+    def _factor_store(
+        self, memory_mb: float | None, store: FactorStore | None
+    ) -> FactorStore | None:
+        if store is None:
+            stores = memory_mb != 0 and self.simulation.integrator.num_steps > 1
+            return FactorStore(memory_mb) if stores else None
+        if not isinstance(store, FactorStore) or memory_mb is not None:
+            raise ParameterError(
+                "factor_store must be a FactorStore, given without factor_memory_mb (its "
+                f"budget is FactorStore(budget_mb=...)); got {type(store).__name__}"
+                + ("" if memory_mb is None else f" and factor_memory_mb={memory_mb}")
+            )
+        return store
 
     def _reference_parameters(self, q_ref: npt.ArrayLike | None) -> np.ndarray | None:
         if q_ref is None:
@@ -159,9 +175,24 @@ class ReducedFunctional:
         integ = self.simulation.integrator
         return TimeGrid(integ.num_steps, integ.dt, integ.dynamic)
 
+    @contextlib.contextmanager
+    def _own_factor_store(self) -> Iterator[None]:
+        """The solver keeps this functional's factorisations while it runs, and only then."""
+        solver = self.simulation.solver
+        previous = solver.factor_store
+        solver.factor_store = self.factor_store
+        try:
+            yield
+        finally:
+            solver.factor_store = previous
+
     # -- forward ---------------------------------------------------------------------------
     def forward(self, q: npt.ArrayLike) -> float:
         """Assign q, run the simulation and evaluate J."""
+        with self._own_factor_store():
+            return self._forward(q)
+
+    def _forward(self, q: npt.ArrayLike) -> float:
         q = np.array(q, dtype=float)
         self._close_run()
         self._follow_reference()
@@ -244,6 +275,10 @@ class ReducedFunctional:
         Raises:
             AdjointError: No forward run yet.
         """
+        with self._own_factor_store():
+            return self._derivative()
+
+    def _derivative(self) -> np.ndarray:
         if self._state is None:
             raise AdjointError(
                 "no forward solve yet: call rf(q) or rf.forward(q) before the gradient"
@@ -267,7 +302,7 @@ class ReducedFunctional:
                 # its schedule allowed one reverse, a later forward freed its checkpoints, or
                 # the last reverse freed the factors: the same forward again (the same states
                 # and factors: the same gradient)
-                self.forward(self._state[0])
+                self._forward(self._state[0])
                 run = self._state[1].run
             sens = self._sweep.run_checkpointed(run, leaf_weights)
         self._add_regularisers(sens, reg_weights)

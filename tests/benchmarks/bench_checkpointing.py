@@ -97,7 +97,7 @@ def _run(sim, objective, controls, policy, memory: bool):
     from diffsolids.reduced_functional import ReducedFunctional
 
     rf = ReducedFunctional(sim, objective, controls(), checkpointing=policy)
-    store = sim.solver.factor_store
+    store = rf.factor_store
     factor_peak = [0.0]
     if store is not None:
         keep = store.keep

@@ -328,7 +328,7 @@ def time_case(sim: ds.Simulation, objective, model: ds.Model, kind: str) -> dict
         pstats.Stats(pr, stream=out).sort_stats("cumulative").print_stats(25)
         profile = out.getvalue()
     newton = rf.trajectory.newton_iterations()
-    store = sim.solver.factor_store
+    store = rf.factor_store
     if store is not None:
         stats["stored_factors"] = len(store.factors)
         stats["stored_mb"] = round(store.used_mb, 1)

@@ -153,7 +153,7 @@ def measure(name: str, args, comm) -> dict:
     g = rf.gradient(q)
     gradient, gradient_cpu = time.perf_counter() - t0, time.process_time() - c0
     stats = rf.adjoint_stats
-    store = sim.solver.factor_store
+    store = rf.factor_store
     timers = contact.timing_summary()
     if profiler:
         profiler.disable()

@@ -17,7 +17,7 @@ def test_thinned_store_world_equals_self():
     results = []
     for c in (comm, MPI.COMM_SELF):
         rf = _reduced_functional(steps=13, nx=8, comm=c)
-        store = rf.simulation.solver.factor_store
+        store = rf.factor_store
         store.max_factors = 3
         q = rf.initial_parameters()
         J, g = rf.value_and_gradient(q)
@@ -34,7 +34,7 @@ def test_memory_decision_is_collective(monkeypatch):
 
     comm = MPI.COMM_WORLD
     rf = _reduced_functional(steps=8, nx=8, comm=comm)
-    store = rf.simulation.solver.factor_store = factor_store.FactorStore(out_of_core=False)
+    store = rf.factor_store = factor_store.FactorStore(out_of_core=False)
     room = 3 if comm.rank == 0 else 2  # factorisations each rank's node has room for
 
     def fake_memory():  # a huge MB per factorisation, far above the real ones
