@@ -15,7 +15,7 @@ the objective does not see: we leave it at zero). The outcome checked (``--check
 target, initial and final runs.
 
 The barrier stiffness is ``suggest_barrier_stiffness``'s (``--kappa scene``: the scene's 1e5 as
-PolyFEM means it, see ``diffsolids.contact.polyfem``; pairs then rest ~1e-12 m apart, where the
+PolyFEM means it, see ``diffsolids.polyfem.contact``; pairs then rest ~1e-12 m apart, where the
 collision check cuts every Newton step at the harder impacts of optimiser iterates, e.g. v0 =
 (2, -0.4) at step 12: the solver then reaches the step's minimiser through a stiffness
 continuation (``SolverOptions.continuation_after``); measured 2026-12-02: v0 recovered to 2.3e-8

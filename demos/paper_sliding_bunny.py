@@ -19,7 +19,7 @@ iterations, mu 0.5 -> 0.256, failed in a Newton solve of steps 6-10 and were cut
 CPU.
 
 The barrier stiffness is ``suggest_barrier_stiffness``'s (``--kappa scene``: the scene's 1e4 as
-PolyFEM means it, see ``diffsolids.contact.polyfem``: pairs rest ~2e-9 m apart and the first
+PolyFEM means it, see ``diffsolids.polyfem.contact``: pairs rest ~2e-9 m apart and the first
 step already needs more than 50 Newton iterations, most of them cut by the collision check).
 
 Two branches of J(mu), and the branch reference that keeps J on one (measured, suggested kappa):

@@ -80,8 +80,8 @@ API_MODULES = {
     "diffsolids.solvers.factor_store": "Factorisations kept for the adjoint",
     "diffsolids.solvers.linear_options": "Linear solvers of the Newton steps (LU or multigrid)",
     "diffsolids.contact": "Contact (IPC barrier and friction)",
-    "diffsolids.contact.polyfem": "PolyFEM contact parameters",
-    "diffsolids.contact.flat": "Flat regions of obstacles (convergent formulation)",
+    "diffsolids.polyfem.contact": "PolyFEM contact parameters",
+    "diffsolids.contact.geometry.flat": "Flat regions of obstacles (convergent formulation)",
     "diffsolids.objectives": "Objectives",
     "diffsolids.controls": "Controls",
     "diffsolids.controls.maps": "Parameter maps",
@@ -179,6 +179,9 @@ def write_api_pages(app) -> None:
     path = api / "index.rst"
     if not path.exists() or path.read_text() != text:
         path.write_text(text)
+    for stale in api.glob("diffsolids*.rst"):  # pages of modules that moved or left the list
+        if stale.stem not in API_MODULES:
+            stale.unlink()
 
 
 _LITERAL = re.compile(r"(``.*?``)")

@@ -1,11 +1,11 @@
 """The batched contact adjoint kernels equal the per-collision loops they replaced (1e-12).
 
-References kept here (test-only): the per-collision loops of ``contact/shape.py``
-(``_ee_correction`` over mollified edge-edge pairs, ipctk's per-pair mollifier helpers) and of
-``ContactAdjoint.friction_rest`` (ipctk's per-collision friction force times the weight
-gradient), as they were before the vectorisation. The scenes of test_contact_kernels: 2D and
-3D, friction 0.4 on the sliding (eps_v 0.5) and the smoothed (eps_v 100) branch, mollified
-edge-edge pairs in 3D. The finite-difference checks of the kernels stay in
+References kept here (test-only): the per-collision loops of
+``contact/derivatives/barrier_shape.py`` (``_ee_correction`` over mollified edge-edge pairs, ipctk's
+per-pair mollifier helpers) and of ``ContactAdjoint.friction_rest`` (ipctk's per-collision friction
+force times the weight gradient), as they were before the vectorisation. The scenes of
+test_contact_kernels: 2D and 3D, friction 0.4 on the sliding (eps_v 0.5) and the smoothed (eps_v
+100) branch, mollified edge-edge pairs in 3D. The finite-difference checks of the kernels stay in
 test_contact_kernels and test_gradients_contact.
 """
 
@@ -16,9 +16,9 @@ import scipy.sparse as sp
 from mpi4py import MPI
 from test_contact_kernels import _Checker, _scene
 
-import diffsolids.contact.shape as contact_shape
-from diffsolids.contact.adjoint import ContactAdjoint
-from diffsolids.contact.friction_adjoint import _gather
+import diffsolids.contact.derivatives.barrier_shape as contact_shape
+from diffsolids.contact.derivatives.friction_weights import _gather
+from diffsolids.contact.derivatives.step_adjoint import ContactAdjoint
 
 TOL = 1e-12
 
@@ -171,7 +171,7 @@ def test_raw_sparse_vectors_only_for_the_reading_thread():
 
     import scipy.sparse
 
-    from diffsolids.contact.friction_adjoint import _sparse_as_arrays
+    from diffsolids.contact.derivatives.friction_weights import _sparse_as_arrays
 
     parts = (np.ones(1), np.zeros(1, dtype=np.int32), np.array([0, 1], dtype=np.int32))
     seen = {}

@@ -17,8 +17,8 @@ from mpi4py import MPI
 
 import diffsolids as ds
 from diffsolids.contact import ContactTerm
-from diffsolids.contact.shape import _mollified_pairs
-from diffsolids.contact.surface import _vertex_blocks
+from diffsolids.contact.derivatives.barrier_shape import _mollified_pairs
+from diffsolids.contact.geometry.surface import _vertex_blocks
 from diffsolids.mesh.scene import combine_meshes
 from diffsolids.simulation import Trajectory
 from diffsolids.solvers.sparsity import matrix_with_pattern
@@ -218,7 +218,7 @@ def test_contact_derivative_kernels(dim, degree, order, eps_v):
 def test_shape_derivative_needs_the_mollifier_correction():
     """Without the correction the 3D shape derivative misses by percents (the check can fail)."""
 
-    import diffsolids.contact.shape as shape
+    import diffsolids.contact.derivatives.barrier_shape as shape
 
     model, contact, _, u, _ = _scene(3, 1, 1, comm=MPI.COMM_SELF)
     lam = _Checker(model, contact, u).random()

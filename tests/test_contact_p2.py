@@ -31,8 +31,8 @@ from test_gradients_contact import _direction, check_gradient
 
 import diffsolids as ds
 from diffsolids.contact import ContactTerm, Obstacle, suggest_barrier_stiffness
-from diffsolids.contact.subdivision import neighbour_pairs
-from diffsolids.contact.surface import CollisionSurface
+from diffsolids.contact.geometry.subdivision import neighbour_pairs
+from diffsolids.contact.geometry.surface import CollisionSurface
 from diffsolids.controls import ParameterControl, ShapeControl
 from diffsolids.errors import ParameterError
 from diffsolids.mesh.scene import combine_meshes, simplex_box

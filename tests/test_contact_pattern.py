@@ -19,10 +19,10 @@ from mpi4py import MPI
 from scipy.spatial import cKDTree
 
 import diffsolids as ds
-import diffsolids.contact.pattern as contact_pattern
+import diffsolids.contact.energy.pattern as contact_pattern
 from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
-from diffsolids.contact.reach import box_overlaps, reach_blocks
-from diffsolids.contact.surface import block_pattern
+from diffsolids.contact.detection.reach import box_overlaps, reach_blocks
+from diffsolids.contact.geometry.surface import block_pattern
 from diffsolids.mesh import read_mesh
 from diffsolids.mesh.scene import combine_meshes, simplex_box
 from diffsolids.simulation import Trajectory

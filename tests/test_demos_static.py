@@ -123,7 +123,7 @@ def test_beam3d_geo_tags_and_support_patch():
 
 def _body_distance(domain) -> tuple[float, bool]:
     """Smallest distance between the boundaries of bodies 1 and 2, and whether they intersect."""
-    from diffsolids.contact.surface import CollisionSurface
+    from diffsolids.contact.geometry.surface import CollisionSurface
     from diffsolids.model import LinearElastic, Model
 
     model = Model(domain, LinearElastic(E=1.0, nu=0.3))

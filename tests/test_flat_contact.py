@@ -14,8 +14,8 @@ import pytest
 from smoothness_scenes import drop, drop_2d
 
 import diffsolids as ds
-from diffsolids.contact.flat import flat_edge_mask, flat_vertex_mask
-from diffsolids.contact.obstacle import _edges_of
+from diffsolids.contact.geometry.flat import flat_edge_mask, flat_vertex_mask
+from diffsolids.contact.geometry.obstacle import _edges_of
 from diffsolids.verification import line_scan
 
 STEPS = 8  # the impact is step 5
@@ -129,7 +129,7 @@ def test_formulation_errors_in_a_child_process():
 def test_nearest_face_of_a_flat_region_leaves_the_candidates_whole():
     import ipctk
 
-    from diffsolids.contact.flat import FlatRegions, flat_edge_mask, flat_primitive_regions
+    from diffsolids.contact.geometry.flat import FlatRegions, flat_edge_mask, flat_primitive_regions
 
     ground = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=float)
     faces = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32)

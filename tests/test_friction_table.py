@@ -14,7 +14,7 @@ import pytest
 from mpi4py import MPI
 from test_contact_kernels import _scene
 
-from diffsolids.contact.friction_table import tangential_collisions
+from diffsolids.contact.energy.friction_table import tangential_collisions
 
 
 def _reference(surface, x, collisions, barrier, mu_table) -> ipctk.TangentialCollisions:

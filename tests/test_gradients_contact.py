@@ -30,9 +30,9 @@ from contact_checks import stacked_boxes
 from mpi4py import MPI
 
 import diffsolids as ds
-import diffsolids.contact.shape as contact_shape
+import diffsolids.contact.derivatives.barrier_shape as contact_shape
 from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
-from diffsolids.contact.shape import _mollified_pairs
+from diffsolids.contact.derivatives.barrier_shape import _mollified_pairs
 from diffsolids.controls import (
     Affine,
     Compose,

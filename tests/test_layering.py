@@ -37,18 +37,29 @@ def test_forms_import_only_ufl_and_themselves(path: Path) -> None:
             assert name.startswith("diffsolids.forms"), f"{path.name} imports {name}"
 
 
-def _layers() -> list[str]:
+def _layers(contract: str = "layers") -> list[str]:
     config = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]
-    (layers,) = [c["layers"] for c in config["contracts"] if c["type"] == "layers"]
+    (layers,) = [c["layers"] for c in config["contracts"] if c["name"] == contract]
     return layers
+
+
+def _children(package: Path) -> set[str]:
+    children = {p.stem for p in package.glob("*.py") if p.stem != "__init__"}
+    return children | {p.parent.name for p in package.glob("*/__init__.py")}
 
 
 def test_every_module_has_a_layer() -> None:
     """Each module and subpackage directly under src/diffsolids is named by the layers contract."""
-    package = ROOT / "src" / "diffsolids"
-    children = {p.stem for p in package.glob("*.py") if p.stem != "__init__"}
-    children |= {p.parent.name for p in package.glob("*/__init__.py")}
+    children = _children(ROOT / "src" / "diffsolids")
     named = {layer.removeprefix("diffsolids.") for layer in _layers()}
+    assert children - named == set()
+    assert named - children == set()
+
+
+def test_every_contact_module_has_a_layer() -> None:
+    """Each module and subpackage of diffsolids.contact is named by the contact layers."""
+    children = _children(ROOT / "src" / "diffsolids" / "contact")
+    named = {m.strip() for layer in _layers("contact layers") for m in layer.split("|")}
     assert children - named == set()
     assert named - children == set()
 

@@ -109,7 +109,7 @@ def test_contact_hessian_projection_names():
     """The names "abs" and "clamp" map to ipctk's methods; any other name is refused by name."""
     import ipctk
 
-    from diffsolids.contact.potential import projection_method
+    from diffsolids.contact.energy.contact_potential import projection_method
     from diffsolids.errors import ParameterError
 
     assert projection_method("abs") == ipctk.PSDProjectionMethod.ABS

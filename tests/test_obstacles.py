@@ -141,8 +141,8 @@ def test_moving_belt_drags_block(mu, degree):
 
 MOTIONS = {
     # a motion that stays at rest: a fixed obstacle's flat regions act as planes
-    # (diffsolids.contact.flat), the clamped slab's segments one by one; a moving obstacle's
-    # segments are taken one by one too, as the slab's
+    # (diffsolids.contact.geometry.flat), the clamped slab's segments one by one; a moving
+    # obstacle's segments are taken one by one too, as the slab's
     "at rest": (lambda t: np.zeros(2), 0.0),
     "belt": (lambda t: np.array([0.4 * t, 0.0]), 0.4),
 }

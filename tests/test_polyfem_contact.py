@@ -9,12 +9,12 @@ from test_mesh_input import _paper_file, _paper_mesh
 
 import diffsolids as ds
 from diffsolids.contact import Obstacle
-from diffsolids.contact.polyfem import (
+from diffsolids.mesh import boundary_facets, combine_meshes, simplex_box
+from diffsolids.polyfem.contact import (
     polyfem_contact_options,
     shortest_boundary_edge,
     shortest_obstacle_edge,
 )
-from diffsolids.mesh import boundary_facets, combine_meshes, simplex_box
 
 COMM = MPI.COMM_WORLD
 

@@ -71,6 +71,42 @@ def test_moved_polyfem_scene_reader_keeps_warning_aliases():
         diffsolids.io.nothing  # noqa: B018
 
 
+MOVED_CONTACT_MODULES = {
+    "diffsolids.contact.flat": "diffsolids.contact.geometry.flat",
+    "diffsolids.contact.collisions": "diffsolids.contact.detection.collision_set",
+    "diffsolids.contact.potential": "diffsolids.contact.energy.contact_potential",
+    "diffsolids.contact.adjoint": "diffsolids.contact.derivatives.step_adjoint",
+    "diffsolids.contact.polyfem": "diffsolids.polyfem.contact",
+}
+
+
+@pytest.mark.parametrize(("old", "new"), list(MOVED_CONTACT_MODULES.items()))
+def test_moved_contact_modules_keep_warning_aliases(old, new):
+    import subprocess
+    import sys
+
+    # a fresh interpreter: an alias imported once is cached in sys.modules and warns only once
+    script = f"""
+import importlib, warnings
+warnings.simplefilter("error", DeprecationWarning)
+try:
+    importlib.import_module({old!r})
+except DeprecationWarning as w:
+    print("warned:", w)
+warnings.simplefilter("ignore", DeprecationWarning)
+print(importlib.import_module({old!r}) is importlib.import_module({new!r}))
+"""
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=120, check=True
+    ).stdout.splitlines()
+    assert out == [f"warned: {old} moved to {new} (the old path goes in 0.5)", "True"]
+
+
+def test_an_unknown_contact_module_is_still_an_import_error():
+    with pytest.raises(ModuleNotFoundError, match=r"diffsolids\.contact\.nothing"):
+        import diffsolids.contact.nothing  # noqa: F401
+
+
 def test_moved_canonical_layout_keeps_a_warning_alias():
     import importlib
 

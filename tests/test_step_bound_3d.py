@@ -6,8 +6,8 @@ import ipctk
 import numpy as np
 import pytest
 
-from diffsolids.contact.distances import pair_distances
-from diffsolids.contact.step_bound import _plane_bounds
+from diffsolids.contact.detection.step_bound import _plane_bounds
+from diffsolids.contact.geometry.distances import pair_distances
 
 ETA = 0.1  # 1 - AdditiveCCD's conservative rescaling
 

@@ -13,7 +13,7 @@ import numpy as np
 from mpi4py import MPI
 
 import diffsolids as ds
-from diffsolids.contact.polyfem import polyfem_contact_options
+from diffsolids.polyfem.contact import polyfem_contact_options
 
 
 def build(folder: Path, steps: int, comm: MPI.Comm = MPI.COMM_WORLD) -> ds.Simulation:

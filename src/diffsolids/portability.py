@@ -39,7 +39,7 @@ __all__ = [
 ]
 
 #: ipctk versions whose wheel was verified on CPUs with AVX2 but without AVX-512 (and whose 3D
-#: edge-edge mollifier shape-derivative bug ``diffsolids.contact.shape`` corrects).
+#: edge-edge mollifier shape-derivative bug ``contact.derivatives.barrier_shape`` corrects).
 VERIFIED_IPCTK = ("1.6.0",)
 
 #: Every ipctk entry point the package calls, on one 2D and one 3D scene with active contact and

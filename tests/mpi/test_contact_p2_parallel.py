@@ -12,7 +12,7 @@ from mpi4py import MPI
 from parallel_checks import assert_world_equals_self, value_and_gradient
 from test_contact_p2 import bulge_model, bulge_scene
 
-from diffsolids.contact.surface import CollisionSurface
+from diffsolids.contact.geometry.surface import CollisionSurface
 from diffsolids.controls import ParameterControl, ShapeControl
 from diffsolids.reduced_functional import ReducedFunctional
 

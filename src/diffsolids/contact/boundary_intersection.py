@@ -5,7 +5,7 @@ from typing import TYPE_CHECKING
 import ipctk
 import numpy as np
 
-from diffsolids.contact.surface import CollisionSurface
+from diffsolids.contact.geometry.surface import CollisionSurface
 from diffsolids.contact.term import ContactTerm
 
 if TYPE_CHECKING:

@@ -5,10 +5,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diffsolids.contact.evaluation import Evaluation
+from diffsolids.contact.detection.step_bound import _GAP_FLOOR_ULPS
+from diffsolids.contact.energy.evaluation import Evaluation
+from diffsolids.contact.geometry.surface import CollisionSurface
 from diffsolids.contact.partition import CollisionPartition
-from diffsolids.contact.step_bound import _GAP_FLOOR_ULPS
-from diffsolids.contact.surface import CollisionSurface
 from diffsolids.errors import IntersectionError
 
 __all__ = [

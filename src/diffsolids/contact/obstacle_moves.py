@@ -1,11 +1,11 @@
 """Moving obstacles in the steps of the contact term: their displacements and the CCD of moves.
 
-Kinematic obstacles (:class:`~diffsolids.contact.obstacle.Obstacle`) are extra vertices of the
-collision mesh with prescribed displacements O^i = O(t_i) and no dofs: x = X + W u + O^i, their
+Kinematic obstacles (:class:`~diffsolids.contact.geometry.obstacle.Obstacle`) are extra vertices of
+the collision mesh with prescribed displacements O^i = O(t_i) and no dofs: x = X + W u + O^i, their
 rows and columns never enter the PETSc vectors and matrices, and every adjoint product keeps the
 body rows only (obstacles have neither shape dofs nor state). Their velocity in the friction
-potential is the same BDF formula, (O^i + sum_j alpha_j O^{i-j}) / (beta dt), and the lagged
-normal forces and tangent bases are those at x^{i-1} (obstacles at O^{i-1}): friction acts on the
+potential is the same BDF formula, (O^i + sum_j alpha_j O^{i-j}) / (beta dt), and the lagged normal
+forces and tangent bases are those at x^{i-1} (obstacles at O^{i-1}): friction acts on the
 relative sliding velocity.
 
 Scheme of a step with moving obstacles (never intersected): the Newton solve of step i runs with
@@ -33,8 +33,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from diffsolids.contact.diagnostics import obstacle_move_error
+from diffsolids.contact.geometry.surface import CollisionSurface
 from diffsolids.contact.step import ContactStep
-from diffsolids.contact.surface import CollisionSurface
 from diffsolids.contact.timing import timed
 from diffsolids.errors import ParameterError
 

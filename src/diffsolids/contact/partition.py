@@ -1,8 +1,8 @@
 """Distributed contact: every collision is evaluated on one rank, the results summed.
 
 All ranks hold the whole collision surface (gathered once per evaluation,
-:class:`~diffsolids.contact.surface.CollisionSurface`) and build the whole collision set on it
-(ipctk's broad and narrow phase: the same set on every rank).
+:class:`~diffsolids.contact.geometry.surface.CollisionSurface`) and build the whole collision set on
+it (ipctk's broad and narrow phase: the same set on every rank).
 :meth:`CollisionPartition.keep_share` then keeps the collisions of this rank: collision c goes
 to rank ``h(key_c) mod size``, with ``key_c`` its type and ids (vertex-vertex: the two
 vertices sorted, edge-vertex and face-vertex: the vertex, edge-edge: the two edges sorted) and
@@ -35,7 +35,7 @@ collisions over as lists of Python objects, about 1 us each to convert and read.
 1 950 collisions per build), so splitting the candidates cost 28 ms per build against 3.3 ms
 for the narrow phase it would share out, while splitting the collisions costs ~4 ms and shares
 out the Hessians, gradients, friction and adjoint kernels, which are most of the contact work.
-For the same reason the CCD step bound (:class:`~diffsolids.contact.step_bound.StepBound`,
+For the same reason the CCD step bound (:class:`~diffsolids.contact.detection.step_bound.StepBound`,
 AdditiveCCD: ~0.4 us per candidate) stays the same computation on every rank. The broad and
 narrow phase of the collision set, the CCD and the reach pattern are the replicated part of
 distributed contact (``bench_contact --ranks`` measures it and projects it to more ranks).

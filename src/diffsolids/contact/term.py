@@ -51,33 +51,33 @@ import numpy as np
 from dolfinx import fem
 from petsc4py import PETSc
 
-from diffsolids.contact.adjoint import ContactAdjoint
-from diffsolids.contact.checks import ConfigurationCheck
-from diffsolids.contact.collisions import CollisionBuilder
+from diffsolids.contact.derivatives.step_adjoint import ContactAdjoint
+from diffsolids.contact.detection.checks import ConfigurationCheck
+from diffsolids.contact.detection.collision_set import CollisionBuilder
+from diffsolids.contact.detection.step_bound import (  # noqa: F401  (test_soft_barrier imports them here)
+    _CCD_REACH,
+    _GAP_FLOOR_ULPS,
+    StepBound,
+    _edge_vertex_bounds,
+)
 from diffsolids.contact.diagnostics import (
     ContactRecord,
     continuation_schedule,
     failure_report,
     step_record,
 )
-from diffsolids.contact.evaluation import Evaluation
-from diffsolids.contact.free_dofs import FreeDofs
-from diffsolids.contact.friction_table import body_pairs, coefficients_of
-from diffsolids.contact.lagging import LaggedFriction
-from diffsolids.contact.obstacle import Obstacle, checked_obstacles
+from diffsolids.contact.energy.contact_potential import ContactPotential, projection_method
+from diffsolids.contact.energy.evaluation import Evaluation
+from diffsolids.contact.energy.friction_table import body_pairs, coefficients_of
+from diffsolids.contact.energy.lagging import LaggedFriction
+from diffsolids.contact.energy.pattern import ContactPattern
+from diffsolids.contact.energy.stiffness import suggest_barrier_stiffness
+from diffsolids.contact.geometry.free_dofs import FreeDofs
+from diffsolids.contact.geometry.obstacle import Obstacle, checked_obstacles
+from diffsolids.contact.geometry.surface import CollisionSurface
 from diffsolids.contact.obstacle_moves import ObstacleMoves
 from diffsolids.contact.partition import CollisionPartition
-from diffsolids.contact.pattern import ContactPattern
-from diffsolids.contact.potential import ContactPotential, projection_method
 from diffsolids.contact.step import ContactStep
-from diffsolids.contact.step_bound import (  # noqa: F401  (test_soft_barrier imports them here)
-    _CCD_REACH,
-    _GAP_FLOOR_ULPS,
-    StepBound,
-    _edge_vertex_bounds,
-)
-from diffsolids.contact.stiffness import suggest_barrier_stiffness
-from diffsolids.contact.surface import CollisionSurface
 from diffsolids.contact.timing import timed, timed_kernel, timing_summary
 from diffsolids.errors import IntersectionError, ParameterError
 from diffsolids.model.numeric import NumericTerm
@@ -118,9 +118,10 @@ class ContactTerm(NumericTerm):
             barrier and friction derivatives in the order the threads finish, so with more
             than one the states of two runs at the same parameters differ in the last bits
             (J by ~1e-11, relative); with one they are equal to the last bit.
-        obstacles: Kinematic :class:`~diffsolids.contact.obstacle.Obstacle` s (collision-only,
-            no dofs, fixed or moving); each is a body of the contact term with the next body id
-            after the domain's (``body_ids``), named by its ``name`` in friction tables.
+        obstacles: Kinematic :class:`~diffsolids.contact.geometry.obstacle.Obstacle` s
+            (collision-only, no dofs, fixed or moving); each is a body of the contact term with the
+            next body id after the domain's (``body_ids``), named by its ``name`` in friction
+            tables.
         hessian_projection: How the projected Newton phase makes each pair's Hessian positive
             semi-definite: "clamp" (negative eigenvalues set to zero) or "abs" (replaced by their
             absolute values), ipctk's ``PSDProjectionMethod``. Adjoints always use the exact
@@ -132,13 +133,13 @@ class ContactTerm(NumericTerm):
         formulation: "ipc" (default): one barrier term per closest primitive pair, as in the
             IPC paper and PolyFEM's default. "convergent" (needs ``area_weighting``): the
             improved max approximation of the collision set (Li et al. 2023, ipctk's
-            ``IMPROVED_MAX_APPROX``, PolyFEM's ``use_convergent_formulation``), whose terms sum
-            to one barrier of the distance to a flat or smooth surface whatever its
-            triangulation, with the flat regions of fixed obstacles acting through the bodies'
-            vertices only (:mod:`~diffsolids.contact.flat`). With "ipc" a body resting on two
-            coplanar triangles is pushed off their shared edge (a barrier ridge along it), so a
-            symmetric landing becomes one of two mirror states chosen by round-off; use
-            "convergent" for bodies on triangulated flat grounds.
+            ``IMPROVED_MAX_APPROX``, PolyFEM's ``use_convergent_formulation``), whose terms sum to
+            one barrier of the distance to a flat or smooth surface whatever its triangulation, with
+            the flat regions of fixed obstacles acting through the bodies' vertices only
+            (:mod:`~diffsolids.contact.geometry.flat`). With "ipc" a body resting on two coplanar
+            triangles is pushed off their shared edge (a barrier ridge along it), so a symmetric
+            landing becomes one of two mirror states chosen by round-off; use "convergent" for
+            bodies on triangulated flat grounds.
 
     Raises:
         ParameterError: Non-positive dhat, stiffness or eps_v, negative friction, unknown body,

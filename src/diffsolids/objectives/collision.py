@@ -9,7 +9,8 @@ other. :class:`DeformedCollisionBarrier` is PolyFEM's ``deformed_collision_barri
 sum at the deformed positions X + u^i of every step, a per-step series computed by ipctk (a
 :class:`~diffsolids.objectives.functional.NumericIntegral`, with its state and shape partials).
 The surfaces are gathered on every rank in input order (the contact module's
-:class:`~diffsolids.contact.surface.CollisionSurface`), so the values are partition independent.
+:class:`~diffsolids.contact.geometry.surface.CollisionSurface`), so the values are partition
+independent.
 """
 
 from typing import TYPE_CHECKING, override
@@ -17,7 +18,7 @@ from typing import TYPE_CHECKING, override
 import ipctk
 import numpy as np
 
-from diffsolids.contact.surface import CollisionSurface
+from diffsolids.contact.geometry.surface import CollisionSurface
 from diffsolids.errors import ParameterError
 from diffsolids.objectives.functional import NumericIntegral, ObjectiveError, Regulariser
 from diffsolids.objectives.regularisers import _check_model

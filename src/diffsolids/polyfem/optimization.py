@@ -233,7 +233,7 @@ class PolyFEMOptimization:
             stiffness: The barrier stiffness: "suggest" (the default:
                 :func:`~diffsolids.contact.suggest_barrier_stiffness` for state 0's scene,
                 used by every state), None (each scene's ``barrier_stiffness`` as PolyFEM
-                means it, :mod:`diffsolids.contact.polyfem`) or a number.
+                means it, :mod:`diffsolids.polyfem.contact`) or a number.
             contact_options: Further ContactTerm arguments of every state (e.g.
                 ``area_weighting``).
             follow_branch: Make the run at the initial parameters the branch reference of

@@ -21,9 +21,9 @@ builds the diffsolids objects from them:
   "ImplicitEuler", or ``{"type": "BDF", "steps": k}``; default BDF1). Without ``time`` the
   scene is static: one solve (:class:`~diffsolids.Static`), as PolyFEM's default.
 - ``contact``: ``enabled``, ``dhat`` (default: PolyFEM's rule from the shortest collision-mesh
-  edge and ``dhat_percentage``, see :mod:`diffsolids.contact.polyfem`), ``epsv``,
+  edge and ``dhat_percentage``, see :mod:`diffsolids.polyfem.contact`), ``epsv``,
   ``friction_coefficient``;
-  ``solver.contact.barrier_stiffness`` (see :mod:`diffsolids.contact.polyfem` for how PolyFEM's
+  ``solver.contact.barrier_stiffness`` (see :mod:`diffsolids.polyfem.contact` for how PolyFEM's
   kappa maps to ours: as written, with ``area_weighting=False``).
 - ``boundary_conditions``: ``rhs`` (minus the body force per unit mass: ``[0, 9.8]`` is
   gravity along -y), ``dirichlet_boundary`` and ``neumann_boundary`` entries ``{"id": surface
@@ -309,7 +309,7 @@ class PolyFEMScene:
         initial_velocity: Initial velocity entries (ids: body ids).
         initial_displacement: Initial displacement entries (ids: body ids).
         contact_enabled: ``contact.enabled``.
-        raw: The JSON as a dict (for :func:`~diffsolids.contact.polyfem.polyfem_contact_options`).
+        raw: The JSON as a dict (for :func:`~diffsolids.polyfem.contact.polyfem_contact_options`).
     """
 
     path: Path
@@ -563,7 +563,7 @@ class PolyFEMScene:
             The ContactTerm, or None when the scene has no contact.
         """
         from diffsolids.contact import ContactTerm, suggest_barrier_stiffness
-        from diffsolids.contact.polyfem import polyfem_contact_options
+        from diffsolids.polyfem.contact import polyfem_contact_options
 
         if not self.contact_enabled:
             return None

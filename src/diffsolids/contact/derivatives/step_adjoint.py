@@ -17,11 +17,11 @@ import numpy as np
 import scipy.sparse as sp
 from dolfinx import fem
 
-from diffsolids.contact.evaluation import Evaluation
-from diffsolids.contact.friction_adjoint import friction_weight_adjoint
-from diffsolids.contact.lagging import LaggedFriction
-from diffsolids.contact.potential import ContactPotential
-from diffsolids.contact.shape import barrier_shape_adjoint
+from diffsolids.contact.derivatives.barrier_shape import barrier_shape_adjoint
+from diffsolids.contact.derivatives.friction_weights import friction_weight_adjoint
+from diffsolids.contact.energy.contact_potential import ContactPotential
+from diffsolids.contact.energy.evaluation import Evaluation
+from diffsolids.contact.energy.lagging import LaggedFriction
 from diffsolids.contact.step import ContactStep
 
 if TYPE_CHECKING:
@@ -185,7 +185,7 @@ class ContactAdjoint:
         products to one growing sparse matrix, a cost quadratic in the number of collisions
         (1 s per step for 2k collisions); applied to lam they are scalars times weight
         gradients, batched over all collisions by
-        :func:`~diffsolids.contact.friction_adjoint.friction_weight_adjoint`.
+        :func:`~diffsolids.contact.derivatives.friction_weights.friction_weight_adjoint`.
         """
         out = self.lagged_jacobian(ev).T @ lam_c
         if not self.area_weighting:

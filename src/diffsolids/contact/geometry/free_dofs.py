@@ -3,7 +3,7 @@
 import numpy as np
 from mpi4py import MPI
 
-from diffsolids.contact.surface import CollisionSurface
+from diffsolids.contact.geometry.surface import CollisionSurface
 from diffsolids.parallel import collective_comm
 
 __all__ = ["FreeDofs"]

@@ -10,7 +10,7 @@ from collections.abc import Callable, Mapping, Sequence
 import ipctk
 import numpy as np
 
-from diffsolids.contact.surface import CollisionSurface
+from diffsolids.contact.geometry.surface import CollisionSurface
 from diffsolids.errors import ParameterError
 
 __all__ = ["body_pairs", "checked_coefficients", "coefficients_of", "tangential_collisions"]

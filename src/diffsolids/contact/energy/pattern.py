@@ -1,20 +1,19 @@
 """The sparsity pattern of the contact term's Newton matrix: vertex blocks of the step.
 
-The pattern of a step is its reach pattern (the pairs of primitives within 2 dhat of each other
-at u^{i-1}, computed once per step, :func:`~diffsolids.contact.reach.reach_blocks`), grown by
-the blocks of any rank's Hessian share outside it. It is the same on every rank (the union over
-the ranks) and stays the same object while unchanged, so the solver's check of the pattern is
-free.
+The pattern of a step is its reach pattern (the pairs of primitives within 2 dhat of each other at
+u^{i-1}, computed once per step, :func:`~diffsolids.contact.detection.reach.reach_blocks`), grown by
+the blocks of any rank's Hessian share outside it. It is the same on every rank (the union over the
+ranks) and stays the same object while unchanged, so the solver's check of the pattern is free.
 """
 
 import numpy as np
 
-from diffsolids.contact.evaluation import Evaluation
-from diffsolids.contact.free_dofs import FreeDofs
-from diffsolids.contact.potential import ContactPotential
-from diffsolids.contact.reach import reach_blocks
+from diffsolids.contact.detection.reach import reach_blocks
+from diffsolids.contact.energy.contact_potential import ContactPotential
+from diffsolids.contact.energy.evaluation import Evaluation
+from diffsolids.contact.geometry.free_dofs import FreeDofs
+from diffsolids.contact.geometry.surface import _contains, block_pattern
 from diffsolids.contact.step import ContactStep
-from diffsolids.contact.surface import _contains, block_pattern
 from diffsolids.contact.timing import timed
 from diffsolids.solvers.sparsity import sorted_unique
 
@@ -81,20 +80,20 @@ class ContactPattern:
         """Vertex blocks of the pairs that are near at the start of the step.
 
         The stencils of the pairs of primitives whose boxes at u^{i-1}, each grown by
-        ``_PATTERN_REACH / 2`` dhat, overlap (:func:`~diffsolids.contact.reach.reach_blocks`):
-        the pattern follows the pairs that are near, not the size of the primitives (a coarse
-        obstacle). Pairs that come near during the step are added when their Hessian needs
-        them (a matrix rebuild, and a restart of the Newton solve from its iterate). Growing
-        the boxes by how far each vertex may move in the step as well (rebuilds then became
-        rare) measured slower in every scene: the structural zeros of the larger pattern fill
-        every factorisation. On the paper's sliding bunny (2 799 dofs, a tumbling body whose
-        motion relative to its translation is 35 dhat per step) the matrix held 1.66 M entries
-        instead of 0.10 M, its LU factor 3.65 M instead of 0.62 M, and the 10-step forward
-        took 40.4 s instead of 10.8 s (same Newton iterations and J); the paper's throw 11.3
-        s instead of 8.0 s over 8 steps. Left out:
-        pairs of one body that are neighbours on the surface at rest (not contacts), and blocks
-        of static vertices (no matrix entries; a pair with a static primitive adds none but the
-        other primitive's own, which are always in).
+        ``_PATTERN_REACH / 2`` dhat, overlap
+        (:func:`~diffsolids.contact.detection.reach.reach_blocks`): the pattern follows the pairs
+        that are near, not the size of the primitives (a coarse obstacle). Pairs that come near
+        during the step are added when their Hessian needs them (a matrix rebuild, and a restart of
+        the Newton solve from its iterate). Growing the boxes by how far each vertex may move in the
+        step as well (rebuilds then became rare) measured slower in every scene: the structural
+        zeros of the larger pattern fill every factorisation. On the paper's sliding bunny (2 799
+        dofs, a tumbling body whose motion relative to its translation is 35 dhat per step) the
+        matrix held 1.66 M entries instead of 0.10 M, its LU factor 3.65 M instead of 0.62 M, and
+        the 10-step forward took 40.4 s instead of 10.8 s (same Newton iterations and J); the
+        paper's throw 11.3 s instead of 8.0 s over 8 steps. Left out: pairs of one body that are
+        neighbours on the surface at rest (not contacts), and blocks of static vertices (no matrix
+        entries; a pair with a static primitive adds none but the other primitive's own, which are
+        always in).
         """
         if step.reach is None:
             with timed(self.timings, "reach_pattern"):

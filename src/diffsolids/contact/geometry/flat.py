@@ -30,7 +30,7 @@ to the region, one polygon of a plane.
 import ipctk
 import numpy as np
 
-from diffsolids.contact.distances import pair_distances, point_segment_distances
+from diffsolids.contact.geometry.distances import pair_distances, point_segment_distances
 
 __all__ = ["FlatRegions", "flat_edge_mask", "flat_primitive_regions", "flat_vertex_mask"]
 

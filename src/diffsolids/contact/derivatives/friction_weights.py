@@ -32,7 +32,7 @@ import ipctk
 import numpy as np
 import scipy.sparse
 
-from diffsolids.contact.shape import _barrier
+from diffsolids.contact.derivatives.barrier_shape import _barrier
 
 __all__ = ["friction_weight_adjoint"]
 

@@ -10,9 +10,9 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 import ipctk
 import numpy as np
 
-from diffsolids.contact.collisions import CollisionBuilder
-from diffsolids.contact.obstacle import Obstacle
-from diffsolids.contact.surface import CollisionSurface
+from diffsolids.contact.detection.collision_set import CollisionBuilder
+from diffsolids.contact.geometry.obstacle import Obstacle
+from diffsolids.contact.geometry.surface import CollisionSurface
 from diffsolids.errors import IntersectionError
 
 __all__ = [

@@ -10,9 +10,9 @@ segment the last CCD swept reuses its candidates (only the narrow phase runs).
 import ipctk
 import numpy as np
 
+from diffsolids.contact.detection.step_bound import _CCD_REACH
+from diffsolids.contact.geometry.surface import CollisionSurface
 from diffsolids.contact.partition import CollisionPartition
-from diffsolids.contact.step_bound import _CCD_REACH
-from diffsolids.contact.surface import CollisionSurface
 from diffsolids.errors import ParameterError
 
 __all__ = ["FORMULATIONS", "CollisionBuilder", "new_collision_set"]

@@ -25,7 +25,7 @@ a key made of their facet vertices' indices and lattice position (partition inde
 Each rank contributes the values of the vertices and nodes whose displacement block it owns
 (one allgather per evaluation).
 
-Kinematic obstacles (:class:`~diffsolids.contact.obstacle.Obstacle`) are appended after the
+Kinematic obstacles (:class:`~diffsolids.contact.geometry.obstacle.Obstacle`) are appended after the
 body vertices (``num_body_vertices`` ... ``num_vertices``): they are part of the CollisionMesh
 (collision set, CCD, area weights from their own segments/triangles) but have no dofs: every
 array gathered from a V array holds zeros in their rows, their dofs count as prescribed
@@ -45,14 +45,14 @@ from mpi4py import MPI
 from mpi4py.util import dtlib
 from petsc4py import PETSc
 
-from diffsolids.contact.flat import (
+from diffsolids.contact.geometry.flat import (
     FlatRegions,
     flat_edge_mask,
     flat_primitive_regions,
     flat_vertex_mask,
 )
-from diffsolids.contact.obstacle import Obstacle
-from diffsolids.contact.subdivision import (
+from diffsolids.contact.geometry.obstacle import Obstacle
+from diffsolids.contact.geometry.subdivision import (
     local_node_keys,
     match_rows,
     neighbour_filter,

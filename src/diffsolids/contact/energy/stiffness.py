@@ -21,8 +21,8 @@ from diffsolids.parallel import collective_comm
 from diffsolids.solvers.forms import compile_form
 
 if TYPE_CHECKING:
-    from diffsolids.contact.collisions import CollisionBuilder
-    from diffsolids.contact.surface import CollisionSurface
+    from diffsolids.contact.detection.collision_set import CollisionBuilder
+    from diffsolids.contact.geometry.surface import CollisionSurface
     from diffsolids.integrators import Integrator
     from diffsolids.model import Model
 

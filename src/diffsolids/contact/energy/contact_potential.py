@@ -1,24 +1,24 @@
 """The contact potential at an evaluation: energy, gradient and Hessian, kept with it.
 
 B(x) + beta dt D(v(u)) of the current step (see :mod:`diffsolids.contact.term`) evaluated on
-this rank's share of the collision set (:mod:`~diffsolids.contact.evaluation`): the energy is
+this rank's share of the collision set (:mod:`~diffsolids.contact.energy.evaluation`): the energy is
 summed over the ranks, the gradient too (one allreduce of the surface vector; its barrier part
 is kept as this rank's share and summed on demand), the Hessian stays this rank's share (its
 entries are added to the matrix by every rank with global indices). Each value is computed once
-per :class:`~diffsolids.contact.evaluation.Evaluation` and kept on it.
+per :class:`~diffsolids.contact.energy.evaluation.Evaluation` and kept on it.
 """
 
 import ipctk
 import numpy as np
 import scipy.sparse as sp
 
-from diffsolids.contact.evaluation import (
+from diffsolids.contact.energy.evaluation import (
     Evaluation,
     contact_energy,
     contact_gradient,
     contact_hessian,
 )
-from diffsolids.contact.lagging import LaggedFriction
+from diffsolids.contact.energy.lagging import LaggedFriction
 from diffsolids.contact.timing import timed
 from diffsolids.errors import ParameterError
 

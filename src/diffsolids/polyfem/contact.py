@@ -49,7 +49,7 @@ from diffsolids.errors import ParameterError
 from diffsolids.mesh import Domain
 
 if TYPE_CHECKING:
-    from diffsolids.contact.obstacle import Obstacle
+    from diffsolids.contact.geometry.obstacle import Obstacle
 
 __all__ = ["polyfem_contact_options", "shortest_boundary_edge", "shortest_obstacle_edge"]
 

@@ -20,9 +20,9 @@ import ipctk
 import numpy as np
 from mpi4py import MPI
 
-from diffsolids.contact.distances import pair_distances
+from diffsolids.contact.geometry.distances import pair_distances
+from diffsolids.contact.geometry.surface import CollisionSurface
 from diffsolids.contact.partition import CollisionPartition
-from diffsolids.contact.surface import CollisionSurface
 from diffsolids.parallel import collective_comm
 
 __all__ = ["StepBound"]

@@ -3,7 +3,7 @@
 The friction potential D of step i (see :mod:`diffsolids.contact.term`) uses the normal forces
 and tangent bases of the collision set at x^{i-1} = X + W u^{i-1} (obstacles at O^{i-1}), with
 each collision's coefficient from the table of the pairs of bodies (see
-:mod:`~diffsolids.contact.friction_table`), and the BDF velocity
+:mod:`~diffsolids.contact.energy.friction_table`), and the BDF velocity
 v = U / (beta dt) + sum_j alpha_j U^{i-j} / (beta dt) of the collision vertices.
 
 The step's collision set at x^{i-1} and its TangentialCollisions are kept by step index: the
@@ -17,9 +17,9 @@ from collections.abc import Sequence
 import ipctk
 import numpy as np
 
-from diffsolids.contact.collisions import CollisionBuilder
-from diffsolids.contact.evaluation import Evaluation
-from diffsolids.contact.friction_table import checked_coefficients, tangential_collisions
+from diffsolids.contact.detection.collision_set import CollisionBuilder
+from diffsolids.contact.energy.evaluation import Evaluation
+from diffsolids.contact.energy.friction_table import checked_coefficients, tangential_collisions
 from diffsolids.contact.step import ContactStep
 from diffsolids.contact.timing import timed
 

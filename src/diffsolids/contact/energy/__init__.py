@@ -1,0 +1,3 @@
+"""The contact energy: barrier and friction potentials, their evaluation, lagging and pattern."""
+
+__all__: list[str] = []
