@@ -19,7 +19,8 @@ Run ``python demos/bouncing_ball_height.py`` (default size, well under 2 minutes
 """
 
 import numpy as np
-from common import MESHES, DemoReport, DemoRun, check_invariants, run_demo, save_figure
+from common import MESHES, DemoReport, DemoRun, run_demo, save_figure
+from invariants import check_invariants
 from material_common import body_cell_mask, cell_values, finish_material
 from mpi4py import MPI
 

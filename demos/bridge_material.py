@@ -21,16 +21,9 @@ also under ``mpiexec -n 2``. Output in ``output/bridge_material/``:
 """
 
 import numpy as np
-from common import (
-    MESHES,
-    DemoReport,
-    DemoRun,
-    check_invariants,
-    plot_history,
-    run_demo,
-    save_figure,
-)
+from common import MESHES, DemoReport, DemoRun, plot_history, run_demo, save_figure
 from dolfinx import fem
+from invariants import check_invariants
 from material_common import check_recovered, finish_material
 from mpi4py import MPI
 

@@ -26,13 +26,7 @@ import numpy as np
 from mpi4py import MPI
 
 from diffsolids.io import configure_logging
-from diffsolids.optimize import (
-    LBFGSOptions,
-    OptimizationResult,
-    StateChecks,
-    TrajectoryKeeper,
-    minimize,
-)
+from diffsolids.optimize import LBFGSOptions, OptimizationResult, TrajectoryKeeper, minimize
 from diffsolids.parallel import collective_comm
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,7 +39,6 @@ __all__ = [
     "Outcome",
     "by_size",
     "check_decrease",
-    "check_invariants",
     "cpu_seconds",
     "demo_parser",
     "finish",
@@ -264,32 +257,6 @@ def check_decrease(report: DemoReport) -> None:
         report.initial_objective,
         report.final_objective < report.initial_objective,
     )
-
-
-def check_invariants(report: DemoReport, *checks: StateChecks, intersections: bool = True) -> None:
-    """Record the outcomes every run checks: objective decreased, no inverted element.
-
-    With ``intersections``, also: no checked state intersects.
-
-    Args:
-        report: The DemoReport.
-        checks: Results of :func:`~diffsolids.optimize.check_trajectories` for the reported runs.
-        intersections: Whether the runs have a contact surface to check.
-    """
-    states = sum(c.states for c in checks)
-    inverted = sum(c.inverted for c in checks)
-    check_decrease(report)
-    report.check("no inverted element", inverted, 0, inverted == 0, f"(of {states} states)")
-    if intersections:
-        intersecting = sum(c.intersecting for c in checks)
-        gap = min(c.min_distance for c in checks)
-        report.check(
-            "no intersection",
-            intersecting,
-            0,
-            intersecting == 0,
-            f"(intersecting states of {states}; smallest gap {gap:.2e} m)",
-        )
 
 
 def finish(report: DemoReport, args, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:

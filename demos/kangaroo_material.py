@@ -25,8 +25,9 @@ Run ``python demos/kangaroo_material.py`` (default size, under 2 minutes on 2 co
 """
 
 import numpy as np
-from common import MESHES, DemoReport, DemoRun, check_invariants, run_demo, save_figure
+from common import MESHES, DemoReport, DemoRun, run_demo, save_figure
 from dolfinx import fem
+from invariants import check_invariants
 from material_common import check_recovered, finish_material
 from mpi4py import MPI
 

@@ -21,8 +21,9 @@ import os
 from pathlib import Path
 
 import numpy as np
-from common import ROOT, check_invariants
+from common import ROOT
 from dynamic_common import finish_transient
+from invariants import check_invariants
 
 import diffsolids as ds
 from diffsolids.objectives import center_of_mass, series_values, target_trajectory, time_integral

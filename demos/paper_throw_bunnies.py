@@ -40,8 +40,9 @@ centre paths for the initial and the optimised throw, the spot; the objective pe
 """
 
 import numpy as np
-from common import DemoReport, DemoRun, by_size, check_invariants, run_demo
+from common import DemoReport, DemoRun, by_size, run_demo
 from dynamic_common import finish_transient
+from invariants import check_invariants
 from mpi4py import MPI
 from paper_common import add_data_argument, build, experiment, scenes
 

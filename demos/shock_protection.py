@@ -28,17 +28,10 @@ Run ``python demos/shock_protection.py`` or under ``mpiexec -n 2``.
 from typing import override
 
 import numpy as np
-from common import (
-    MESHES,
-    DemoReport,
-    DemoRun,
-    check_invariants,
-    plot_history,
-    run_demo,
-    save_figure,
-)
+from common import MESHES, DemoReport, DemoRun, plot_history, run_demo, save_figure
 from dolfinx import fem
 from dynamic_common import body_nodes, finish_transient, write_runs
+from invariants import check_invariants
 from mpi4py import MPI
 
 import diffsolids as ds

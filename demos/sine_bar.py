@@ -22,7 +22,8 @@ and ``result.json``.
 
 import numpy as np
 import ufl
-from common import DemoReport, DemoRun, check_invariants, plot_history, run_demo, save_figure
+from common import DemoReport, DemoRun, plot_history, run_demo, save_figure
+from invariants import check_invariants
 from material_common import cell_values, finish_material
 from mpi4py import MPI
 

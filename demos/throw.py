@@ -21,16 +21,9 @@ Run ``python demos/throw.py`` or ``mpiexec -n 2 python demos/throw.py``.
 """
 
 import numpy as np
-from common import (
-    MESHES,
-    DemoReport,
-    DemoRun,
-    check_invariants,
-    plot_history,
-    run_demo,
-    save_figure,
-)
+from common import MESHES, DemoReport, DemoRun, plot_history, run_demo, save_figure
 from dynamic_common import body_nodes, finish_transient, write_runs
+from invariants import check_invariants
 from mpi4py import MPI
 
 import diffsolids as ds
