@@ -29,7 +29,7 @@ def scene_2d(path: Path) -> None:
     ax.annotate(
         "", (0.55, 0.175), (0.25, 0.175), arrowprops={"arrowstyle": "->", "lw": 2, "color": "C3"}
     )
-    ax.text(0.4, 0.2, "v0 = q (the control)", color="C3", ha="center", fontsize=9)
+    ax.text(0.6, 0.19, "v0 = q (the control)", color="C3", ha="left", fontsize=9)
     ax.axvline(0.5, color="C2", ls="--", lw=1)
     ax.text(0.52, 0.28, "target: centre of mass stops at x = 0.5", color="C2", fontsize=9)
     ax.annotate("", (1.35, 0.13), (1.35, 0.26), arrowprops={"arrowstyle": "->", "lw": 1.5})

@@ -74,6 +74,8 @@ class SolverOptions:
             The defaults (4, 0.03) leave the first cuts of an approach as they were: a barrier
             of the suggested stiffness stops an approaching pair within about three cuts of
             about 1/5 each; more and smaller cuts in a row mean a soft barrier.
+            Inside a stiffness continuation (``continuation_after``) such streaks are extended
+            whatever the size of the cuts.
         march_substeps: At most this many extensions per Newton step.
         exact_hessian_below: Numeric terms that offer a PSD-projected Newton matrix (contact)
             give it to Newton while ||residual|| > ``exact_hessian_below * f_char`` and their
@@ -217,6 +219,7 @@ class NewtonSolver:
         self._first_attempt = 0
         self.continued_steps = 0  # steps solved by a stiffness continuation
         self._continuation: tuple[float, ...] = ()
+        self._eager_march = False
         self._restarted_after = 0
         self.reference_force = 0.0
         self._energy_cache: tuple[PETSc.Vec, float] | None = None
@@ -412,7 +415,10 @@ class NewtonSolver:
             scale = self.options.step_safety * bound
             self._cut_streak += 1
             o = self.options
-            if 0 < o.march_after <= self._cut_streak and scale < o.march_below:
+            # in the stiffer stages of a continuation (a soft barrier: pairs rest far inside
+            # dhat) every cut step is extended; otherwise only long streaks of small cuts
+            streak = o.march_after <= self._cut_streak and scale < o.march_below
+            if o.march_after > 0 and (self._eager_march or streak):
                 scale = self._march(x, y, scale)
             y.scale(scale)
             slope *= scale
@@ -774,10 +780,12 @@ class NewtonSolver:
                 for term, schedule in zip(terms, schedules, strict=True):
                     term.set_stiffness_factor(schedule[k] if k < len(schedule) else 1.0)
                 self._forget_energy()  # the potential has changed
+                self._eager_march = k < stages
                 its, reason, converged = self._attempt()
                 total += its
                 logger.debug("step %d: continuation stage %d: %d Newton iterations", step, k, its)
         finally:
+            self._eager_march = False
             for term in terms:
                 term.set_stiffness_factor(1.0)
             self._forget_energy()
