@@ -4,6 +4,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from diffsolids.integrators import TimeStep
+
 __all__ = ["ContactStep"]
 
 
@@ -14,8 +16,7 @@ class ContactStep:
     Attributes:
         index: The step i.
         forward: Whether a forward run takes the step (else a backward sweep re-enters it).
-        alpha: BDF coefficients of the step.
-        beta_dt: beta dt of the step.
+        time_step: The integrator's step (its BDF velocity and that velocity's transpose).
         history: Displacements u^{i-1}, ..., u^{i-m} of the collision vertices (obstacles
             included).
         v_offset: The velocity's part from the history: v = U / beta_dt + v_offset.
@@ -29,8 +30,7 @@ class ContactStep:
 
     index: int
     forward: bool
-    alpha: tuple[float, ...]
-    beta_dt: float
+    time_step: TimeStep
     history: list[np.ndarray]
     v_offset: np.ndarray
     lagged: np.ndarray
@@ -39,3 +39,13 @@ class ContactStep:
     start_body: np.ndarray | None = None
     friction_pattern: object | None = None
     reach: np.ndarray | None = None
+
+    @property
+    def alpha(self) -> tuple[float, ...]:
+        """BDF coefficients alpha_1..alpha_m of the step."""
+        return tuple(self.time_step.alpha)
+
+    @property
+    def beta_dt(self) -> float:
+        """The step's beta dt."""
+        return self.time_step.beta_dt

@@ -320,14 +320,14 @@ class ContactTerm(NumericTerm):
         m = len(coeffs.alpha)
         obstacle = [self.obstacle_moves.at(i - j) for j in range(m + 1)]
         hist = [surf.gather(traj.u[i - j]) + obstacle[j] for j in range(1, m + 1)]
-        beta_dt = coeffs.beta_dt
-        v_offset = sum(a * U for a, U in zip(coeffs.alpha, hist, strict=True)) / beta_dt
+        # the velocity's part from the history: the integrator's v at U^i = 0
+        by_step = {i - j: U for j, U in enumerate(hist, start=1)}
+        v_offset = coeffs.velocity(np.zeros_like(hist[0]), by_step)
         forward = context.forward
         self._step = ContactStep(
             index=i,
             forward=forward,
-            alpha=tuple(coeffs.alpha),
-            beta_dt=beta_dt,
+            time_step=coeffs,
             history=hist,
             v_offset=v_offset,
             lagged=hist[0],

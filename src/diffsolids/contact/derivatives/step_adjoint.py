@@ -124,30 +124,30 @@ class ContactAdjoint:
         lagged normal forces and tangent bases and on u^{i-1}..u^{i-m} through the velocity.
         """
         T = ev.extras["friction"]
-        alpha, beta_dt = self.lagging.step.alpha, self.lagging.step.beta_dt
+        step = self.lagging.step
+        lags = range(1, len(step.alpha) + 1)
         if T is None:
             n = len(self.model.fields.u.x.array)
-            return {j: np.zeros(n) for j in range(1, len(alpha) + 1)}
+            return {j: np.zeros(n) for j in lags}
         lam_c = self.surface_vector(lam)
         DW = ipctk.FrictionPotential.DiffWRT
-        # g_f = -F(X, U^{i-1}, v):  dg/dU^{i-j} = -dF/dv alpha_j / (beta dt)  (- dF/dU_lag, j = 1)
-        # with -dF/dv = Hess_v D, the friction Hessian of the step's exact Hessian at ev when
-        # the adjoint solve computed it (symmetric), else ipctk's velocity Jacobian
+        # g_f = -F(X, U^{i-1}, v):  dg/dU^{i-j} = -dF/dv dv/dU^{i-j}  (- dF/dU_lag, j = 1),
+        # -dF/dv = Hess_v D: the friction Hessian of the step's exact Hessian at ev when the
+        # adjoint solve computed it (symmetric), else ipctk's velocity Jacobian
         Hf = ev.extras.get("friction_hessian")
         if Hf is not None:
-            tv = (Hf @ lam_c) / beta_dt
+            vbar = Hf @ lam_c
         else:
-            tv = -(self.friction_jacobian(ev, T, DW.VELOCITIES).T @ lam_c) / beta_dt
+            vbar = -(self.friction_jacobian(ev, T, DW.VELOCITIES).T @ lam_c)
         Jl = self.lagged_jacobian(ev)
         # this rank's collisions: summed over the ranks in one allreduce
-        tv, jl = self.partition.sum(np.stack([tv, Jl.T @ lam_c]))
-        out = {}
-        for j, a in enumerate(alpha, start=1):
-            g = a * tv
-            if j == 1:
-                g = g - jl
-            out[j] = self.local(g)
-        return out
+        vbar, jl = self.partition.sum(np.stack([vbar, Jl.T @ lam_c]))
+        # through v = (U + sum_j alpha_j U^{i-j}) / (beta dt): the integrator's transpose
+        i = step.index
+        ubar = {i - j: np.zeros_like(vbar) for j in (0, *lags)}
+        step.time_step.add_velocity_transpose(vbar, ubar)
+        ubar[i - 1] -= jl
+        return {j: self.local(ubar[i - j]) for j in lags}
 
     def shape(self, ev: Evaluation, lam: fem.Function | np.ndarray) -> np.ndarray:
         """(d g / d X)^T lam over the dofs of the P1 rest-coordinate space (owned entries).
