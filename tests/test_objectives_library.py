@@ -171,6 +171,8 @@ def test_target_trajectory_errors_name_the_state():
         target_trajectory(sim, bad)
     with pytest.raises(ObjectiveError, match=r"state 0: .* values, expected"):
         target_trajectory(sim, [u[:-2] for u in own.u])
+    with pytest.raises(ObjectiveError, match=r"target must be a Trajectory .* got float"):
+        target_trajectory(sim, 1.0)
     s = target_trajectory(sim, own)
     with pytest.raises(ObjectiveError, match="the target has 4 states but the run has 3"):
         s.values({s: np.zeros(3)})

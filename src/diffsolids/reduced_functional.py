@@ -294,7 +294,7 @@ class ReducedFunctional:
             )
         t0 = time.perf_counter()
         self.simulation.branch_reference = self._reference_run  # replays solve as the forward
-        run = getattr(traj, "run", None)
+        run = traj.run if isinstance(traj, CheckpointedTrajectory) else None
         if run is None:
             sens = self._sweep.run(traj, leaf_weights)
         else:

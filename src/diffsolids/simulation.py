@@ -266,7 +266,7 @@ class Simulation:
         prev = traj.u[i - 1]
         if self._reference_guess(i, prev):
             return
-        choice = getattr(self.solver.options, "initial_guess", "predictor")
+        choice = self.solver.options.initial_guess
         if choice == "predictor":
             candidates = [step.extrapolation(traj.u, traj.v), prev]
         elif choice == "zero":

@@ -50,10 +50,11 @@ from diffsolids.objectives.library import (
 )
 from diffsolids.objectives.values import series_values
 from diffsolids.parallel import collective_comm
+from diffsolids.states import Trajectory
 
 if TYPE_CHECKING:
     from diffsolids.model import Model, StepFields
-    from diffsolids.simulation import Simulation, Trajectory
+    from diffsolids.simulation import Simulation
 
 __all__ = [
     "TrajectoryTarget",
@@ -124,7 +125,15 @@ def _target_states(
     """The target's displacement arrays, checked against the run's steps, times and layout."""
     integ = simulation.integrator
     V = simulation.model.V
-    states = list(target.u if hasattr(target, "u") else target)
+    if isinstance(target, Trajectory):
+        states, times = list(target.u), target.times
+    elif isinstance(target, Sequence | np.ndarray):
+        states, times = list(target), None
+    else:
+        raise ObjectiveError(
+            "target must be a Trajectory (every state of a run: Checkpointing('all') keeps "
+            f"them) or a sequence of displacement arrays, got {type(target).__name__}"
+        )
     n = integ.num_steps + 1
     if len(states) != n:
         raise ObjectiveError(
@@ -141,7 +150,6 @@ def _target_states(
             )
         if not np.all(np.isfinite(u)):
             raise ObjectiveError(f"target trajectory, state {i}: non-finite displacements")
-    times = getattr(target, "times", None)
     if times is not None and len(times) == n:
         expected = np.array([integ.time(i) for i in range(n)])
         off = np.flatnonzero(~np.isclose(times, expected, rtol=0.0, atol=1e-9 * integ.dt))

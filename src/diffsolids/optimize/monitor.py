@@ -100,13 +100,10 @@ def control_summary(controls: "ControlSet", q: np.ndarray, max_values: int = 3) 
         max_values: Largest control shown value by value.
     """
     q = np.asarray(q, dtype=float)
-    blocks = getattr(controls, "controls", None)
-    if blocks is None:
-        return f"|q|={np.linalg.norm(q):.4g}"
     offsets = controls.offsets
     parts = []
-    for c, a, b in zip(blocks, offsets[:-1], offsets[1:], strict=True):
-        name = getattr(c, "name", "q")
+    for c, a, b in zip(controls.controls, offsets[:-1], offsets[1:], strict=True):
+        name = c.name
         if b - a == 1:
             parts.append(f"{name}={q[a]:.4g}")
         elif b - a <= max_values:
