@@ -71,45 +71,35 @@ class SolverOptions:
             step then gets to where its barrier stops it within one Newton iteration instead
             of losing a constant factor of its gap per iteration.
         march_below: ... and only extend cuts to less than this fraction of the Newton step.
-            The defaults (4, 0.03) leave the first cuts of an approach as they were: a barrier
-            of the suggested stiffness stops an approaching pair within about three cuts of
-            about 1/5 each; more and smaller cuts in a row mean a soft barrier.
-            Inside a stiffness continuation (``continuation_after``) such streaks are extended
-            whatever the size of the cuts.
+            The defaults (4, 0.03) leave the first cuts of an approach alone: a barrier of the
+            suggested stiffness stops an approaching pair within about three cuts of about 1/5
+            each; more and smaller cuts in a row mean a soft barrier. In the stiffer stages of a
+            stiffness continuation (``continuation_after``) every cut step is extended (unless
+            ``march_after`` is 0); its last stage, the term's own stiffness, follows the rule
+            above.
         march_substeps: At most this many extensions per Newton step.
         exact_hessian_below: Numeric terms that offer a PSD-projected Newton matrix (contact)
             give it to Newton while ||residual|| > ``exact_hessian_below * f_char`` and their
             exact Hessian below (quadratic convergence at the end, and the factors the adjoint
             reuses are those of the exact Jacobian). With contact the step potential is not
-            convex: Newton on the exact (indefinite) Hessian, projected only when its step is not
-            a descent direction, can end at a different stationary point after a tiny change
-            of the parameters (2.3e-3 above the minimum the neighbouring parameters reach in
-            the box-on-slab scene of tests/test_friction_smoothness.py), so J jumps and finite
-            differences do not verify gradients. Projected steps descend into a minimum, as in
+            convex: Newton on the exact (indefinite) Hessian, projected only when its step is
+            not a descent direction, can end at a different stationary point after a tiny
+            change of the parameters, so J jumps; projected steps descend into a minimum, as in
             IPC and PolyFEM. In the exact phase an iteration whose line search cuts the exact
             Newton step below half (its quadratic model does not hold) is followed by one
-            projected step, then exact again. A step whose solve fails this way (e.g. the
-            projected phase crawls, every step cut by the collision bound) is solved again
-            from its initial guess with the exact Hessian from the start (as with ``inf``);
-            its iterations count both attempts. Default 1e-3: on the Fig. 21 bunny (suggested
-            kappa, 8 steps, mu in 0.5 +- {1e-5, 1e-4, 1e-3}) every run converges, the two at
-            mu = 0.5 +- 1e-3 through the retry at step 7 (81 and 80 iterations there). Its
-            J(mu) still has two branches: the impact step 3 has two strict local minima
-            (78 and 79 contact pairs, energies 7.4e-3 apart, positive definite exact Hessians),
-            and no choice of Hessian here (CLAMP, ABS, exact from the start) or of tolerance
-            decides deterministically which one Newton from u^2 reaches: the paths part in
-            the projected phase, whose first 14 iterations are all cut by the collision
-            bound. Starting each step at the run of fixed reference parameters keeps J on
-            one branch (``ReducedFunctional(..., branch_reference=q_ref)``).
-            ``inf``: the exact Hessian from the start (the default before); ``0``: always
-            projected (with the same retry).
+            projected step, then exact again. A step whose solve fails this way is solved again
+            from its initial guess with the exact Hessian from the start (as with ``inf``); its
+            iterations count both attempts. Where a step has several local minima no choice of
+            Hessian decides deterministically which one Newton reaches: a branch reference
+            does (``ReducedFunctional(..., branch_reference=q_ref)``, see the concepts page).
+            ``inf``: the exact Hessian from the start; ``0``: always projected (with the same
+            retry).
         initial_guess: Where a dynamic step's Newton iteration starts (read by the Simulation;
             the step's Dirichlet values are applied to it, and a guess that inverts elements
             or collides falls back to ``"previous"``). One of ``INITIAL_GUESSES``:
 
-            - ``"predictor"`` (default, the behaviour before this option existed): the
-              constant-velocity extrapolation u^{i-1} + dt v^{i-1} in dynamic simulations,
-              u^{i-1} in static ones;
+            - ``"predictor"`` (default): the constant-velocity extrapolation
+              u^{i-1} + dt v^{i-1} in dynamic simulations, u^{i-1} in static ones;
             - ``"previous"``: the previous state u^{i-1};
             - ``"zero"``: the reference configuration (u = 0).
 
@@ -120,10 +110,7 @@ class SolverOptions:
             continuation (contact: a barrier too soft for its load, whose pairs rest so far
             inside dhat that the collision check cuts every step) and, if one is offered,
             solves the step again from its initial guess through stiffer barriers down to the
-            term's own (``NewtonSolver._continued_attempt``): the fig14 puzzle piece with
-            the scene's kappa 1e5 thrown at (2, -0.4) m/s converges at step 12 in 112 Newton
-            iterations (30 cut ones, then 4 stages), where it failed after 100. 0: only after
-            a failed solve.
+            term's own (``NewtonSolver._continued_attempt``). 0: only after a failed solve.
     """
 
     rtol: float = 1e-9
