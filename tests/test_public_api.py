@@ -99,7 +99,7 @@ print(importlib.import_module({old!r}) is importlib.import_module({new!r}))
     out = subprocess.run(
         [sys.executable, "-c", script], capture_output=True, text=True, timeout=120, check=True
     ).stdout.splitlines()
-    assert out == [f"warned: {old} moved to {new} (the old path goes in 0.5)", "True"]
+    assert out == [f"warned: {old} moved to {new} (the old path goes in 0.6)", "True"]
 
 
 def test_an_unknown_contact_module_is_still_an_import_error():

@@ -22,7 +22,7 @@ __all__ = [
     "suggest_barrier_stiffness",
 ]
 
-# module paths before the sub-packages (0.4): they import the moved modules and warn until 0.5
+# module paths before the sub-packages (0.4): they import the moved modules and warn until 0.6
 alias_modules(
     {
         "diffsolids.contact.adjoint": "diffsolids.contact.derivatives.step_adjoint",
@@ -46,5 +46,5 @@ alias_modules(
         "diffsolids.contact.pattern": "diffsolids.contact.energy.pattern",
         "diffsolids.contact.polyfem": "diffsolids.polyfem.contact",
     },
-    removed_in="0.5",
+    removed_in="0.6",
 )
