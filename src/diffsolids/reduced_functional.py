@@ -49,9 +49,6 @@ class ReducedFunctional:
             factorisation in memory as the adjoint preconditioner of that step (0 disables;
             None, the default, keeps them on disk, MUMPS out-of-core: see
             :class:`~diffsolids.solvers.factor_store.FactorStore`).
-        factor_store: The store of those factorisations, for settings ``factor_memory_mb``
-            does not cover (e.g. ``FactorStore(directory=...)``); it is the solver's only while
-            this functional runs its forward and adjoint (``rf.factor_store``).
         checkpointing: Which forward states the adjoint keeps: a
             :class:`~diffsolids.adjoint.checkpointing.Checkpointing` policy (all in memory, a
             fixed number of checkpoints in memory, or disk); None (default) is
@@ -68,6 +65,10 @@ class ReducedFunctional:
             smooth near q_ref, independent of the evaluation history, and the optimiser's
             warm start is not used. None (default): each step is solved from the
             simulation's own initial guess.
+        factor_store: The store of the factorisations kept for the adjoint, for settings
+            ``factor_memory_mb`` does not cover (e.g. ``FactorStore(directory=...)``); it is
+            the solver's only while this functional runs its forward and adjoint
+            (``rf.factor_store``).
 
     Raises:
         ObjectiveError: ``objective`` is not an Objective.
@@ -86,9 +87,9 @@ class ReducedFunctional:
         controls: Control | Sequence[Control],
         adjoint_options: AdjointSolverOptions | None = None,
         factor_memory_mb: float | None = None,
-        factor_store: FactorStore | None = None,
         checkpointing: Checkpointing | None = None,
         branch_reference: npt.ArrayLike | None = None,
+        factor_store: FactorStore | None = None,
     ) -> None:
         if checkpointing is not None and not isinstance(checkpointing, Checkpointing):
             raise ParameterError(
