@@ -28,6 +28,7 @@ from invariants import check_invariants
 import diffsolids as ds
 from diffsolids.objectives import center_of_mass, series_values, target_trajectory, time_integral
 from diffsolids.optimize import LBFGSOptions, check_trajectories
+from diffsolids.polyfem import PolyFEMOptimization, PolyFEMProblem, read_polyfem_optimization
 from diffsolids.polyfem.scene import PolyFEMScene, read_polyfem_scene
 
 __all__ = [
@@ -44,6 +45,7 @@ __all__ = [
     "paper_report",
     "paper_setup",
     "plot_paths",
+    "polyfem_problem",
     "recovery_outcome",
     "scenes",
     "target_objective",
@@ -224,6 +226,38 @@ def build(
         progress=False,
     )
     return model, contact, sim
+
+
+def polyfem_problem(run, folder: str, **build) -> tuple[PolyFEMOptimization, PolyFEMProblem]:
+    """An experiment's opt.json built as ``python -m diffsolids.polyfem`` builds it.
+
+    :func:`~diffsolids.polyfem.read_polyfem_optimization` of ``folder``'s opt.json under
+    ``--data``, built with the run's ``--steps`` and ``--kappa`` (pairs closer than 1e-10 dhat
+    count as touching in the invariant checks, as in :func:`build`); the steps and time step
+    are recorded in ``run.args``.
+
+    Args:
+        run: The DemoRun.
+        folder: The experiment's folder.
+        **build: Further arguments of :meth:`~diffsolids.polyfem.PolyFEMOptimization.build`
+            (``contact_options`` are added to ``min_gap``).
+
+    Returns:
+        (the opt.json read, the problem)
+    """
+    path, _ = experiment(run.args.data, folder)
+    contact_options = {"min_gap": 1e-10, **build.pop("contact_options", {})}
+    optimization = read_polyfem_optimization(path / "opt.json")
+    problem = optimization.build(
+        run.comm,
+        steps=run.args.steps,
+        stiffness=kappa_argument(run.args.kappa),
+        contact_options=contact_options,
+        **build,
+    )
+    integrator = problem.simulation.integrator
+    run.args.steps, run.args.dt = integrator.num_steps, integrator.dt
+    return optimization, problem
 
 
 def gradient_stop_options(opt: dict, iterations: int, **kwargs) -> LBFGSOptions:
