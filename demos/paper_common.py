@@ -46,6 +46,7 @@ __all__ = [
     "paper_setup",
     "plot_paths",
     "polyfem_problem",
+    "record_time_grid",
     "recovery_outcome",
     "scenes",
     "target_objective",
@@ -228,36 +229,44 @@ def build(
     return model, contact, sim
 
 
-def polyfem_problem(run, folder: str, **build) -> tuple[PolyFEMOptimization, PolyFEMProblem]:
+def polyfem_problem(
+    data: Path, comm, folder: str, steps: int | None = None, kappa="suggest", **build
+) -> tuple[PolyFEMOptimization, PolyFEMProblem]:
     """An experiment's opt.json built as ``python -m diffsolids.polyfem`` builds it.
 
     :func:`~diffsolids.polyfem.read_polyfem_optimization` of ``folder``'s opt.json under
-    ``--data``, built with the run's ``--steps`` and ``--kappa`` (pairs closer than 1e-10 dhat
-    count as touching in the invariant checks, as in :func:`build`); the steps and time step
-    are recorded in ``run.args``.
+    ``data``, built with ``steps`` and the ``--kappa`` value ``kappa``; pairs closer than 1e-10
+    dhat count as touching in the invariant checks (as in :func:`build`).
 
     Args:
-        run: The DemoRun.
+        data: ``--data``.
+        comm: Communicator.
         folder: The experiment's folder.
+        steps: Run the first ``steps`` steps (None: the scenes').
+        kappa: ``--kappa`` ("suggest", "scene" or a number).
         **build: Further arguments of :meth:`~diffsolids.polyfem.PolyFEMOptimization.build`
             (``contact_options`` are added to ``min_gap``).
 
     Returns:
         (the opt.json read, the problem)
     """
-    path, _ = experiment(run.args.data, folder)
+    path, _ = experiment(data, folder)
     contact_options = {"min_gap": 1e-10, **build.pop("contact_options", {})}
     optimization = read_polyfem_optimization(path / "opt.json")
     problem = optimization.build(
-        run.comm,
-        steps=run.args.steps,
-        stiffness=kappa_argument(run.args.kappa),
+        comm,
+        steps=steps,
+        stiffness=kappa_argument(kappa),
         contact_options=contact_options,
         **build,
     )
-    integrator = problem.simulation.integrator
-    run.args.steps, run.args.dt = integrator.num_steps, integrator.dt
     return optimization, problem
+
+
+def record_time_grid(run, simulation: ds.Simulation) -> None:
+    """The simulation's steps and time step recorded in ``run.args`` (the report shows them)."""
+    integrator = simulation.integrator
+    run.args.steps, run.args.dt = integrator.num_steps, integrator.dt
 
 
 def gradient_stop_options(opt: dict, iterations: int, **kwargs) -> LBFGSOptions:

@@ -39,6 +39,7 @@ from paper_common import (
     gradient_stop_options,
     optimise_paths,
     polyfem_problem,
+    record_time_grid,
     recovery_outcome,
 )
 
@@ -66,10 +67,12 @@ def velocities(scene: PolyFEMScene) -> np.ndarray:
 def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     """Recover the piece's initial velocity; returns the report (printed on rank 0)."""
     run = parse_args(argv, comm)
-    optimization, problem = polyfem_problem(run, FOLDER)
+    args = run.args
+    optimization, problem = polyfem_problem(args.data, comm, FOLDER, args.steps, args.kappa)
+    record_time_grid(run, problem.simulation)
     sim, contact, q0 = problem.simulation, problem.contact, problem.q0
     true = velocities(optimization.states[1])
-    options = gradient_stop_options(optimization.raw, run.args.iterations, max_change=2.0)
+    options = gradient_stop_options(optimization.raw, args.iterations, max_change=2.0)
     result, _, trajs = optimise_paths(run, problem.rf, q0, options, problem.targets[1])
     values = (true, q0, result.q, contact)
     report, figures, (error0, error1) = recovery_outcome(
