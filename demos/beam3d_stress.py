@@ -44,13 +44,14 @@ class Problem(StressProblem):
     """The beam on its support; the volume may not grow; figures of silhouettes."""
 
     smoothing_exclude = (SUPPORT,)  # w_V = 1e3, w_S = 0.05
+    degree = 1  # Lagrange degree of the displacement
     remesh_threshold = 0.01
     min_reduction = 1.5  # checked: max von Mises before / after
     volume_tolerance = 0.01  # checked: (V - V0) / V0
 
     def model(self, domain) -> ds.Model:
         """The supported, loaded beam on a mesh."""
-        model = ds.Model(domain, ds.NeoHookean(E=E, nu=NU), degree=1)
+        model = ds.Model(domain, ds.NeoHookean(E=E, nu=NU), degree=self.degree)
         model.add_dirichlet(SUPPORT, 0.0)
         for load in LOADS:
             model.add_traction(load, [0.0, 0.0, -TRACTION])

@@ -48,12 +48,7 @@ def main(argv=None) -> dict:
     comm = MPI.COMM_WORLD
 
     class Beam(demo.Problem):
-        def model(self, domain) -> ds.Model:
-            model = ds.Model(domain, ds.NeoHookean(E=demo.E, nu=demo.NU), degree=args.degree)
-            model.add_dirichlet(demo.SUPPORT, 0.0)
-            for load in demo.LOADS:
-                model.add_traction(load, [0.0, 0.0, -demo.TRACTION])
-            return model
+        degree = args.degree
 
         def solver_options(self) -> ds.SolverOptions:
             return ds.SolverOptions(rtol=1e-10, petsc_options={"pc_type": "gamg"})
