@@ -127,3 +127,31 @@ def test_a_vertex_beside_a_triangle_in_its_plane_is_not_near():
     end = np.vstack([p0 + np.array([-0.02, 0.0, 1e-9]), tri])
     _, near = _bound("fv", start, end)
     assert not near
+
+
+def _rocking_triangle(height: float, alpha: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+    """A triangle rocking from z = alpha x to z = -alpha x under a vertex moving from x = -0.5
+    to 0.5 at z = ``height``: the linear paths bring the vertex closest to the triangle's plane
+    in the middle of the step (plane distance height + 2 alpha (t - 1/2)^2)."""
+    tri0 = np.array([[-1.0, -1.0, -alpha], [1.0, -1.0, alpha], [0.0, 1.0, 0.0]])
+    tri1 = tri0 * [1.0, 1.0, -1.0]
+    p0, p1 = np.array([-0.5, -0.5, height]), np.array([0.5, -0.5, height])
+    return np.vstack([p0, tri0]), np.vstack([p1, tri1])
+
+
+def test_a_dip_inside_the_step_does_not_cut_it():
+    """The vertex's gap falls from 5e-10 to 1e-11 in the middle of the step and is back at the
+    end: the step is collision-free (the gap stays far above the floor), so the bound is inf
+    instead of the dip's t ~ 0.06 (which cut every Newton step of a resting pair of the
+    paper's Fig. 1 at its own kappa, 100 iterations in a row); where the vertex reaches the
+    plane (or passes it) in the middle, the step is still cut before it."""
+    start, end = _rocking_triangle(1e-11)
+    bound, near = _bound("fv", start, end)
+    assert near and bound == np.inf
+    for t in np.linspace(0.0, 1.0, 201):
+        assert _distance("fv", start + t * (end - start)) >= 0.99e-11
+    for height in (0.0, -1e-11):
+        start, end = _rocking_triangle(height)
+        bound, near = _bound("fv", start, end)
+        d = [_distance("fv", start + t * (end - start)) for t in np.linspace(0.0, bound, 101)]
+        assert near and 0.0 < bound < 0.5 and min(d) > 0.0

@@ -312,6 +312,40 @@ def _with_displacement_bound(
     return bound, near, floored
 
 
+def _cubic(a0: np.ndarray, a1: np.ndarray, a2: np.ndarray, a3: np.ndarray, t: float) -> np.ndarray:
+    """a0 + a1 t + a2 t^2 + a3 t^3, row-wise."""
+    return a0 + t * (a1 + t * (a2 + t * a3))
+
+
+def _first_zero(a0: np.ndarray, a1: np.ndarray, a2: np.ndarray, a3: np.ndarray) -> np.ndarray:
+    """A lower bound of the first zero in [0, 1] of L(t) = a0 + a1 t + a2 t^2 + a3 t^3.
+
+    0 where L(0) <= 0, inf where L has no zero in [0, 1]. On 32 sub-intervals L is bounded from
+    below by L(t_i) + L'(t_i) tau - max|L''| tau^2 / 2.
+    """
+    curv = np.maximum(np.abs(2.0 * a2), np.abs(2.0 * a2 + 6.0 * a3))  # max |L''| on [0, 1]
+    zero = np.where(a0 > 0, np.inf, 0.0)
+    pieces = 32
+    h = 1.0 / pieces
+    open_ = a0 > 0
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        for i in range(pieces):
+            if not open_.any():
+                break
+            t = i * h
+            value = _cubic(a0, a1, a2, a3, t)
+            slope = a1 + t * (2.0 * a2 + 3.0 * t * a3)
+            # first tau > 0 with value + slope tau - curv tau^2 / 2 = 0 (value > 0), in the
+            # form without cancellation for either sign of the slope
+            root = np.sqrt(slope * slope + 2.0 * curv * np.maximum(value, 0.0))
+            tau = np.where(slope < 0, 2.0 * value / (root - slope), (slope + root) / curv)
+            tau = np.where(value > 0, np.where(np.isnan(tau), np.inf, tau), 0.0)
+            hit = open_ & (tau < h)
+            zero = np.where(hit, t + np.maximum(tau, 0.0), zero)
+            open_ &= ~hit
+    return zero
+
+
 def _plane_bounds(
     x0: np.ndarray, x1: np.ndarray, corners: list[np.ndarray], kind: str, eta: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -325,7 +359,9 @@ def _plane_bounds(
     m = max(eta d0, floor) (d0 the plane distance at x0, floor ``_GAP_FLOOR_ULPS`` ulps of its
     largest coordinate) while L(t) = sigma N(t) - (m n_max + err) > 0, n_max bounding |s x w|
     over the step and err the round-off of N. The first zero of L is bounded from below on 32
-    sub-intervals by L(t_i) + L'(t_i) tau - max|L''| tau^2 / 2. The displacement bound
+    sub-intervals by L(t_i) + L'(t_i) tau - max|L''| tau^2 / 2 (:func:`_first_zero`); where L
+    is positive again at t = 1 and the plane distance stays above the floor over the whole
+    step, the pair does not bound it (a dip inside the step only). The displacement bound
     (d0 - m) / (largest relative displacement of the pair's points) holds too; the larger of
     the two is returned (inf: not within the step). Pairs with L(0) <= 0 (the plane test
     says nothing) are near only when floored, with the displacement bound alone.
@@ -373,27 +409,17 @@ def _plane_bounds(
         )
     margin = np.maximum(eta * np.minimum(d0, dist), floor)
     sign = np.where(c0 < 0, -1.0, 1.0)
-    a0 = np.abs(c0) - (margin * n_max + err)
     a1, a2, a3 = sign * c1, sign * c2, sign * c3
-    curv = np.maximum(np.abs(2.0 * a2), np.abs(2.0 * a2 + 6.0 * a3))  # max |L''| on [0, 1]
-    plane = np.where(a0 > 0, np.inf, 0.0)
-    pieces = 32
-    h = 1.0 / pieces
-    open_ = a0 > 0
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        for i in range(pieces):
-            if not open_.any():
-                break
-            t = i * h
-            value = a0 + t * (a1 + t * (a2 + t * a3))
-            slope = a1 + t * (2.0 * a2 + 3.0 * t * a3)
-            # first tau > 0 with value + slope tau - curv tau^2 / 2 = 0 (value > 0), in the
-            # form without cancellation for either sign of the slope
-            root = np.sqrt(slope * slope + 2.0 * curv * np.maximum(value, 0.0))
-            tau = np.where(slope < 0, 2.0 * value / (root - slope), (slope + root) / curv)
-            tau = np.where(value > 0, np.where(np.isnan(tau), np.inf, tau), 0.0)
-            hit = open_ & (tau < h)
-            plane = np.where(hit, t + np.maximum(tau, 0.0), plane)
-            open_ &= ~hit
+    a0 = np.abs(c0) - (margin * n_max + err)
+    plane = _first_zero(a0, a1, a2, a3)
+    # A pair whose plane distance dips below the margin inside the step only (a rotating
+    # triangle: linear paths of its corners bend the vertex's path relative to it) and is back
+    # above the margin at the end does not collide if the distance stays above the floor: the
+    # whole step is free (the margin keeps the end points, where the barrier is evaluated, off
+    # the floor; cutting at the dip would cut every Newton step of a resting pair).
+    dip = (plane <= 1.0) & (_cubic(a0, a1, a2, a3, 1.0) > 0)
+    if dip.any():
+        through = _first_zero(np.abs(c0) - (floor * n_max + err), a1, a2, a3)
+        plane = np.where(dip & (through > 1.0), np.inf, plane)
     bound, near, floored = _with_displacement_bound(plane, dist, margin, coord, reach, eta, floor)
     return bound, near & ((a0 > 0) | floored), floored, floor
