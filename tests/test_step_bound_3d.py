@@ -142,9 +142,8 @@ def _rocking_triangle(height: float, alpha: float = 1e-9) -> tuple[np.ndarray, n
 def test_a_dip_inside_the_step_does_not_cut_it():
     """The vertex's gap falls from 5e-10 to 1e-11 in the middle of the step and is back at the
     end: the step is collision-free (the gap stays far above the floor), so the bound is inf
-    instead of the dip's t ~ 0.06 (which cut every Newton step of a resting pair of the
-    paper's Fig. 1 at its own kappa, 100 iterations in a row); where the vertex reaches the
-    plane (or passes it) in the middle, the step is still cut before it."""
+    instead of a cut at the dip; where the vertex reaches the plane (or passes it) in the
+    middle, the step is still cut before it."""
     start, end = _rocking_triangle(1e-11)
     bound, near = _bound("fv", start, end)
     assert near and bound == np.inf

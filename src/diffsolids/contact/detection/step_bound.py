@@ -416,7 +416,7 @@ def _plane_bounds(
     # triangle: linear paths of its corners bend the vertex's path relative to it) and is back
     # above the margin at the end does not collide if the distance stays above the floor: the
     # whole step is free (the margin keeps the end points, where the barrier is evaluated, off
-    # the floor; cutting at the dip would cut every Newton step of a resting pair).
+    # the floor).
     dip = (plane <= 1.0) & (_cubic(a0, a1, a2, a3, 1.0) > 0)
     if dip.any():
         through = _first_zero(np.abs(c0) - (floor * n_max + err), a1, a2, a3)
