@@ -152,3 +152,27 @@ def test_bouncing_ball_at_the_scene_kappa_converges():
         assert not ipctk.has_intersections(s.mesh, x)
     gaps = [r.min_distance for r in contact.records if r.num_collisions]
     assert gaps and max(gaps) < 1e-10  # pairs rest ~1e-12 m apart
+
+
+def test_throw_at_the_scene_kappa_converges_through_a_split_stage():
+    """Fig. 1 at kappa 1e5 (the scene's): in step 5 the continuation's third stage (factor 47,
+    from the converged factor-2.2e3 state) crawls with full projected steps; before stages
+    were split, it ran 100 iterations and the step failed after 276. Now the stage stops after
+    continuation_after iterations and the step goes through factor 320 first."""
+    from diffsolids.polyfem import read_polyfem_optimization
+
+    opt_json = DATA / "diffipc" / "fig1_bunnies" / "opt.json"
+    if not opt_json.is_file():
+        pytest.skip(f"the paper's data is not at {opt_json.parent.parent} (set DIFFSOLIDS_DATA)")
+    problem = read_polyfem_optimization(opt_json).build(COMM, steps=5, stiffness=None)
+    sim = problem.rf.simulation
+    (contact,) = [t for t in sim.model.numeric_terms if isinstance(t, ContactTerm)]
+    assert contact.stiffness == 1e5
+    problem.rf.controls.assign(problem.q0)
+    traj = sim.run()
+    assert sim.solver.continued_steps >= 3 and sim.solver.split_stages >= 1
+    assert max(r.iterations for r in traj.records) < 2 * sim.solver.options.max_iterations
+    s = contact.surface
+    for u in traj.u:
+        x = np.asfortranarray(s.rest_positions + s.gather(u))
+        assert not ipctk.has_intersections(s.mesh, x)

@@ -21,6 +21,7 @@ from petsc4py import PETSc
 from diffsolids.errors import NewtonConvergenceError
 from diffsolids.parallel import collective_comm
 from diffsolids.solvers.callbacks import weak_callback
+from diffsolids.solvers.continuation import ContinuationPath
 from diffsolids.solvers.factor_store import FactorStore
 from diffsolids.solvers.forms import compile_form
 from diffsolids.solvers.inversion import InversionGuard
@@ -111,6 +112,10 @@ class SolverOptions:
             inside dhat that the collision check cuts every step) and, if one is offered,
             solves the step again from its initial guess through stiffer barriers down to the
             term's own (``NewtonSolver._continued_attempt``). 0: only after a failed solve.
+            A stage after a converged one that does not converge within
+            ``continuation_after`` iterations is split: the step goes back to the converged
+            stage's state and through a stage at the geometric mean of the two stiffnesses
+            first (``diffsolids.solvers.continuation``).
     """
 
     rtol: float = 1e-9
@@ -205,7 +210,9 @@ class NewtonSolver:
         self._keep_f_char = False
         self._first_attempt = 0
         self.continued_steps = 0  # steps solved by a stiffness continuation
+        self.split_stages = 0  # continuation stages split (gone to halfway first)
         self._continuation: tuple[float, ...] = ()
+        self._stage_splittable = False  # a stalled stage would be split (in a continuation)
         self._eager_march = False
         self._restarted_after = 0
         self.reference_force = 0.0
@@ -502,7 +509,7 @@ class NewtonSolver:
             return R.CONVERGED_FNORM_ABS
         if it >= self.options.max_iterations:
             return R.DIVERGED_MAX_IT
-        if self._stalled_soft():
+        if self._stalled_soft(it):
             self._stalled = True
             return R.DIVERGED_LINE_SEARCH
         if it > self._restarted_after and self.patterns.missing(self.A):
@@ -511,14 +518,21 @@ class NewtonSolver:
             return R.DIVERGED_JACOBIAN_DOMAIN
         return R.ITERATING
 
-    def _stalled_soft(self) -> bool:
-        """Whether the last ``continuation_after`` steps were cut and a continuation is offered.
+    def _stalled_soft(self, iterations: int) -> bool:
+        """Whether the solve stops here to go on through (another) continuation stage.
 
-        Asked every ``continuation_after`` cut steps in a row, outside a continuation
-        (collective: the cut streak and the terms' answers are the same on every rank).
+        Outside a continuation: when the last ``continuation_after`` steps were cut and a
+        continuation is offered (asked every ``continuation_after`` cut steps in a row). In
+        a continuation: a stage that a split would bring closer to its start
+        (``ContinuationPath.can_split``) gets ``continuation_after`` iterations. Collective:
+        the counts and the terms' answers are the same on every rank.
         """
         n = self.options.continuation_after
-        if self._continuation or n <= 0 or self._cut_streak < n or self._cut_streak % n:
+        if n <= 0:
+            return False
+        if self._continuation:
+            return self._stage_splittable and iterations >= n
+        if self._cut_streak < n or self._cut_streak % n:
             return False
         return any(t.continuation_factors() for t in self._continuable_terms())
 
@@ -740,20 +754,20 @@ class NewtonSolver:
         iterate's contact forces); each stage starts where the previous one ended (converged
         or not: a stage is a way to the next, every iterate admissible), the last one is the
         terms themselves and must converge, so the state reached is a minimiser of the step's
-        own potential (the adjoint differentiates that, not the path to it).
+        own potential (the adjoint differentiates that, not the path to it). A stage after a
+        converged one that fails (or crawls: ``continuation_after`` iterations) is split:
+        the step goes back to the converged stage's state and first through a stage halfway
+        between the two (``ContinuationPath.split``).
 
         Returns:
             (iterations, SNES converged reason, converged); (0, DIVERGED_MAX_IT, False) when no
             term offers a continuation.
         """
         terms = self._continuable_terms()
-        schedules = [t.continuation_factors() for t in terms]
-        stages = max((len(s) for s in schedules), default=0)
-        if not stages:
+        path = ContinuationPath([t.continuation_factors() for t in terms])
+        if not path.stages:
             return 0, PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT, False
-        self._continuation = tuple(
-            max(s[k] if k < len(s) else 1.0 for s in schedules) for k in range(stages)
-        )
+        self._continuation = path.largest_factors()
         logger.info(
             "step %d: Newton stalled or failed; again through a stiffness continuation, factors %s",
             step,
@@ -761,24 +775,60 @@ class NewtonSolver:
         )
         self._exact_from_start, self._keep_f_char = False, True
         x0.copy(self.x)
-        total = 0
+        kept, kept_at = x0.duplicate(), None  # the last converged stage's state and position
+        total, index = 0, 0
         try:
-            for k in range(stages + 1):
-                for term, schedule in zip(terms, schedules, strict=True):
-                    term.set_stiffness_factor(schedule[k] if k < len(schedule) else 1.0)
-                self._forget_energy()  # the potential has changed
-                self._eager_march = k < stages
-                its, reason, converged = self._attempt()
+            while index < len(path.positions):
+                its, reason, converged = self._continuation_stage(terms, path, index, kept_at)
                 total += its
-                logger.debug("step %d: continuation stage %d: %d Newton iterations", step, k, its)
+                if converged:
+                    self.x.copy(kept)
+                    kept_at = path.positions[index]
+                elif kept_at is not None and path.split(index, kept_at):
+                    # the stage was too far from the last converged one: go half the way first
+                    self._continuation = path.largest_factors()
+                    self.split_stages += 1
+                    logger.info(
+                        "step %d: continuation stage %d failed after %d iterations; factors now %s",
+                        step,
+                        index,
+                        its,
+                        ", ".join(f"{f:.2g}" for f in self._continuation),
+                    )
+                    kept.copy(self.x)
+                    continue
+                else:
+                    kept_at = None  # go on from where the stage ended
+                index += 1
         finally:
-            self._eager_march = False
+            kept.destroy()
+            self._eager_march = self._stage_splittable = False
             for term in terms:
                 term.set_stiffness_factor(1.0)
             self._forget_energy()
         if converged:
             self.continued_steps += 1
         return total, reason, converged
+
+    def _continuation_stage(
+        self, terms: list, path: ContinuationPath, index: int, converged_at: float | None
+    ) -> tuple[int, int, bool]:
+        """One stage of a continuation from the current iterate (collective).
+
+        A stage that a split would bring closer to its start (``ContinuationPath.can_split``)
+        stops as stalled after ``continuation_after`` iterations.
+        """
+        position = path.positions[index]
+        self._stage_splittable = path.can_split(index, converged_at)
+        for term, factor in zip(terms, path.factors(position), strict=True):
+            term.set_stiffness_factor(factor)
+        self._forget_energy()  # the potential has changed
+        self._eager_march = position < path.stages
+        its, reason, converged = self._attempt()
+        logger.debug(
+            "continuation stage %d (position %g): %d Newton iterations", index, position, its
+        )
+        return its, reason, converged
 
     def solve(self, step: int) -> NewtonResult:
         """Minimise from the current ``u`` (which must satisfy the Dirichlet conditions).
