@@ -130,26 +130,33 @@ def test_puzzle_at_the_scene_kappa_converges():
     assert gaps and min(gaps) < 1e-10  # the scene's soft barrier: pairs ~1e-12 m apart
 
 
-def test_bouncing_ball_at_the_scene_kappa_converges():
-    """Fig. 22 at kappa 1e4 (the scene's, as PolyFEM reads it): its impact steps need every cut
-    step of the stiffer continuation stages extended (step 4 failed after 184 iterations,
-    153 of them cut, when only long streaks of small cuts were)."""
+def run_paper_scene(folder: str, steps: int, kappa: float):
+    """The paper's experiment ``folder`` at its own barrier stiffness, run for ``steps``
+    steps from opt.json's start; every state checked for intersections."""
     from diffsolids.polyfem import read_polyfem_optimization
 
-    opt_json = DATA / "diffipc" / "fig22_bounce_ball" / "opt.json"
+    opt_json = DATA / "diffipc" / folder / "opt.json"
     if not opt_json.is_file():
         pytest.skip(f"the paper's data is not at {opt_json.parent.parent} (set DIFFSOLIDS_DATA)")
-    problem = read_polyfem_optimization(opt_json).build(COMM, steps=5, stiffness=None)
+    problem = read_polyfem_optimization(opt_json).build(COMM, steps=steps, stiffness=None)
     sim = problem.rf.simulation
     (contact,) = [t for t in sim.model.numeric_terms if isinstance(t, ContactTerm)]
-    assert contact.stiffness == 1e4
+    assert contact.stiffness == kappa
     problem.rf.controls.assign(problem.q0)
     traj = sim.run()
-    assert sim.solver.continued_steps >= 3  # steps 2-5 carry the impact
     s = contact.surface
     for u in traj.u:
         x = np.asfortranarray(s.rest_positions + s.gather(u))
         assert not ipctk.has_intersections(s.mesh, x)
+    return sim, contact, traj
+
+
+def test_bouncing_ball_at_the_scene_kappa_converges():
+    """Fig. 22 at kappa 1e4 (the scene's, as PolyFEM reads it): its impact steps need every cut
+    step of the stiffer continuation stages extended (step 4 failed after 184 iterations,
+    153 of them cut, when only long streaks of small cuts were)."""
+    sim, contact, _ = run_paper_scene("fig22_bounce_ball", 5, 1e4)
+    assert sim.solver.continued_steps >= 3  # steps 2-5 carry the impact
     gaps = [r.min_distance for r in contact.records if r.num_collisions]
     assert gaps and max(gaps) < 1e-10  # pairs rest ~1e-12 m apart
 
@@ -159,20 +166,6 @@ def test_throw_at_the_scene_kappa_converges_through_a_split_stage():
     from the converged factor-2.2e3 state) crawls with full projected steps; before stages
     were split, it ran 100 iterations and the step failed after 276. Now the stage stops after
     continuation_after iterations and the step goes through factor 320 first."""
-    from diffsolids.polyfem import read_polyfem_optimization
-
-    opt_json = DATA / "diffipc" / "fig1_bunnies" / "opt.json"
-    if not opt_json.is_file():
-        pytest.skip(f"the paper's data is not at {opt_json.parent.parent} (set DIFFSOLIDS_DATA)")
-    problem = read_polyfem_optimization(opt_json).build(COMM, steps=5, stiffness=None)
-    sim = problem.rf.simulation
-    (contact,) = [t for t in sim.model.numeric_terms if isinstance(t, ContactTerm)]
-    assert contact.stiffness == 1e5
-    problem.rf.controls.assign(problem.q0)
-    traj = sim.run()
+    sim, _, traj = run_paper_scene("fig1_bunnies", 5, 1e5)
     assert sim.solver.continued_steps >= 3 and sim.solver.split_stages >= 1
     assert max(r.iterations for r in traj.records) < 2 * sim.solver.options.max_iterations
-    s = contact.surface
-    for u in traj.u:
-        x = np.asfortranarray(s.rest_positions + s.gather(u))
-        assert not ipctk.has_intersections(s.mesh, x)
