@@ -29,10 +29,8 @@ class ContinuationPath:
         """
         self.stages = max((len(s) for s in schedules), default=0)
         grid = range(self.stages + 1)
-        self._factors = [[s[k] if k < len(s) else 1.0 for k in grid] for s in schedules]
-        self._log_factors = np.array(
-            [[np.log(s[k]) if k < len(s) else 0.0 for k in grid] for s in schedules],
-            dtype=float,
+        self._factors = np.array(
+            [[s[k] if k < len(s) else 1.0 for k in grid] for s in schedules], dtype=float
         ).reshape(len(schedules), self.stages + 1)
         self.positions: list[float] = [float(k) for k in grid]
         self.splits = 0
@@ -40,9 +38,9 @@ class ContinuationPath:
     def factors(self, position: float) -> list[float]:
         """Each term's stiffness factor at ``position`` (its schedule's own at an integer)."""
         if float(position).is_integer():
-            return [float(f[int(position)]) for f in self._factors]
+            return [float(f) for f in self._factors[:, int(position)]]
         grid = np.arange(self.stages + 1, dtype=float)
-        return [float(np.exp(np.interp(position, grid, row))) for row in self._log_factors]
+        return [float(np.exp(np.interp(position, grid, np.log(row)))) for row in self._factors]
 
     def largest_factors(self) -> tuple[float, ...]:
         """The largest factor of the terms at each position but the last (for reports)."""
