@@ -38,6 +38,24 @@ def test_flat_edges_and_vertices_3d():
     assert not edges.any() and not flat_vertex_mask(V, E, edges).any()
 
 
+@pytest.mark.parametrize("height", [1e-9, -1e-9, 1e-12])
+def test_a_crease_above_round_off_is_no_flat_joint(height):
+    """Normals 1e-9 apart pass the angle test; the crease is geometry at barrier distances."""
+    V, F, E = _fan(height=height)
+    edges = flat_edge_mask(V, F, E)
+    assert not edges.any() and not flat_vertex_mask(V, E, edges).any()
+    V, F, E = _fan(height=1e-16)  # round-off: flat
+    assert flat_edge_mask(V, F, E).sum() == 4
+
+
+def test_a_kink_above_round_off_is_no_flat_vertex_2d():
+    X = np.array([[0, 0], [1, 0], [2, 1e-9], [3, 0], [4, 0]], float)
+    segments = np.column_stack([np.arange(4), np.arange(1, 5)])
+    assert np.array_equal(flat_vertex_mask(X, segments, None), [0, 0, 0, 0, 0])
+    X[2, 1] = 1e-17
+    assert np.array_equal(flat_vertex_mask(X, segments, None), [0, 1, 1, 1, 0])
+
+
 def test_flat_vertices_2d():
     X = np.array([[0, 0], [1, 0], [2, 0], [3, 0.1], [4, 0.2]], float)
     segments = np.column_stack([np.arange(4), np.arange(1, 5)])

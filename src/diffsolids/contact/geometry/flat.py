@@ -35,6 +35,12 @@ from diffsolids.contact.geometry.distances import pair_distances, point_segment_
 __all__ = ["FlatRegions", "flat_edge_mask", "flat_primitive_regions", "flat_vertex_mask"]
 
 _COPLANAR = 1e-10  # 1 - cos of the angle between the normals (or segments) of a flat joint
+# a flat joint is also straight to round-off: its crease is at most _FLAT_ULPS ulps of the
+# obstacle's largest coordinate high (as the step bound's gap floor). A crease of 1e-7 m (an
+# obstacle read from a file with 7 digits) is geometry at the barrier's distances (~1e-11 m):
+# an edge across a convex one meets it closer than its ends meet either plane, so dropping
+# that edge-edge pair would leave the barrier blind to a contact the step bound still stops.
+_FLAT_ULPS = 1e2
 
 
 def _edge_rows(edges: np.ndarray, pairs: np.ndarray, n: int) -> np.ndarray:
@@ -94,16 +100,29 @@ def flat_edge_mask(vertices: np.ndarray, faces: np.ndarray, edges: np.ndarray) -
         edges: (k, 2) the faces' edges, each row sorted.
 
     Returns:
-        Boolean mask over ``edges``: two faces, coplanar and alike oriented.
+        Boolean mask over ``edges``: two faces, coplanar and alike oriented, each face's third
+        vertex within ``_FLAT_ULPS`` ulps of the largest coordinate from the other's plane.
     """
     X = np.asarray(vertices, dtype=float)
     normal = np.cross(X[faces[:, 1]] - X[faces[:, 0]], X[faces[:, 2]] - X[faces[:, 0]])
     normal /= np.linalg.norm(normal, axis=1)[:, None]
     count, first, last = _edge_faces(faces, edges, len(X))
     flat = count == 2
-    cos = np.einsum("ij,ij->i", normal[first[flat]], normal[last[flat]])
-    flat[flat] = cos >= 1.0 - _COPLANAR
+    f0, f1, e = first[flat], last[flat], edges[flat]
+    cos = np.einsum("ij,ij->i", normal[f0], normal[f1])
+    ends = e.sum(axis=1)
+    origin = X[e[:, 0]]
+    crease = np.maximum(
+        np.abs(np.einsum("ij,ij->i", X[faces[f1].sum(axis=1) - ends] - origin, normal[f0])),
+        np.abs(np.einsum("ij,ij->i", X[faces[f0].sum(axis=1) - ends] - origin, normal[f1])),
+    )
+    flat[flat] = (cos >= 1.0 - _COPLANAR) & (crease <= _straight_tolerance(X))
     return flat
+
+
+def _straight_tolerance(X: np.ndarray) -> float:
+    """The largest crease (kink) of a flat joint: ``_FLAT_ULPS`` ulps of the coordinates."""
+    return _FLAT_ULPS * np.finfo(float).eps * float(np.abs(X).max(initial=0.0))
 
 
 def flat_vertex_mask(
@@ -118,7 +137,8 @@ def flat_vertex_mask(
 
     Returns:
         Boolean mask over the vertices. 3D: every incident edge is flat. 2D: two segments,
-        one ending and one starting at the vertex, in the same direction.
+        one ending and one starting at the vertex, in the same direction, the vertex within
+        ``_FLAT_ULPS`` ulps of the largest coordinate from the line through their other ends.
     """
     n = len(vertices)
     if flat_edges is not None:
@@ -135,7 +155,15 @@ def flat_vertex_mask(
     d /= np.linalg.norm(d, axis=1)[:, None]
     incoming[edges[:, 1]] = d
     outgoing[edges[:, 0]] = d
-    return joint & (np.einsum("ij,ij->i", incoming, outgoing) >= 1.0 - _COPLANAR)
+    before, after = np.arange(n), np.arange(n)
+    before[edges[:, 1]] = edges[:, 0]
+    after[edges[:, 0]] = edges[:, 1]
+    chord = X[after] - X[before]
+    offset = X - X[before]
+    length = np.maximum(np.linalg.norm(chord, axis=1), np.finfo(float).tiny)
+    kink = np.abs(chord[:, 0] * offset[:, 1] - chord[:, 1] * offset[:, 0]) / length
+    straight = np.einsum("ij,ij->i", incoming, outgoing) >= 1.0 - _COPLANAR
+    return joint & straight & (kink <= _straight_tolerance(X))
 
 
 class FlatRegions:
