@@ -158,10 +158,7 @@ def flat_vertex_mask(
     before, after = np.arange(n), np.arange(n)
     before[edges[:, 1]] = edges[:, 0]
     after[edges[:, 0]] = edges[:, 1]
-    chord = X[after] - X[before]
-    offset = X - X[before]
-    length = np.maximum(np.linalg.norm(chord, axis=1), np.finfo(float).tiny)
-    kink = np.abs(chord[:, 0] * offset[:, 1] - chord[:, 1] * offset[:, 0]) / length
+    kink = point_segment_distances(X, X[before], X[after])
     straight = np.einsum("ij,ij->i", incoming, outgoing) >= 1.0 - _COPLANAR
     return joint & straight & (kink <= _straight_tolerance(X))
 
