@@ -157,6 +157,9 @@ def test_bouncing_ball_at_the_scene_kappa_converges():
     153 of them cut, when only long streaks of small cuts were)."""
     sim, contact, _ = run_paper_scene("fig22_bounce_ball", 5, 1e4)
     assert sim.solver.continued_steps >= 3  # steps 2-5 carry the impact
+    # each impact step's first Newton iterations press a pair down to the step bound's gap
+    # floor: the continuation starts there, not after continuation_after cut steps
+    assert sim.solver.floor_continuations == sim.solver.continued_steps
     gaps = [r.min_distance for r in contact.records if r.num_collisions]
     assert gaps and max(gaps) < 1e-10  # pairs rest ~1e-12 m apart
 

@@ -595,6 +595,14 @@ class ContactTerm(NumericTerm):
             return ()
         return continuation_schedule(self.stiffness, self.dhat, self._largest_force(ev))
 
+    def held_at_floor(self) -> bool:
+        """Whether the last collision-free step bound held a pair at its gap floor (collective).
+
+        See ``StepBound.floor_held``: the pair's barrier did not stop it above round-off.
+        """
+        floor = self.step_bound.floor_held
+        return bool(np.isfinite(self.partition.minimum(np.inf if floor is None else floor)))
+
     def set_stiffness_factor(self, factor: float) -> None:
         """Evaluate the barrier with ``factor`` x kappa until set back to 1 (a continuation).
 

@@ -147,6 +147,16 @@ class NumericTerm(ABC):
         """
         return ()
 
+    def held_at_floor(self) -> bool:
+        """Whether the last step bound of the term held a pair at its round-off floor.
+
+        A barrier that lets a Newton step press a pair down to the gap floor of its step
+        bound (a few ulps of the coordinates) is too soft for its load: the solver then asks
+        for a stiffness continuation at once rather than after ``continuation_after`` cut
+        steps. Only asked when ``has_stiffness_continuation`` (collective). Default: False.
+        """
+        return False
+
     def set_stiffness_factor(self, factor: float) -> None:
         """Scale the term's stiffness by ``factor`` (1: the term itself) for the next solves."""
         raise NotImplementedError(f"{self.name} has no stiffness continuation")

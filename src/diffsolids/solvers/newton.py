@@ -107,9 +107,11 @@ class SolverOptions:
             A warm start the Simulation is given (a Trajectory of an earlier run) comes first
             whatever this option says.
         continuation_after: A solve whose last ``continuation_after`` Newton steps were all
-            cut by a step bound, or that fails, asks the numeric terms for a stiffness
-            continuation (contact: a barrier too soft for its load, whose pairs rest so far
-            inside dhat that the collision check cuts every step) and, if one is offered,
+            cut by a step bound, in which a step bound held a contact pair at its round-off
+            gap floor (the barrier did not stop it above), or that fails, asks the numeric
+            terms for a stiffness continuation (contact: a barrier too soft for its load,
+            whose pairs rest so far inside dhat that the collision check cuts every step)
+            and, if one is offered,
             solves the step again from its initial guess through stiffer barriers down to the
             term's own (``NewtonSolver._continued_attempt``). 0: only after a failed solve.
             A stage after a converged one that does not converge within
@@ -211,9 +213,11 @@ class NewtonSolver:
         self._first_attempt = 0
         self.continued_steps = 0  # steps solved by a stiffness continuation
         self.split_stages = 0  # continuation stages split (gone to halfway first)
+        self.floor_continuations = 0  # continuations started by a pair held at a gap floor
         self._continuation: tuple[float, ...] = ()
         self._stage_splittable = False  # a stalled stage would be split (in a continuation)
         self._eager_march = False
+        self._held_at_floor = self._floor_asked = False  # a pair at a step bound's gap floor
         self._restarted_after = 0
         self.reference_force = 0.0
         self._energy_cache: tuple[PETSc.Vec, float] | None = None
@@ -417,6 +421,11 @@ class NewtonSolver:
             y.scale(scale)
             slope *= scale
             self.bounded_steps += 1
+            if self.options.continuation_after > 0 and not (
+                self._continuation or self._floor_asked
+            ):
+                held = [t.held_at_floor() for t in self._continuable_terms()]
+                self._held_at_floor = self._held_at_floor or any(held)
             self._last_cut = scale
         else:
             self._cut_streak = 0
@@ -521,8 +530,9 @@ class NewtonSolver:
     def _stalled_soft(self, iterations: int) -> bool:
         """Whether the solve stops here to go on through (another) continuation stage.
 
-        Outside a continuation: when the last ``continuation_after`` steps were cut and a
-        continuation is offered (asked every ``continuation_after`` cut steps in a row). In
+        Outside a continuation: when a step bound has held a pair at its gap floor (asked
+        once per attempt) or the last ``continuation_after`` steps were cut (asked every
+        ``continuation_after`` cut steps in a row), and a continuation is offered. In
         a continuation: a stage that a split would bring closer to its start
         (``ContinuationPath.can_split``) gets ``continuation_after`` iterations. Collective:
         the counts and the terms' answers are the same on every rank.
@@ -532,6 +542,11 @@ class NewtonSolver:
             return False
         if self._continuation:
             return self._stage_splittable and iterations >= n
+        if self._held_at_floor and not self._floor_asked:
+            self._floor_asked = True  # asked once per attempt
+            if any([t.continuation_factors() for t in self._continuable_terms()]):
+                self.floor_continuations += 1
+                return True
         if self._cut_streak < n or self._cut_streak % n:
             return False
         return any(t.continuation_factors() for t in self._continuable_terms())
@@ -720,6 +735,7 @@ class NewtonSolver:
         self._direction_exact = False
         self._planned_step = 0.0
         self._cut_streak = 0
+        self._held_at_floor = self._floor_asked = False
         self._stalled = False
         self._assign(self.x)
         self._restarted_after = 0
