@@ -218,6 +218,7 @@ class NewtonSolver:
         self._stage_splittable = False  # a stalled stage would be split (in a continuation)
         self._eager_march = False
         self._held_at_floor = self._floor_asked = False  # a pair at a step bound's gap floor
+        self._stall_cause: str | None = None  # why the last attempt stopped early
         self._restarted_after = 0
         self.reference_force = 0.0
         self._energy_cache: tuple[PETSc.Vec, float] | None = None
@@ -546,10 +547,14 @@ class NewtonSolver:
             self._floor_asked = True  # asked once per attempt
             if any([t.continuation_factors() for t in self._continuable_terms()]):
                 self.floor_continuations += 1
+                self._stall_cause = "floor"
                 return True
         if self._cut_streak < n or self._cut_streak % n:
             return False
-        return any(t.continuation_factors() for t in self._continuable_terms())
+        if any([t.continuation_factors() for t in self._continuable_terms()]):
+            self._stall_cause = "cuts"
+            return True
+        return False
 
     def _hybrid(self) -> bool:
         """Projected steps above ``exact_hessian_below * f_char``, exact below (first attempt)."""
@@ -736,6 +741,7 @@ class NewtonSolver:
         self._planned_step = 0.0
         self._cut_streak = 0
         self._held_at_floor = self._floor_asked = False
+        self._stall_cause = None
         self._stalled = False
         self._assign(self.x)
         self._restarted_after = 0
@@ -784,9 +790,15 @@ class NewtonSolver:
         if not path.stages:
             return 0, PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT, False
         self._continuation = path.largest_factors()
+        why = {
+            "floor": "a pair was pressed to the collision check's gap floor",
+            "cuts": f"{self._cut_streak} Newton steps in a row were cut",
+        }.get(self._stall_cause, "Newton failed")
         logger.info(
-            "step %d: Newton stalled or failed; again through a stiffness continuation, factors %s",
+            "step %d: %s after %d iterations; again through a stiffness continuation, factors %s",
             step,
+            why,
+            self.snes.getIterationNumber() + self._restarted_after,
             ", ".join(f"{f:.2g}" for f in self._continuation),
         )
         self._exact_from_start, self._keep_f_char = False, True
