@@ -76,7 +76,9 @@ def build_scene(args, comm):
     # change with the throw at the 1e-3 scale (central differences of J along its gradient at
     # (1.2079, 0.5008, -5.9095): 0.59 off at h = 1e-3, 4.4e-4 at 1e-4, 6.7e-8 at 1e-6) and
     # L-BFGS stops 1% from the true throw after 30 iterations; exact from the start it recovers
-    # it to 3e-9 in 24 (measured 2026-12-02).
+    # it to 3e-9 in 24 (measured 2026-12-02). With the default and a branch reference at the
+    # start throw (ReducedFunctional(..., branch_reference=START_THROW)) it stops 1.1% off
+    # after 104 forward solves (2026-12-07): the reference run is too far from the true throw.
     options = ds.SolverOptions(rtol=1e-9, exact_hessian_below=np.inf)
     sim = ds.Simulation(model, integrator, options, progress=False)
     return model, contact, sim
