@@ -8,7 +8,7 @@ coefficient's gradient by 1.6e-10 relative with direct solves, 4.7e-10 with cont
 import numpy as np
 import pytest
 from mpi4py import MPI
-from test_stiffness_continuation import STEPS, _run
+from test_stiffness_continuation import DATA, STEPS, _run
 
 RTOL = 1e-9
 
@@ -26,3 +26,28 @@ def test_continued_block_world_equals_self():
     assert diff <= RTOL, diff
     for value in comm.allgather(J_par):
         assert value == J_par
+
+
+def _ball(comm: MPI.Comm, steps: int):
+    """Fig. 22's ball at its own kappa 1e4 for ``steps`` steps (its impact from step 2)."""
+    from diffsolids.polyfem import read_polyfem_optimization
+
+    opt_json = DATA / "diffipc" / "fig22_bounce_ball" / "opt.json"
+    if not opt_json.is_file():
+        pytest.skip(f"the paper's data is not at {opt_json.parent.parent} (set DIFFSOLIDS_DATA)")
+    problem = read_polyfem_optimization(opt_json).build(comm, steps=steps, stiffness=None)
+    problem.rf.controls.assign(problem.q0)
+    traj = problem.rf.simulation.run()
+    return problem.rf.simulation.solver, traj.records
+
+
+def test_floor_continuations_world_equal_self():
+    """The pair pressed to the gap floor starts the same continuations on 2 ranks as serially."""
+    solver_par, records_par = _ball(MPI.COMM_WORLD, 3)
+    solver_ser, records_ser = _ball(MPI.COMM_SELF, 3)
+    assert solver_par.floor_continuations == solver_ser.floor_continuations == 2
+    assert solver_par.continued_steps == solver_ser.continued_steps == 2
+    energies_par = [r.energy for r in records_par]
+    assert np.allclose(energies_par, [r.energy for r in records_ser], rtol=1e-9, atol=0)
+    for values in MPI.COMM_WORLD.allgather(energies_par):
+        assert values == energies_par
