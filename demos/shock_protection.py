@@ -130,7 +130,7 @@ def build_scene(args, comm):
     contact = model.add_numeric_term(ContactTerm(model, DHAT, friction=FRICTION, eps_v=EPS_V))
     v0 = np.zeros_like(model.fields.u.x.array)
     v0.reshape(-1, 2)[body_nodes(model, "load"), 1] = -SPEED
-    options = ds.SolverOptions(rtol=1e-8, max_iterations=100)
+    options = ds.SolverOptions(rtol=1e-8)
     sim = ds.Simulation(model, integrator, options, v0=v0, progress=False)
     return model, contact, sim
 
