@@ -111,9 +111,9 @@ class SolverOptions:
             gap floor (the barrier did not stop it above), or that fails, asks the numeric
             terms for a stiffness continuation (contact: a barrier too soft for its load,
             whose pairs rest so far inside dhat that the collision check cuts every step)
-            and, if one is offered,
-            solves the step again from its initial guess through stiffer barriers down to the
-            term's own (``NewtonSolver._continued_attempt``). 0: only after a failed solve.
+            and, if one is offered, solves the step again from its initial guess through
+            stiffer barriers down to the term's own (``NewtonSolver._continued_attempt``).
+            0: only after a failed solve.
             A stage after a converged one that does not converge within
             ``continuation_after`` iterations is split: the step goes back to the converged
             stage's state and through a stage at the geometric mean of the two stiffnesses
@@ -423,10 +423,9 @@ class NewtonSolver:
             slope *= scale
             self.bounded_steps += 1
             if self.options.continuation_after > 0 and not (
-                self._continuation or self._floor_asked
+                self._continuation or self._floor_asked or self._held_at_floor
             ):
-                held = [t.held_at_floor() for t in self._continuable_terms()]
-                self._held_at_floor = self._held_at_floor or any(held)
+                self._held_at_floor = any([t.held_at_floor() for t in self._continuable_terms()])
             self._last_cut = scale
         else:
             self._cut_streak = 0
@@ -545,16 +544,16 @@ class NewtonSolver:
             return self._stage_splittable and iterations >= n
         if self._held_at_floor and not self._floor_asked:
             self._floor_asked = True  # asked once per attempt
-            if any([t.continuation_factors() for t in self._continuable_terms()]):
-                self.floor_continuations += 1
-                self._stall_cause = "floor"
-                return True
-        if self._cut_streak < n or self._cut_streak % n:
+            cause = "floor"
+        elif self._cut_streak >= n and self._cut_streak % n == 0:
+            cause = "cuts"
+        else:
             return False
-        if any([t.continuation_factors() for t in self._continuable_terms()]):
-            self._stall_cause = "cuts"
-            return True
-        return False
+        if not any([t.continuation_factors() for t in self._continuable_terms()]):
+            return False
+        self._stall_cause = cause
+        self.floor_continuations += cause == "floor"
+        return True
 
     def _hybrid(self) -> bool:
         """Projected steps above ``exact_hessian_below * f_char``, exact below (first attempt)."""
