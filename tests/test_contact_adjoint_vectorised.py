@@ -17,6 +17,7 @@ from mpi4py import MPI
 from test_contact_kernels import _Checker, _scene
 
 import diffsolids.contact.derivatives.barrier_shape as contact_shape
+from diffsolids.contact.derivatives.area_weights import area_gradient_adjoint
 from diffsolids.contact.derivatives.friction_weights import _gather
 from diffsolids.contact.derivatives.step_adjoint import ContactAdjoint
 
@@ -95,19 +96,34 @@ def _rel(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.abs(a - b).max() / scale)
 
 
-CASES = [(2, 1, 1, 100.0), (2, 2, 2, 100.0), (3, 1, 2, 100.0), (3, 1, 1, 0.5), (3, 2, 1, 0.5)]
+CASES = [
+    (2, 1, 1, 100.0, "ipc"),
+    (2, 2, 2, 100.0, "ipc"),
+    (3, 1, 2, 100.0, "ipc"),
+    (3, 1, 1, 0.5, "ipc"),
+    (3, 2, 1, 0.5, "ipc"),
+    (2, 1, 1, 0.5, "convergent"),
+    (3, 1, 1, 0.5, "convergent"),
+]
 
 
-@pytest.mark.parametrize(("dim", "degree", "order", "eps_v"), CASES)
-def test_vectorised_contact_adjoint_equals_the_loops(dim, degree, order, eps_v, monkeypatch):
-    model, contact, _, u, _ = _scene(dim, degree, order, eps_v, comm=MPI.COMM_SELF)
+@pytest.mark.parametrize(("dim", "degree", "order", "eps_v", "formulation"), CASES)
+def test_vectorised_contact_adjoint_equals_the_loops(
+    dim, degree, order, eps_v, formulation, monkeypatch
+):
+    model, contact, _, u, _ = _scene(
+        dim, degree, order, eps_v, comm=MPI.COMM_SELF, formulation=formulation
+    )
     lam = _Checker(model, contact, u).random()
     ev = contact._evaluate(u)
     lam_c = contact.adjoint.surface_vector(lam)
     lagging = contact.lagging
     T = lagging.tangential_collisions(lagging.mu_table(lagging.mu), contact.barrier, True)
     assert len(T) > 0
-    ids, kind, _ = _gather(T, contact.surface.mesh)
+    # the friction collisions read from the normal set they are lagged from: ids as ipctk's
+    # tangential collisions hold them
+    x, C = lagging.lagged_state(shape_derivatives=True)
+    ids, kind, _ = _gather(C, contact.surface.mesh, x)
     E, F = contact.surface.mesh.edges, contact.surface.mesh.faces
     groups = (T.vv_collisions, T.ev_collisions, T.ee_collisions, T.fv_collisions)
     loop_ids = [np.asarray(c.vertex_ids(E, F)) for g in groups for c in g]
@@ -188,3 +204,39 @@ def test_raw_sparse_vectors_only_for_the_reading_thread():
     assert mine is parts
     assert type(seen["other"]) is original and seen["other"].toarray()[0, 0] == 1.0
     assert scipy.sparse.csc_matrix is original
+
+
+def _ipctk_area_gradients(mesh, alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
+    if not mesh.are_area_jacobians_initialized():
+        mesh.init_area_jacobians()
+    out = np.zeros(mesh.ndof)
+    for v in range(mesh.num_vertices):
+        out += alpha[v] * sp.csc_matrix(mesh.vertex_area_gradient(v)).toarray().ravel()
+    for e in range(mesh.num_edges):
+        out += beta[e] * sp.csc_matrix(mesh.edge_area_gradient(e)).toarray().ravel()
+    return out
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_area_gradients_equal_ipctk(dim):
+    """Vertex and edge area gradients in bulk against ipctk's per-vertex and per-edge ones.
+
+    Surface faces, codimensional edges and an isolated vertex (3D); closed and open polylines
+    (2D).
+    """
+    rng = np.random.default_rng(dim)
+    if dim == 3:
+        faces = np.array([[0, 1, 2], [0, 3, 1], [1, 3, 2], [0, 2, 3]])
+        edges = np.vstack([ipctk.edges(faces), [[4, 5]]])
+        X = rng.random((7, 3))
+    else:
+        faces = np.zeros((0, 3), dtype=int)
+        edges = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5]])
+        X = rng.random((6, 2))
+    mesh = ipctk.CollisionMesh(X, edges, faces)
+    alpha = rng.standard_normal(mesh.num_vertices)
+    beta = rng.standard_normal(mesh.num_edges)
+    assert (
+        _rel(area_gradient_adjoint(mesh, alpha, beta), _ipctk_area_gradients(mesh, alpha, beta))
+        <= TOL
+    )

@@ -29,11 +29,20 @@ TOL = 1e-6
 GAP = 0.02
 
 
-def _scene(dim: int, degree: int, order: int, eps_v: float = 100.0, comm=MPI.COMM_WORLD):
+def _scene(
+    dim: int,
+    degree: int,
+    order: int,
+    eps_v: float = 100.0,
+    comm=MPI.COMM_WORLD,
+    formulation: str = "ipc",
+):
     dom = combine_meshes(comm, stacked_boxes(dim, GAP, [2, 2]))
     model = ds.Model(dom, ds.NeoHookean(E=1e4, nu=0.3, density=10.0), degree=degree)
     model.add_dirichlet(lambda x: x[dim - 1] < 1e-9, 0.0)
-    contact = ContactTerm(model, dhat=0.05, stiffness=1e3, friction=0.4, eps_v=eps_v)
+    contact = ContactTerm(
+        model, dhat=0.05, stiffness=1e3, friction=0.4, eps_v=eps_v, formulation=formulation
+    )
     V = model.V
     X = V.tabulate_dof_coordinates()[:, :dim]
     upper_nodes = X[:, dim - 1] > 0.3 + 1e-9

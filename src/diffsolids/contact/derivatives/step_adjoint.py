@@ -190,12 +190,9 @@ class ContactAdjoint:
         out = self.lagged_jacobian(ev).T @ lam_c
         if not self.area_weighting:
             return out
-        T = self.lagging.tangential_collisions(
-            self.lagging.mu_table(self.lagging.mu), self.potential.barrier, shape_derivatives=True
-        )
-        x = self.surface.rest_positions + self.lagging.step.lagged
+        x, C = self.lagging.lagged_state(shape_derivatives=True)
         return out + friction_weight_adjoint(
-            T,
+            C,
             self.surface.mesh,
             x,
             self.lagging.velocity(ev.U),
