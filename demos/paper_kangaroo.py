@@ -26,13 +26,13 @@ between nu = 0.13 and 0.5 (3.7e-2 at the start). L-BFGS reaches the floor in fou
 finite-difference Hessian of the adjoint gradient moves 0.007 per iteration (15 iterations:
 0.417), because every straight step along the bent floor leaves it and the walls (curvature
 4.9e-2) cap the next one. The adjoint gradient itself is right (central differences agree to
-1e-4 relative on the floor). So E is projected out (``FloorSearch``): J is minimised over log E
-at fixed nu (Newton with secant curvature), and nu follows the floor's slope dJ/dnu +
-(dlogE*/dnu) dJ/dlogE (secant steps of at most 0.15, kept inside the bracket where the slope
-changes sign), each new nu starting from the floor's tangent. Measured (default, 60 steps): 21
-evaluations (one forward and one adjoint solve each; CPU 38 s), E = 1.0000007e7, nu = 0.300053,
-J 3.6e-16 (from 3.7e-2), |g| 1.4e-11; ``--tiny`` (35 steps): 17 evaluations (CPU 15 s),
-nu = 0.300002.
+1e-4 relative on the floor). So E is projected out (``diffsolids.optimize.FloorSearch``): J
+is minimised over log E at fixed nu (Newton with secant curvature), and nu follows the floor's
+slope dJ/dnu + (dlogE*/dnu) dJ/dlogE (secant steps of at most 0.15, kept inside the bracket
+where the slope changes sign), each new nu starting from the floor's tangent. Measured
+(default, 60 steps): 21 evaluations (one forward and one adjoint solve each; CPU 38 s),
+E = 1.0000007e7, nu = 0.300053, J 3.6e-16 (from 3.7e-2), |g| 1.4e-11; ``--tiny`` (35 steps):
+17 evaluations (CPU 15 s), nu = 0.300002.
 
 The outcome checked (``--check``, every size): E and nu within 1% of 1e7 and 0.3, no
 intersection or inverted element in the three runs. The search stops when its next step would
@@ -46,9 +46,6 @@ barrier stiffness is ``suggest_barrier_stiffness``'s (``--kappa scene``: the sce
 PolyFEM means it; see ``paper_puzzle`` for what it does). Output in ``output/paper_kangaroo/``:
 ``history.jsonl`` (one line per evaluation), ``result.json``, ``paper_kangaroo.png``.
 """
-
-import time
-from dataclasses import dataclass
 
 import numpy as np
 from common import DemoReport, DemoRun, by_size, run_demo
@@ -68,13 +65,7 @@ from paper_common import (
 
 from diffsolids.adjoint.checkpointing import Checkpointing
 from diffsolids.controls import ControlSet, ParameterControl
-from diffsolids.optimize import (
-    IterationRecord,
-    OptimizationOutput,
-    OptimizationResult,
-    TrajectoryKeeper,
-)
-from diffsolids.optimize.monitor import control_summary, log_iteration
+from diffsolids.optimize import FloorSearch, OptimizationOutput
 from diffsolids.reduced_functional import ReducedFunctional
 
 FOLDER = "fig20_kangaroo"
@@ -83,165 +74,6 @@ MAX_ERROR = 0.01
 STEP_TOL = (1e-7, 1e-4)  # next Newton step of log E and nu at which the search stops
 MAX_CHANGE = (1.0, 0.15)  # largest step of log E (opt.json's max_change) and of nu
 SIZES = by_size(steps=(35, None, None), iterations=(24, 40, 60))
-
-
-@dataclass
-class _Point:
-    q: np.ndarray
-    value: float
-    g: np.ndarray
-
-
-class FloorSearch:
-    """Minimise J(log E, nu) with log E projected out: nu along the floor of J's valley.
-
-    The inner problem (J over log E at fixed nu) is Newton with secant curvature ``h_EE``
-    and Armijo backtracking; its steps also give the secant of d(dJ/dnu)/dlogE = ``h_Enu``,
-    hence the floor's slope dlogE*/dnu = -h_Enu / h_EE. The outer problem (the floor value
-    F(nu) = min_E J) uses dF/dnu = dJ/dnu - (h_Enu / h_EE) dJ/dlogE (first order in the
-    inner residual) in secant steps bounded by ``max_change`` and by the bracket where dF/dnu
-    changes sign. One evaluation is a forward and an adjoint solve, one history record. Stops:
-    "step" (the next nu step below ``step_tol``), "bound" (the minimum over nu on a bound of
-    nu) or "max_iterations" (``max_evaluations``); the result is the lowest J evaluated.
-
-    Args:
-        rf: The ReducedFunctional of the two controls (log E, nu).
-        max_change: Largest step of (log E, nu).
-        step_tol: (log E, nu) tolerances: the inner Newton stops when its next step in log E
-            would be below the first, the search when its next secant step in nu would be
-            below the second.
-        max_evaluations: Evaluation limit.
-        output: History file (or None).
-    """
-
-    def __init__(self, rf, max_change, step_tol, max_evaluations: int, output=None):
-        self.rf, self.output = rf, output
-        self.max_change = np.asarray(max_change, dtype=float)
-        self.step_tol = np.asarray(step_tol, dtype=float)
-        self.max_evaluations = max_evaluations
-        self.lo, self.hi = rf.bounds()
-        self.history: list[IterationRecord] = []
-        self.keeper = TrajectoryKeeper()
-        self.best: _Point | None = None
-        self.h_EE: float | None = None
-        self.h_Enu = 0.0
-
-    def _norm(self, p: _Point) -> float:
-        return float(np.linalg.norm(np.clip(p.q - p.g, self.lo, self.hi) - p.q))
-
-    def _full(self) -> bool:
-        return len(self.history) >= self.max_evaluations
-
-    def evaluate(self, q, previous: _Point | None) -> _Point:
-        """J and its adjoint gradient at q (recorded; the best point's trajectory kept)."""
-        q = np.clip(np.asarray(q, dtype=float), self.lo, self.hi)
-        t0 = time.perf_counter()
-        value = float(self.rf(q))
-        t1 = time.perf_counter()
-        p = _Point(q, value, self.rf.derivative())
-        t2 = time.perf_counter()
-        rec = IterationRecord(
-            iteration=len(self.history),
-            objective=value,
-            terms=self.rf.term_values(),
-            gradient_norm=self._norm(p),
-            step_norm=0.0 if previous is None else float(np.linalg.norm(q - previous.q)),
-            step_length=0.0 if previous is None else 1.0,
-            trials=0 if previous is None else 1,
-            forward_seconds=t1 - t0,
-            gradient_seconds=t2 - t1,
-            seconds=t2 - self._t0,
-            parameter_norm=float(np.linalg.norm(q)),
-            parameter_summary=control_summary(self.rf.controls, q),
-            q=q.tolist(),
-        )
-        self.history.append(rec)
-        log_iteration(rec)
-        if self.output is not None:
-            self.output.record(rec, self.history)
-        if self.keeper.first is None:
-            self.keeper.first = self.rf.trajectory
-        if self.best is None or value <= self.best.value:
-            self.best = p
-            self.keeper.last = self.rf.trajectory
-        return p
-
-    def _nu_free(self, p: _Point) -> bool:
-        return not ((p.q[1] <= self.lo[1] and p.g[1] > 0) or (p.q[1] >= self.hi[1] and p.g[1] < 0))
-
-    def _floor(self, p: _Point) -> _Point:
-        """Newton in log E at the nu of p until log E is converged or no longer matters."""
-        while not self._full():
-            if self.h_EE:
-                ratio = self.h_Enu / self.h_EE
-                if abs(p.g[0] / self.h_EE) <= self.step_tol[0]:
-                    return p
-                if self._nu_free(p) and abs(ratio * p.g[0]) <= 0.1 * abs(p.g[1]):
-                    return p  # dF/dnu known to 10%
-            limit = self.max_change[0]
-            step = -p.g[0] / self.h_EE if self.h_EE else -np.sign(p.g[0]) * limit
-            step = float(np.clip(step, -limit, limit))
-            for _ in range(10):  # Armijo backtracking
-                trial = self.evaluate(p.q + np.array([step, 0.0]), p)
-                ds = trial.q[0] - p.q[0]
-                armijo = p.value + 1e-4 * p.g[0] * ds
-                if trial.value <= armijo or self._full():
-                    break
-                step *= 0.5
-            if ds == 0.0:
-                return trial
-            curvature = (trial.g[0] - p.g[0]) / ds
-            if curvature > 0:
-                self.h_EE = curvature
-                self.h_Enu = (trial.g[1] - p.g[1]) / ds
-            p = trial
-        return p
-
-    def run(self, q0) -> OptimizationResult:
-        """Minimise from q0 = (log E, nu)."""
-        self._t0 = time.perf_counter()
-        if self.output is not None:
-            self.output.start([])
-        p = self.evaluate(q0, None)
-        bracket = [self.lo[1], self.hi[1]]
-        previous = None  # (nu, dF/dnu) of the last floor point
-        reason = "max_iterations"
-        while True:
-            p = self._floor(p)
-            if self._full():
-                break
-            ratio = self.h_Enu / self.h_EE if self.h_EE else 0.0
-            nu, slope = p.q[1], p.g[1] - ratio * p.g[0]
-            bracket[1 if slope > 0 else 0] = nu
-            curvature = (slope - previous[1]) / (nu - previous[0]) if previous else 0.0
-            limit = self.max_change[1]
-            step = -slope / curvature if curvature > 0 else -np.sign(slope) * limit
-            if abs(step) <= self.step_tol[1]:
-                reason = "step"
-                break
-            new = nu + float(np.clip(step, -limit, limit))
-            if not bracket[0] < new < bracket[1]:
-                new = 0.5 * (bracket[0] + bracket[1])
-            if new == nu or not self._nu_free(p):
-                reason = "bound"
-                break
-            previous = (nu, slope)
-            p = self.evaluate([p.q[0] - ratio * (new - nu), new], p)  # on the floor's tangent
-        if self.output is not None:
-            self.output.finish(self.history)
-        best = self.best
-        return OptimizationResult(
-            q=best.q,
-            objective=best.value,
-            gradient=best.g,
-            iterations=len(self.history) - 1,
-            reason=reason,
-            message=f"floor search stopped ({reason}) after {len(self.history)} evaluations",
-            history=self.history,
-            num_forward=len(self.history),
-            num_gradient=len(self.history),
-            functional=self.rf,
-        )
 
 
 def parse_args(argv, comm: MPI.Comm) -> DemoRun:

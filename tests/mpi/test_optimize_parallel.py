@@ -107,3 +107,21 @@ def test_tao_with_a_distributed_vector():
     assert np.allclose(np.exp(full.getArray()), E_TRUE, rtol=1e-6)
     for obj in (tao, x, g, full, scatter):
         obj.destroy()
+
+
+def test_floor_search_world_equals_self():
+    """FloorSearch takes the same evaluations on 2 ranks as on 1 (the bar's two moduli)."""
+    from diffsolids.optimize import FloorSearch
+
+    runs = []
+    for comm in (MPI.COMM_WORLD, MPI.COMM_SELF):
+        rf, q_true = bar_problem(comm, bodies=2)
+        search = FloorSearch(rf, (1.0, 1.0), (1e-8, 1e-6), 60)
+        runs.append(search.run(rf.initial_parameters()))
+    world, own = runs
+    assert world.reason == own.reason == "step"
+    assert len(world.history) == len(own.history)
+    qw = np.array([r.q for r in world.history])
+    qs = np.array([r.q for r in own.history])
+    assert np.allclose(qw, qs, rtol=0, atol=1e-8)
+    assert np.allclose(world.q, q_true, rtol=0, atol=1e-5)

@@ -5,11 +5,13 @@ intersecting rest configuration, a converged forward solve), warm-starts every f
 from the last accepted trajectory, writes a history, plots, selected iterates and checkpoints,
 and offers a remeshing hook (see :mod:`diffsolids.optimize.optimizer`). Observers of accepted
 iterates (``on_accept``: trajectories, invariants) are in :mod:`diffsolids.optimize.observers`,
-checks of those invariants in :mod:`diffsolids.optimize.invariants`.
+checks of those invariants in :mod:`diffsolids.optimize.invariants`. For two parameters of which
+one sits in a narrow, bent valley, :class:`FloorSearch` projects that one out.
 """
 
 from diffsolids.optimize.checkpoint import Checkpoint
 from diffsolids.optimize.contract import OptimizableFunctional
+from diffsolids.optimize.floor_search import FloorSearch
 from diffsolids.optimize.hooks import RebuildableInnerProduct, RemeshCheckpoints, RemeshHook
 from diffsolids.optimize.invariants import (
     BoundaryIntersection,
@@ -43,6 +45,7 @@ __all__ = [
     "LBFGS",
     "BoundaryIntersection",
     "Checkpoint",
+    "FloorSearch",
     "InvariantMonitor",
     "IterationLog",
     "IterationRecord",
