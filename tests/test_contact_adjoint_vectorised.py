@@ -17,6 +17,7 @@ from mpi4py import MPI
 from test_contact_kernels import _Checker, _scene
 
 import diffsolids.contact.derivatives.barrier_shape as contact_shape
+import diffsolids.contact.derivatives.step_adjoint as step_adjoint
 from diffsolids.contact.derivatives.area_weights import area_gradient_adjoint
 from diffsolids.contact.derivatives.friction_weights import _gather
 from diffsolids.contact.derivatives.step_adjoint import ContactAdjoint
@@ -64,6 +65,14 @@ def _reference_ee_correction(collisions, mesh, x: np.ndarray, barrier, stiffness
     return sp.csc_matrix(
         (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
     )
+
+
+def _reference_barrier_shape_adjoint(C, mesh, x, barrier, stiffness: float, lam: np.ndarray):
+    """ipctk's barrier shape derivative, with the mollifier correction in 3D, applied to lam."""
+    g = sp.csc_matrix(barrier.shape_derivative(C, mesh, x)).T @ lam
+    if x.shape[1] == 3:
+        g += _reference_ee_correction(C, mesh, x, barrier, stiffness).T @ lam
+    return g
 
 
 def _reference_friction_rest_adjoint(self: ContactAdjoint, ev, lam_c: np.ndarray) -> np.ndarray:
@@ -141,22 +150,31 @@ def test_vectorised_contact_adjoint_equals_the_loops(
     C = contact.builder.build(ev.x, shape_derivatives=True)
     x = np.asfortranarray(ev.x)
     mesh = contact.surface.mesh
+    args = (C, mesh, x, contact.barrier, contact.stiffness)
     if dim == 3:
         mollified = contact_shape._mollified_pairs(C, mesh, mesh.rest_positions, ev.x)
         loop = list(_reference_mollified_pairs(C, mesh, mesh.rest_positions, ev.x))
         assert len(mollified) == len(loop) > 0
-        args = (C, mesh, x, contact.barrier, contact.stiffness)
         ee = C.ee_collisions
         A = contact_shape._ee_correction(*args, ee)
         B = _reference_ee_correction(*args)
         assert abs(A - B).max() <= TOL * abs(B).max()
-        product = contact_shape._ee_correction_adjoint(*args, lam_c, ee)
-        assert _rel(product, B.T @ lam_c) <= TOL
+
+    # the barrier shape adjoint against ipctk's shape derivative (corrected in 3D): its product
+    # with the Hessian of the same set, the weight terms and the mollifier threshold's terms
+    contact.potential.hessian(ev)
+    Hb_lam = ev.extras["barrier_hessian"] @ lam_c
+    batched = contact_shape.barrier_shape_adjoint(
+        *args, lam_c, Hb_lam, contact.adjoint.merged_rows(C)
+    )
+    assert _rel(batched, _reference_barrier_shape_adjoint(*args, lam_c)) <= TOL
     gX = contact.adjoint_shape(u, lam)
     monkeypatch.setattr(
-        contact_shape,
-        "_ee_correction_adjoint",
-        lambda C, mesh, x, b, k, lam, ee: _reference_ee_correction(C, mesh, x, b, k).T @ lam,
+        step_adjoint,
+        "barrier_shape_adjoint",
+        lambda C, mesh, x, b, k, lam, Hb_lam, rows: _reference_barrier_shape_adjoint(
+            C, mesh, x, b, k, lam
+        ),
     )
     monkeypatch.setattr(ContactAdjoint, "friction_rest", _reference_friction_rest_adjoint)
     assert _rel(gX, contact.adjoint_shape(u, lam)) <= TOL
@@ -187,7 +205,7 @@ def test_raw_sparse_vectors_only_for_the_reading_thread():
 
     import scipy.sparse
 
-    from diffsolids.contact.derivatives.friction_weights import _sparse_as_arrays
+    from diffsolids.contact.derivatives.area_weights import _sparse_as_arrays
 
     parts = (np.ones(1), np.zeros(1, dtype=np.int32), np.array([0, 1], dtype=np.int32))
     seen = {}

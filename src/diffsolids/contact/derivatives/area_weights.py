@@ -11,10 +11,15 @@ for those collisions with one pass over the faces and edges, instead of one spar
 gradient read per collision (``init_area_jacobians`` holds the same gradients per vertex).
 """
 
+import contextlib
+import threading
+from collections.abc import Iterator
+
 import ipctk
 import numpy as np
+import scipy.sparse
 
-__all__ = ["area_gradient_adjoint"]
+__all__ = ["area_gradient_adjoint", "merged_weight_collisions", "weight_gradient_rows"]
 
 
 def _triangle_area_gradients(x: np.ndarray) -> np.ndarray:
@@ -65,3 +70,61 @@ def area_gradient_adjoint(
         grad = _edge_length_gradients(X[E])
         np.add.at(out, E, c[:, None, None] * grad)
     return out.ravel()
+
+
+@contextlib.contextmanager
+def _sparse_as_arrays() -> Iterator[None]:
+    """Let pybind11 return Eigen sparse vectors as (data, indices, indptr) arrays.
+
+    pybind11 casts an Eigen sparse matrix by calling ``scipy.sparse.csc_matrix((data, indices,
+    indptr), shape)``, looked up at each cast; scipy's checks cost ~30 us per call, most of the
+    cost of reading one weight gradient per collision. Inside this block that name is a
+    subclass whose constructor returns the arrays themselves to this thread and a real
+    ``csc_matrix`` to any other thread.
+    """
+    original = scipy.sparse.csc_matrix
+    owner = threading.get_ident()
+
+    class _Raw(original):
+        def __new__(cls, arg: tuple, shape: tuple | None = None, **kwargs: object) -> object:
+            if threading.get_ident() == owner:
+                return arg
+            return original(arg, shape=shape, **kwargs)
+
+    scipy.sparse.csc_matrix = _Raw
+    try:
+        yield
+    finally:
+        scipy.sparse.csc_matrix = original
+
+
+def _sparse_parts(g: tuple | scipy.sparse.spmatrix) -> tuple[np.ndarray, np.ndarray]:
+    if isinstance(g, tuple):
+        return np.asarray(g[1]), np.asarray(g[0])
+    g = scipy.sparse.csc_matrix(g)
+    return g.indices, g.data
+
+
+def weight_gradient_rows(collisions: list, size: int) -> scipy.sparse.csr_matrix:
+    """The weight gradients of ``collisions`` read from ipctk, one row per collision."""
+    if not len(collisions):
+        return scipy.sparse.csr_matrix((0, size))
+    with _sparse_as_arrays():
+        raw = [c.weight_gradient for c in collisions]
+    grads = [_sparse_parts(g) for g in raw]
+    counts = np.array([len(g[0]) for g in grads])
+    indptr = np.concatenate([[0], np.cumsum(counts)])
+    index = np.concatenate([g[0] for g in grads]).astype(np.int64)
+    data = np.concatenate([g[1] for g in grads])
+    return scipy.sparse.csr_matrix((data, index, indptr), shape=(len(collisions), size))
+
+
+def merged_weight_collisions(collisions: ipctk.NormalCollisions, dim: int) -> list:
+    """The collisions whose weights may sum several candidates' (read, not computed).
+
+    Vertex-vertex collisions, and in 3D the edge-vertex ones (``NormalCollisionsBuilder``
+    merges the shares of face-vertex and edge-edge candidates, and of the convergent
+    formulation's negative terms, into them); in this order.
+    """
+    read = list(collisions.vv_collisions)
+    return read + list(collisions.ev_collisions) if dim == 3 else read

@@ -27,9 +27,6 @@ Under MPI the normal collisions are this rank's share and the caller sums the re
 ranks.
 """
 
-import contextlib
-import threading
-from collections.abc import Iterator
 from operator import attrgetter
 from typing import NamedTuple
 
@@ -49,39 +46,6 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _unit(a: np.ndarray) -> np.ndarray:
     return a / np.linalg.norm(a, axis=-1, keepdims=True)
-
-
-@contextlib.contextmanager
-def _sparse_as_arrays() -> Iterator[None]:
-    """Let pybind11 return Eigen sparse vectors as (data, indices, indptr) arrays.
-
-    pybind11 casts an Eigen sparse matrix by calling ``scipy.sparse.csc_matrix((data, indices,
-    indptr), shape)``, looked up at each cast; scipy's checks cost ~30 us per call, most of the
-    cost of reading one weight gradient per collision. Inside this block that name is a
-    subclass whose constructor returns the arrays themselves to this thread and a real
-    ``csc_matrix`` to any other thread.
-    """
-    original = scipy.sparse.csc_matrix
-    owner = threading.get_ident()
-
-    class _Raw(original):
-        def __new__(cls, arg: tuple, shape: tuple | None = None, **kwargs: object) -> object:
-            if threading.get_ident() == owner:
-                return arg
-            return original(arg, shape=shape, **kwargs)
-
-    scipy.sparse.csc_matrix = _Raw
-    try:
-        yield
-    finally:
-        scipy.sparse.csc_matrix = original
-
-
-def _sparse_parts(g: tuple | scipy.sparse.spmatrix) -> tuple[np.ndarray, np.ndarray]:
-    if isinstance(g, tuple):
-        return np.asarray(g[1]), np.asarray(g[0])
-    g = scipy.sparse.csc_matrix(g)
-    return g.indices, g.data
 
 
 class _Gathered(NamedTuple):
@@ -145,49 +109,30 @@ def _gather(
     return _Gathered(ids, kind, ee_edges)
 
 
-def _read_weight_gradients(collisions: list, s: np.ndarray, size: int) -> np.ndarray:
-    """sum_c s_c grad w_c with each collision's weight gradient read from ipctk."""
-    out = np.zeros(size)
-    if not len(collisions):
-        return out
-    with _sparse_as_arrays():
-        raw = [c.weight_gradient for c in collisions]
-    grads = [_sparse_parts(g) for g in raw]
-    index = np.concatenate([g[0] for g in grads])
-    data = np.concatenate([g[1] for g in grads])
-    counts = np.array([len(g[0]) for g in grads])
-    np.add.at(out, index, np.repeat(s, counts) * data)
-    return out
-
-
 def _weight_adjoint(
-    C: ipctk.NormalCollisions,
     mesh: ipctk.CollisionMesh,
     ids: np.ndarray,
     kind: np.ndarray,
     ee_edges: np.ndarray,
     s: np.ndarray,
+    merged_rows: scipy.sparse.csr_matrix,
 ) -> np.ndarray:
-    """sum_c s_c grad w_c over the friction collisions lagged from ``C`` (:func:`_gather`).
+    """sum_c s_c grad w_c over the friction collisions (:func:`_gather`).
 
-    Face-vertex weights are 0.25 A_v, edge-edge weights 0.25 (A_ea + A_eb) and, in 2D,
-    edge-vertex weights 0.5 A_v (ipctk's ``NormalCollisionsBuilder``): these go through
-    :func:`area_gradient_adjoint` at once. Vertex-vertex collisions (and 3D edge-vertex ones)
-    may sum the weights of several candidates of different kinds, so their gradients are read.
+    Face-vertex weights are 0.25 A_v, edge-edge weights 0.25 (A_ea + A_eb) (the friction keeps
+    no mollified pair) and, in 2D, edge-vertex weights 0.5 A_v (ipctk's
+    ``NormalCollisionsBuilder``): these go through :func:`area_gradient_adjoint` at once. The
+    others' gradients are ``merged_rows`` (read; ``area_weights.merged_weight_collisions``).
     """
     alpha = np.zeros(mesh.num_vertices)
     beta = np.zeros(mesh.num_edges)
     fv = kind == 3
     np.add.at(alpha, ids[fv, 0], 0.25 * s[fv])
     np.add.at(beta, ee_edges.ravel(), np.repeat(0.25 * s[kind == 2], 2))
-    read = list(C.vv_collisions)
     if mesh.dim == 2:
         ev = kind == 1
         np.add.at(alpha, ids[ev, 0], 0.5 * s[ev])
-    else:
-        read += list(C.ev_collisions)
-    out = area_gradient_adjoint(mesh, alpha, beta)
-    return out + _read_weight_gradients(read, s[: len(read)], out.size)
+    return area_gradient_adjoint(mesh, alpha, beta) + merged_rows.T @ s[: merged_rows.shape[0]]
 
 
 def _point_point(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -301,6 +246,7 @@ def friction_weight_adjoint(
     eps_v: float,
     mu_table: np.ndarray,
     body_index: np.ndarray,
+    merged_rows: scipy.sparse.csr_matrix,
 ) -> np.ndarray:
     """sum_c (F_c . lam / w_c) grad_X w_c over the friction collisions (module docstring).
 
@@ -317,6 +263,8 @@ def friction_weight_adjoint(
         mu_table: (num_bodies, num_bodies) friction coefficient of each pair of bodies (the
             blend of the build; static and kinetic equal).
         body_index: Body index of each collision vertex.
+        merged_rows: Weight gradients of C's collisions with merged weights, one row each
+            (``area_weights.merged_weight_collisions``).
 
     Returns:
         (num_vertices * dim,) the weight part of (dF/dX)^T lam.
@@ -329,4 +277,4 @@ def friction_weight_adjoint(
     )
     a, b = _sides(ids, body_index)
     s = -mu_table[a, b] * terms
-    return _weight_adjoint(C, mesh, ids, kind, ee_edges, s)
+    return _weight_adjoint(mesh, ids, kind, ee_edges, s, merged_rows)

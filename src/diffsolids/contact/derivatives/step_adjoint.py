@@ -17,6 +17,10 @@ import numpy as np
 import scipy.sparse as sp
 from dolfinx import fem
 
+from diffsolids.contact.derivatives.area_weights import (
+    merged_weight_collisions,
+    weight_gradient_rows,
+)
 from diffsolids.contact.derivatives.barrier_shape import barrier_shape_adjoint
 from diffsolids.contact.derivatives.friction_weights import friction_weight_adjoint
 from diffsolids.contact.energy.contact_potential import ContactPotential
@@ -57,6 +61,7 @@ class ContactAdjoint:
         self.num_pairs = len(lagging.mu)
         # step index -> (surface state key, U^i, collisions) of the converged forward
         self._kept: dict[int, tuple] = {}
+        self._merged: list[tuple] = []  # (collision set, its merged_rows), the last two
 
     def keep_collisions(self, step: ContactStep | None, ev: Evaluation) -> None:
         """Keep the collision set of the converged state of a forward step.
@@ -159,8 +164,17 @@ class ContactAdjoint:
         mesh = self.surface.mesh
         C = self.builder.build(ev.x, shape_derivatives=True)
         x = np.asfortranarray(ev.x)
+        self.potential.hessian(ev)  # exact; keeps its barrier part
+        Hb_lam = ev.extras["barrier_hessian"] @ lam_c
         g = barrier_shape_adjoint(
-            C, mesh, x, self.potential.barrier, self.potential.stiffness, lam_c
+            C,
+            mesh,
+            x,
+            self.potential.barrier,
+            self.potential.stiffness,
+            lam_c,
+            Hb_lam,
+            self.merged_rows(C),
         )
         if self.lagging.active:
             g = g - self.friction_rest(ev, lam_c)
@@ -202,7 +216,22 @@ class ContactAdjoint:
             self.eps_v,
             self.lagging.mu_table(self.lagging.mu),
             self.surface.body_index,
+            self.merged_rows(C),
         )
+
+    def merged_rows(self, C: ipctk.NormalCollisions) -> sp.csr_matrix:
+        """Weight gradients of C's collisions with merged weights, read once per set.
+
+        The set at x^i serves the barrier of step i and the lagged friction of step i + 1
+        (the builder keeps it for both); the two last read sets are kept.
+        """
+        for kept, rows in self._merged:
+            if kept is C:
+                return rows
+        collisions = merged_weight_collisions(C, self.dim)
+        rows = weight_gradient_rows(collisions, self.surface.mesh.ndof)
+        self._merged = [(C, rows), *self._merged[:1]]
+        return rows
 
     def friction(self, ev: Evaluation, lam: fem.Function | np.ndarray) -> np.ndarray:
         """(d g / d mu_p)^T lam for each pair p of bodies (global, the same on all ranks).

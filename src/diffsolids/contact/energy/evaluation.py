@@ -93,11 +93,14 @@ def contact_hessian(
 ) -> sp.csc_matrix:
     """Hessian of the contact potential at ev (exact for NONE, else PSD-projected per pair).
 
-    The exact friction part Hess_v D (this rank's share) is kept in
-    ``ev.extras["friction_hessian"]``: it is minus the friction force's velocity Jacobian that
-    the adjoint's push into the earlier steps needs.
+    The exact parts (this rank's share) are kept: the barrier's in
+    ``ev.extras["barrier_hessian"]`` (the barrier shape derivative's x-part), the friction's
+    Hess_v D in ``ev.extras["friction_hessian"]`` (minus the friction force's velocity Jacobian
+    that the adjoint's push into the earlier steps needs).
     """
     H = barrier.hessian(ev.collisions, mesh, np.asfortranarray(ev.x), method)
+    if method == ipctk.PSDProjectionMethod.NONE:
+        ev.extras["barrier_hessian"] = H
     T = ev.extras["friction"]
     if T is not None:
         Hf = friction.hessian(T, mesh, np.asfortranarray(V), method)
