@@ -49,6 +49,7 @@ _POINT_LINE = {4: (2, 0, 1), 5: (3, 0, 1), 6: (0, 2, 3), 7: (1, 2, 3)}
 _LINE_LINE = 8
 # edge_edge_mollifier_threshold: eps_x = 1e-3 |ea|^2 |eb|^2 at rest
 _EPS_SCALE = 1e-3
+_IPC_SET = ipctk.NormalCollisions.CollisionSetType.IPC
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -387,9 +388,9 @@ def _weight_term(
 
     Face-vertex (0.25 A_v), edge-edge (0.25 (A_ea + A_eb)) and 2D edge-vertex (0.5 A_v) weights
     are applied in bulk from the area gradients; the others are ``merged_rows``
-    (:func:`~diffsolids.contact.derivatives.area_weights.merged_weight_collisions`) and the
-    edge-edge pairs near or below their mollifier threshold, read (the convergent formulation
-    adds negative terms to them; ``NormalCollisionsBuilder``).
+    (:func:`~diffsolids.contact.derivatives.area_weights.merged_weight_collisions`) and, in
+    the convergent formulation, the edge-edge pairs near or below their mollifier threshold,
+    read (that formulation adds negative terms to them; ``NormalCollisionsBuilder``).
     """
     alpha = np.zeros(mesh.num_vertices)
     beta = np.zeros(mesh.num_edges)
@@ -400,15 +401,16 @@ def _weight_term(
         np.add.at(alpha, c.ids[ev, 0], 0.5 * s[ev])
     out = merged_rows.T @ s[: merged_rows.shape[0]]
     s_ee = s[c.kind == 2]
-    if len(s_ee):
+    mollified = np.zeros(len(s_ee), dtype=bool)
+    if len(s_ee) and collisions.collision_set_type != _IPC_SET:
         xe = x[c.ids[c.kind == 2]]
         n = np.cross(xe[:, 1] - xe[:, 0], xe[:, 3] - xe[:, 2])
         ee = collisions.ee_collisions
         mollified = _dot(n, n) < np.array([e.eps_x for e in ee]) * (1.0 + 1e-6)
-        np.add.at(beta, c.ee_edges[~mollified].ravel(), np.repeat(0.25 * s_ee[~mollified], 2))
-        if mollified.any():
-            rows = weight_gradient_rows([ee[k] for k in np.flatnonzero(mollified)], out.size)
-            out += rows.T @ s_ee[mollified]
+    np.add.at(beta, c.ee_edges[~mollified].ravel(), np.repeat(0.25 * s_ee[~mollified], 2))
+    if mollified.any():
+        rows = weight_gradient_rows([ee[k] for k in np.flatnonzero(mollified)], out.size)
+        out += rows.T @ s_ee[mollified]
     return out + area_gradient_adjoint(mesh, alpha, beta)
 
 
