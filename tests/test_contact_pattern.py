@@ -284,3 +284,21 @@ def test_fig1_pool_pattern_is_sparse():
     within = cKDTree(x[free]).query_pairs(reach, output_type="ndarray")
     within = {tuple(sorted(pq)) for pq in free[within].tolist()}
     assert free_pairs <= within
+
+
+@pytest.mark.parametrize(("dim", "formulation"), [(2, "ipc"), (3, "ipc"), (3, "convergent")])
+def test_collision_stencils_are_the_barrier_hessians_blocks(dim, formulation):
+    """The pattern takes the barrier's blocks from the collisions' stencils (no Hessian): they
+    are the nonzero blocks of the exact barrier Hessian."""
+    from test_contact_kernels import _scene
+
+    from diffsolids.contact.detection.collision_arrays import collision_arrays, stencil_blocks
+
+    _, contact, _, u, _ = _scene(dim, 1, 1, 0.5, comm=MPI.COMM_SELF, formulation=formulation)
+    ev = contact._evaluate(u)
+    contact.potential.hessian(ev)
+    nv = contact.surface.num_vertices
+    exact = block_pattern(ev.extras["barrier_hessian"], dim=dim, num_vertices=nv)
+    stencils = stencil_blocks(collision_arrays(ev.collisions, contact.surface.mesh), nv)
+    assert np.any(exact // nv != exact % nv)  # off-diagonal blocks in play
+    assert np.array_equal(stencils, exact)

@@ -24,7 +24,8 @@ class ContactStep:
         obstacle: The obstacles' displacement at step i.
         blocked: The obstacles' move from u^{i-1} is not collision-free with the bodies held.
         start_body: The bodies' displacement the obstacles' move was checked from.
-        friction_pattern: The friction Hessian at zero sliding velocity (its stencils).
+        friction_pattern: Vertex-block keys of the friction Hessian at zero sliding velocity
+            (its stencils).
         reach: Vertex blocks of the pairs near at the start of the step.
     """
 
@@ -37,7 +38,7 @@ class ContactStep:
     obstacle: np.ndarray
     blocked: bool = False
     start_body: np.ndarray | None = None
-    friction_pattern: object | None = None
+    friction_pattern: np.ndarray | None = None
     reach: np.ndarray | None = None
 
     @property

@@ -29,7 +29,6 @@ formulas of ipctk's ``edge_edge_mollifier.cpp``, ``line_line.cpp``, ``point_line
 
 from collections.abc import Iterator
 from dataclasses import dataclass
-from operator import attrgetter
 
 import ipctk
 import numpy as np
@@ -39,6 +38,7 @@ from diffsolids.contact.derivatives.area_weights import (
     area_gradient_adjoint,
     weight_gradient_rows,
 )
+from diffsolids.contact.detection.collision_arrays import CollisionArrays, collision_arrays
 
 __all__ = ["barrier_shape_adjoint", "barrier_shape_derivative"]
 
@@ -294,42 +294,8 @@ def _squared_distances(kind: int, xs: np.ndarray) -> np.ndarray:
     return plane * plane / _dot(n, n)
 
 
-@dataclass
-class _Collisions:
-    """A collision set as arrays, in ipctk's type order (vv, ev, ee, fv)."""
-
-    ids: np.ndarray  # (n, 4) vertex ids, -1 padded
-    kind: np.ndarray  # (n,) 0 vv, 1 ev, 2 ee, 3 fv
-    ee_edges: np.ndarray  # (number of ee, 2)
-    ee_dtype: np.ndarray  # (number of ee,) ipctk's EdgeEdgeDistanceType of each
-
-
-def _read(collisions: ipctk.NormalCollisions, mesh: ipctk.CollisionMesh) -> _Collisions:
-    """Ids and types (the candidates' attributes, ~0.3 us per read)."""
-    E, F = np.asarray(mesh.edges), np.asarray(mesh.faces)
-
-    def rows(items: list, *names: str) -> np.ndarray:
-        get = attrgetter(*names)
-        return np.array([get(c) for c in items], dtype=np.int64).reshape(len(items), len(names))
-
-    vv = rows(collisions.vv_collisions, "vertex0_id", "vertex1_id")
-    ev = rows(collisions.ev_collisions, "vertex_id", "edge_id")
-    ee = rows(collisions.ee_collisions, "edge0_id", "edge1_id", "dtype.value")
-    fv = rows(collisions.fv_collisions, "vertex_id", "face_id")
-    ids = np.concatenate(
-        [
-            np.column_stack([vv, np.full((len(vv), 2), -1)]),
-            np.column_stack([ev[:, 0], E[ev[:, 1]].reshape(-1, 2), np.full(len(ev), -1)]),
-            E[ee[:, :2]].reshape(-1, 4),
-            np.column_stack([fv[:, 0], F[fv[:, 1]].reshape(-1, 3)]),
-        ]
-    ).astype(np.int64)
-    kind = np.repeat(np.arange(4), [len(vv), len(ev), len(ee), len(fv)])
-    return _Collisions(ids, kind, ee[:, :2], ee[:, 2])
-
-
 def _directional_barrier(
-    c: _Collisions,
+    c: CollisionArrays,
     rest: np.ndarray,
     x: np.ndarray,
     lam: np.ndarray,
@@ -379,7 +345,7 @@ def _directional_barrier(
 def _weight_term(
     collisions: ipctk.NormalCollisions,
     mesh: ipctk.CollisionMesh,
-    c: _Collisions,
+    c: CollisionArrays,
     s: np.ndarray,
     x: np.ndarray,
     merged_rows: sp.csr_matrix,
@@ -451,7 +417,7 @@ def barrier_shape_adjoint(
     g = np.array(hessian_lam, dtype=float)
     if len(collisions) == 0:
         return g
-    c = _read(collisions, mesh)
+    c = collision_arrays(collisions, mesh)
     rest = np.asarray(mesh.rest_positions)
     if collisions.use_area_weighting:
         s = _directional_barrier(c, rest, x, lam, barrier, stiffness)

@@ -8,6 +8,7 @@ ranks) and stays the same object while unchanged, so the solver's check of the p
 
 import numpy as np
 
+from diffsolids.contact.detection.collision_arrays import collision_arrays, stencil_blocks
 from diffsolids.contact.detection.reach import reach_blocks
 from diffsolids.contact.energy.contact_potential import ContactPotential
 from diffsolids.contact.energy.evaluation import Evaluation
@@ -43,7 +44,7 @@ class ContactPattern:
         self._memo: tuple | None = None
 
     def blocks(self, ev: Evaluation, step: ContactStep) -> np.ndarray:
-        """Vertex-block pattern of the Newton matrix at ev (exact Hessian + friction stencils).
+        """Vertex-block pattern of the Newton matrix at ev (collision + friction stencils).
 
         The same on all ranks (collective): the reach pattern and the blocks of every rank's
         share outside it.
@@ -53,18 +54,20 @@ class ContactPattern:
         sweep (a step begun on a whole trajectory) the union of the Hessians' blocks only.
         """
         if ev.blocks is None:
-            parts = [self.potential.hessian(ev)]
+            surf = self.surface
+            # the barrier's blocks are its collisions' stencils (no Hessian needed for them)
+            arrays = collision_arrays(ev.collisions, surf.mesh)
+            needed = stencil_blocks(arrays, surf.num_vertices)
             T = ev.extras["friction"]
             if T is not None:
                 if step.friction_pattern is None:
                     # at zero sliding velocity the friction Hessian covers every stencil
                     zero = np.asfortranarray(np.zeros_like(ev.U))
-                    step.friction_pattern = self.friction_potential.hessian(
-                        T, self.surface.mesh, zero
+                    H0 = self.friction_potential.hessian(T, self.surface.mesh, zero)
+                    step.friction_pattern = block_pattern(
+                        H0, dim=self.dim, num_vertices=surf.num_vertices
                     )
-                parts.append(step.friction_pattern)
-            surf = self.surface
-            needed = block_pattern(*parts, dim=self.dim, num_vertices=surf.num_vertices)
+                needed = sorted_unique(needed, step.friction_pattern)
             if surf.static is not None:  # blocks of static vertices have no matrix entries
                 a, b = np.divmod(needed, surf.num_vertices)
                 needed = needed[~(surf.static[a] | surf.static[b])]
