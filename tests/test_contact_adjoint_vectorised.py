@@ -132,7 +132,8 @@ def test_vectorised_contact_adjoint_equals_the_loops(
     # the friction collisions read from the normal set they are lagged from: ids as ipctk's
     # tangential collisions hold them
     x, C = lagging.lagged_state(shape_derivatives=True)
-    ids, kind, _ = _gather(C, contact.surface.mesh, x)
+    gathered = _gather(C, contact.surface.mesh, x)
+    ids, kind = gathered.ids, gathered.kind
     E, F = contact.surface.mesh.edges, contact.surface.mesh.faces
     groups = (T.vv_collisions, T.ev_collisions, T.ee_collisions, T.fv_collisions)
     loop_ids = [np.asarray(c.vertex_ids(E, F)) for g in groups for c in g]

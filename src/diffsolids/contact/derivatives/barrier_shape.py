@@ -38,7 +38,11 @@ from diffsolids.contact.derivatives.area_weights import (
     area_gradient_adjoint,
     weight_gradient_rows,
 )
-from diffsolids.contact.detection.collision_arrays import CollisionArrays, collision_arrays
+from diffsolids.contact.detection.collision_arrays import (
+    CollisionArrays,
+    collision_arrays,
+    cross_squared_norms,
+)
 
 __all__ = ["barrier_shape_adjoint", "barrier_shape_derivative"]
 
@@ -369,12 +373,10 @@ def _weight_term(
     s_ee = s[c.kind == 2]
     mollified = np.zeros(len(s_ee), dtype=bool)
     if len(s_ee) and collisions.collision_set_type != _IPC_SET:
-        xe = x[c.ids[c.kind == 2]]
-        n = np.cross(xe[:, 1] - xe[:, 0], xe[:, 3] - xe[:, 2])
-        ee = collisions.ee_collisions
-        mollified = _dot(n, n) < np.array([e.eps_x for e in ee]) * (1.0 + 1e-6)
+        mollified = cross_squared_norms(x[c.ids[c.kind == 2]]) < c.ee_eps * (1.0 + 1e-6)
     np.add.at(beta, c.ee_edges[~mollified].ravel(), np.repeat(0.25 * s_ee[~mollified], 2))
     if mollified.any():
+        ee = collisions.ee_collisions
         rows = weight_gradient_rows([ee[k] for k in np.flatnonzero(mollified)], out.size)
         out += rows.T @ s_ee[mollified]
     return out + area_gradient_adjoint(mesh, alpha, beta)

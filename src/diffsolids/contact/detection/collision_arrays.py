@@ -13,7 +13,7 @@ import numpy as np
 
 from diffsolids.solvers.sparsity import sorted_unique
 
-__all__ = ["CollisionArrays", "collision_arrays", "stencil_blocks"]
+__all__ = ["CollisionArrays", "collision_arrays", "cross_squared_norms", "stencil_blocks"]
 
 
 @dataclass
@@ -25,17 +25,28 @@ class CollisionArrays:
         kind: (n,) type: 0 vertex-vertex, 1 edge-vertex, 2 edge-edge, 3 face-vertex.
         ee_edges: (number of ee, 2) edge ids of the edge-edge collisions.
         ee_dtype: (number of ee,) their ipctk ``EdgeEdgeDistanceType`` values.
+        ee_eps: (number of ee,) their mollifier thresholds eps_x.
     """
 
     ids: np.ndarray
     kind: np.ndarray
     ee_edges: np.ndarray
     ee_dtype: np.ndarray
+    ee_eps: np.ndarray
+
+    def without_ee(self, dropped: np.ndarray) -> "CollisionArrays":
+        """These collisions less the edge-edge ones flagged in ``dropped`` (one per ee)."""
+        keep = np.ones(len(self.kind), dtype=bool)
+        keep[self.kind == 2] = ~dropped
+        k = ~dropped
+        return CollisionArrays(
+            self.ids[keep], self.kind[keep], self.ee_edges[k], self.ee_dtype[k], self.ee_eps[k]
+        )
 
 
 def _rows(items: list, *names: str) -> np.ndarray:
     get = attrgetter(*names)
-    return np.array([get(c) for c in items], dtype=np.int64).reshape(len(items), len(names))
+    return np.array([get(c) for c in items], dtype=float).reshape(len(items), len(names))
 
 
 def collision_arrays(
@@ -43,20 +54,28 @@ def collision_arrays(
 ) -> CollisionArrays:
     """The ids and types of the collisions of a set (one pass over each list)."""
     E, F = np.asarray(mesh.edges), np.asarray(mesh.faces)
-    vv = _rows(collisions.vv_collisions, "vertex0_id", "vertex1_id")
-    ev = _rows(collisions.ev_collisions, "vertex_id", "edge_id")
-    ee = _rows(collisions.ee_collisions, "edge0_id", "edge1_id", "dtype.value")
-    fv = _rows(collisions.fv_collisions, "vertex_id", "face_id")
+    vv = _rows(collisions.vv_collisions, "vertex0_id", "vertex1_id").astype(np.int64)
+    ev = _rows(collisions.ev_collisions, "vertex_id", "edge_id").astype(np.int64)
+    ee = _rows(collisions.ee_collisions, "edge0_id", "edge1_id", "dtype.value", "eps_x")
+    fv = _rows(collisions.fv_collisions, "vertex_id", "face_id").astype(np.int64)
+    ee_ids = ee[:, :3].astype(np.int64)
     ids = np.concatenate(
         [
             np.column_stack([vv, np.full((len(vv), 2), -1)]),
             np.column_stack([ev[:, 0], E[ev[:, 1]].reshape(-1, 2), np.full(len(ev), -1)]),
-            E[ee[:, :2]].reshape(-1, 4),
+            E[ee_ids[:, :2]].reshape(-1, 4),
             np.column_stack([fv[:, 0], F[fv[:, 1]].reshape(-1, 3)]),
         ]
     ).astype(np.int64)
     kind = np.repeat(np.arange(4), [len(vv), len(ev), len(ee), len(fv)])
-    return CollisionArrays(ids, kind, ee[:, :2], ee[:, 2])
+    return CollisionArrays(ids, kind, ee_ids[:, :2], ee_ids[:, 2], ee[:, 3])
+
+
+def cross_squared_norms(edge_positions: np.ndarray) -> np.ndarray:
+    """|ea x eb|^2 of (n, 4, 3) edge pairs (ea0, ea1, eb0, eb1; ``edge_edge_cross_squarednorm``)."""
+    x = edge_positions
+    c = np.cross(x[:, 1] - x[:, 0], x[:, 3] - x[:, 2])
+    return c[:, 0] * c[:, 0] + c[:, 1] * c[:, 1] + c[:, 2] * c[:, 2]
 
 
 def stencil_blocks(arrays: CollisionArrays, num_vertices: int) -> np.ndarray:
