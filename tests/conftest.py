@@ -59,3 +59,12 @@ def file_from_rank_0(tmp_path):
         return path
 
     return write
+
+
+@pytest.fixture(scope="module")
+def bar2():
+    """The static bar of two bodies whose moduli are recovered (optimize_script.bar_problem)."""
+    from mpi4py import MPI
+    from optimize_script import bar_problem
+
+    return bar_problem(MPI.COMM_WORLD, bodies=2)

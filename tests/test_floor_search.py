@@ -8,11 +8,6 @@ from optimize_script import bar_problem
 from diffsolids.optimize import FloorSearch, OptimizationError
 
 
-@pytest.fixture(scope="module")
-def bar2():
-    return bar_problem(MPI.COMM_WORLD, bodies=2)
-
-
 def test_floor_search_recovers_both_moduli(bar2):
     """The two bodies' log E from E = 1000 each: the truth, stopped by the step tolerance."""
     rf, q_true = bar2

@@ -37,11 +37,6 @@ def bar1():
     return bar_problem(MPI.COMM_WORLD, bodies=1)
 
 
-@pytest.fixture(scope="module")
-def bar2():
-    return bar_problem(MPI.COMM_WORLD, bodies=2)
-
-
 # -- L-BFGS memory ------------------------------------------------------------------------------
 def test_memory_satisfies_secant_equations_and_recovers_quadratic_inverse():
     rng = np.random.default_rng(1)

@@ -3,14 +3,8 @@
 import numpy as np
 import pytest
 import scipy.optimize
-from mpi4py import MPI
-from optimize_script import E_TRUE, bar_problem
+from optimize_script import E_TRUE
 from petsc4py import PETSc
-
-
-@pytest.fixture(scope="module")
-def bar2():
-    return bar_problem(MPI.COMM_WORLD, bodies=2)
 
 
 def test_scipy_lbfgsb(bar2):
