@@ -10,6 +10,7 @@ import importlib
 import inspect
 import re
 import sys
+import tomllib
 from pathlib import Path
 
 DOCS = Path(__file__).resolve().parent
@@ -21,7 +22,8 @@ import diffsolids  # noqa: E402  (loads the MPI of the DOLFINx wheel before dolf
 project = "diffsolids"
 author = "the diffsolids authors"
 copyright = "2026, the diffsolids authors"
-release = "0.3.0"
+with open(DOCS.parent / "pyproject.toml", "rb") as f:
+    release = tomllib.load(f)["project"]["version"]
 
 extensions = [
     "myst_parser",
