@@ -19,7 +19,14 @@ import ipctk
 import numpy as np
 import scipy.sparse
 
-__all__ = ["area_gradient_adjoint", "merged_weight_collisions", "weight_gradient_rows"]
+from diffsolids.contact.detection.collision_arrays import CollisionArrays
+
+__all__ = [
+    "area_gradient_adjoint",
+    "merged_weight_collisions",
+    "weight_gradient_adjoint",
+    "weight_gradient_rows",
+]
 
 
 def _triangle_area_gradients(x: np.ndarray) -> np.ndarray:
@@ -128,3 +135,27 @@ def merged_weight_collisions(collisions: ipctk.NormalCollisions, dim: int) -> li
     """
     read = list(collisions.vv_collisions)
     return read + list(collisions.ev_collisions) if dim == 3 else read
+
+
+def weight_gradient_adjoint(
+    mesh: ipctk.CollisionMesh,
+    arrays: CollisionArrays,
+    s: np.ndarray,
+    merged_rows: scipy.sparse.csr_matrix,
+) -> np.ndarray:
+    """sum_c s_c grad_X w_c over the collisions of ``arrays`` (one s_c per row).
+
+    Face-vertex (0.25 A_v), edge-edge (0.25 (A_ea + A_eb)) and 2D edge-vertex (0.5 A_v)
+    weights go through :func:`area_gradient_adjoint` at once; the merged ones (the first rows,
+    :func:`merged_weight_collisions`) through their read gradients ``merged_rows``.
+    """
+    alpha = np.zeros(mesh.num_vertices)
+    beta = np.zeros(mesh.num_edges)
+    kind, ids = arrays.kind, arrays.ids
+    fv = kind == 3
+    np.add.at(alpha, ids[fv, 0], 0.25 * s[fv])
+    np.add.at(beta, arrays.ee_edges.ravel(), np.repeat(0.25 * s[kind == 2], 2))
+    if mesh.dim == 2:
+        ev = kind == 1
+        np.add.at(alpha, ids[ev, 0], 0.5 * s[ev])
+    return area_gradient_adjoint(mesh, alpha, beta) + merged_rows.T @ s[: merged_rows.shape[0]]

@@ -35,7 +35,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from diffsolids.contact.derivatives.area_weights import (
-    area_gradient_adjoint,
+    weight_gradient_adjoint,
     weight_gradient_rows,
 )
 from diffsolids.contact.detection.collision_arrays import (
@@ -354,32 +354,24 @@ def _weight_term(
     x: np.ndarray,
     merged_rows: sp.csr_matrix,
 ) -> np.ndarray:
-    """sum_c s_c grad_X w_c.
+    """sum_c s_c grad_X w_c (``area_weights.weight_gradient_adjoint``).
 
-    Face-vertex (0.25 A_v), edge-edge (0.25 (A_ea + A_eb)) and 2D edge-vertex (0.5 A_v) weights
-    are applied in bulk from the area gradients; the others are ``merged_rows``
-    (:func:`~diffsolids.contact.derivatives.area_weights.merged_weight_collisions`) and, in
-    the convergent formulation, the edge-edge pairs near or below their mollifier threshold,
-    read (that formulation adds negative terms to them; ``NormalCollisionsBuilder``).
+    In the convergent formulation the weights of edge-edge pairs near or below their mollifier
+    threshold are read (that formulation adds negative terms to them;
+    ``NormalCollisionsBuilder``).
     """
-    alpha = np.zeros(mesh.num_vertices)
-    beta = np.zeros(mesh.num_edges)
-    fv = c.kind == 3
-    np.add.at(alpha, c.ids[fv, 0], 0.25 * s[fv])
-    if mesh.dim == 2:
-        ev = c.kind == 1
-        np.add.at(alpha, c.ids[ev, 0], 0.5 * s[ev])
-    out = merged_rows.T @ s[: merged_rows.shape[0]]
-    s_ee = s[c.kind == 2]
-    mollified = np.zeros(len(s_ee), dtype=bool)
-    if len(s_ee) and collisions.collision_set_type != _IPC_SET:
-        mollified = cross_squared_norms(x[c.ids[c.kind == 2]]) < c.ee_eps * (1.0 + 1e-6)
-    np.add.at(beta, c.ee_edges[~mollified].ravel(), np.repeat(0.25 * s_ee[~mollified], 2))
+    ee = c.kind == 2
+    mollified = np.zeros(int(ee.sum()), dtype=bool)
+    if ee.any() and collisions.collision_set_type != _IPC_SET:
+        mollified = cross_squared_norms(x[c.ids[ee]]) < c.ee_eps * (1.0 + 1e-6)
+    kept = np.ones(len(s), dtype=bool)
+    kept[ee] = ~mollified
+    out = weight_gradient_adjoint(mesh, c.without_ee(mollified), s[kept], merged_rows)
     if mollified.any():
-        ee = collisions.ee_collisions
-        rows = weight_gradient_rows([ee[k] for k in np.flatnonzero(mollified)], out.size)
-        out += rows.T @ s_ee[mollified]
-    return out + area_gradient_adjoint(mesh, alpha, beta)
+        listed = collisions.ee_collisions
+        rows = weight_gradient_rows([listed[k] for k in np.flatnonzero(mollified)], out.size)
+        out += rows.T @ s[ee][mollified]
+    return out
 
 
 def barrier_shape_adjoint(

@@ -31,7 +31,7 @@ import ipctk
 import numpy as np
 import scipy.sparse
 
-from diffsolids.contact.derivatives.area_weights import area_gradient_adjoint
+from diffsolids.contact.derivatives.area_weights import weight_gradient_adjoint
 from diffsolids.contact.derivatives.barrier_shape import _barrier
 from diffsolids.contact.detection.collision_arrays import (
     CollisionArrays,
@@ -66,32 +66,6 @@ def _gather(
         return arrays
     x = lagged_positions[arrays.ids[arrays.kind == 2]]
     return arrays.without_ee(cross_squared_norms(x) < arrays.ee_eps)
-
-
-def _weight_adjoint(
-    mesh: ipctk.CollisionMesh,
-    ids: np.ndarray,
-    kind: np.ndarray,
-    ee_edges: np.ndarray,
-    s: np.ndarray,
-    merged_rows: scipy.sparse.csr_matrix,
-) -> np.ndarray:
-    """sum_c s_c grad w_c over the friction collisions (:func:`_gather`).
-
-    Face-vertex weights are 0.25 A_v, edge-edge weights 0.25 (A_ea + A_eb) (the friction keeps
-    no mollified pair) and, in 2D, edge-vertex weights 0.5 A_v (ipctk's
-    ``NormalCollisionsBuilder``): these go through :func:`area_gradient_adjoint` at once. The
-    others' gradients are ``merged_rows`` (read; ``area_weights.merged_weight_collisions``).
-    """
-    alpha = np.zeros(mesh.num_vertices)
-    beta = np.zeros(mesh.num_edges)
-    fv = kind == 3
-    np.add.at(alpha, ids[fv, 0], 0.25 * s[fv])
-    np.add.at(beta, ee_edges.ravel(), np.repeat(0.25 * s[kind == 2], 2))
-    if mesh.dim == 2:
-        ev = kind == 1
-        np.add.at(alpha, ids[ev, 0], 0.5 * s[ev])
-    return area_gradient_adjoint(mesh, alpha, beta) + merged_rows.T @ s[: merged_rows.shape[0]]
 
 
 def _point_point(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -231,10 +205,10 @@ def friction_weight_adjoint(
     if len(C) == 0:
         return np.zeros(lagged_positions.size)
     gathered = _gather(C, mesh, lagged_positions)
-    ids, kind, ee_edges = gathered.ids, gathered.kind, gathered.ee_edges
+    ids, kind = gathered.ids, gathered.kind
     terms = _collision_terms(
         ids, kind, lagged_positions, velocities, lam, barrier, stiffness, eps_v
     )
     a, b = _sides(ids, body_index)
     s = -mu_table[a, b] * terms
-    return _weight_adjoint(mesh, ids, kind, ee_edges, s, merged_rows)
+    return weight_gradient_adjoint(mesh, gathered, s, merged_rows)
