@@ -119,12 +119,15 @@ class _Checker:
 # sliding speeds are about 9: eps_v = 100 tests the smoothed (sticking) branch of the friction,
 # eps_v = 0.5 the sliding branch (3D only: in 2D its velocity Hessian vanishes identically)
 CASES = [
-    (2, 1, 1, 100.0),
-    (2, 2, 3, 100.0),
-    (2, 3, 2, 100.0),
-    (3, 1, 2, 100.0),
-    (3, 2, 1, 0.5),
-    (3, 1, 3, 0.5),
+    (2, 1, 1, 100.0, "ipc"),
+    (2, 2, 3, 100.0, "ipc"),
+    (2, 3, 2, 100.0, "ipc"),
+    (3, 1, 2, 100.0, "ipc"),
+    (3, 2, 1, 0.5, "ipc"),
+    (3, 1, 3, 0.5, "ipc"),
+    # merged and negative weights (read), the others' weight gradients in bulk
+    (2, 1, 2, 100.0, "convergent"),
+    (3, 1, 2, 0.5, "convergent"),
 ]
 
 
@@ -140,9 +143,9 @@ def _contact_pattern(model, contact, u):
     return like, bc, np.unique(np.asarray(rows, np.int64) * N + cols)
 
 
-@pytest.mark.parametrize(("dim", "degree", "order", "eps_v"), CASES)
-def test_contact_derivative_kernels(dim, degree, order, eps_v):
-    model, contact, traj, u, coeffs = _scene(dim, degree, order, eps_v)
+@pytest.mark.parametrize(("dim", "degree", "order", "eps_v", "formulation"), CASES)
+def test_contact_derivative_kernels(dim, degree, order, eps_v, formulation):
+    model, contact, traj, u, coeffs = _scene(dim, degree, order, eps_v, formulation=formulation)
     chk = _Checker(model, contact, u)
     comm = chk.comm
     ev = contact._evaluate(u)

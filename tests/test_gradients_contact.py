@@ -61,7 +61,7 @@ INCLINE_DHAT = 1e-2
 INCLINE_SHIFT = 0.0137
 
 
-def static_scene(dim: int, comm=MPI.COMM_SELF):
+def static_scene(dim: int, comm=MPI.COMM_SELF, formulation: str = "ipc"):
     """Hanging box pulled onto a lower box; returns (model, contact, simulation, objective)."""
     gap = 0.5 * STATIC_DHAT
     dom = combine_meshes(comm, stacked_boxes(dim, gap, [3, 2]))
@@ -72,7 +72,7 @@ def static_scene(dim: int, comm=MPI.COMM_SELF):
     model.add_dirichlet(lambda x: x[dim - 1] < 1e-9, 0.0)
     model.add_dirichlet(lambda x: x[dim - 1] > 0.6 + gap - 1e-9, 0.0)
     integ = ds.Static()
-    contact = _contact(model, integ, STATIC_DHAT)
+    contact = _contact(model, integ, STATIC_DHAT, formulation=formulation)
     sim = ds.Simulation(model, integ, NEWTON, progress=False)
     objective = final_value(Integral(lambda f: f.u[dim - 1] * f.dx(1), "sink")) + final_value(
         Integral(lambda f: ufl.dot(f.u, f.u) * f.dx(2), "stretch")

@@ -34,6 +34,12 @@ def _static_3d(comm):
     return ReducedFunctional(sim, objective, ShapeControl(model, "all")), contact
 
 
+def _static_3d_convergent(comm):
+    """The convergent formulation: merged and negative weights read, the others in bulk."""
+    model, contact, sim, objective = static_scene(3, comm=comm, formulation="convergent")
+    return ReducedFunctional(sim, objective, ShapeControl(model, "all")), contact
+
+
 def _indenter(comm):
     """Obstacle driven by Dirichlet values: steps reached by continuation (substeps)."""
     model, contact, sim, objective = _indenter_scene(True, 0.3, comm=comm)
@@ -53,7 +59,9 @@ def _value_and_gradient(build, comm):
 
 
 @pytest.mark.parametrize(
-    "build", [_incline, _static_3d, _indenter], ids=["incline-friction", "static-3d", "indenter"]
+    "build",
+    [_incline, _static_3d, _static_3d_convergent, _indenter],
+    ids=["incline-friction", "static-3d", "static-3d-convergent", "indenter"],
 )
 def test_contact_gradient_world_equals_self(build):
     comm = MPI.COMM_WORLD
