@@ -32,7 +32,7 @@ import numpy as np
 import scipy.sparse
 
 from diffsolids.contact.derivatives.area_weights import weight_gradient_adjoint
-from diffsolids.contact.derivatives.barrier_shape import _barrier
+from diffsolids.contact.derivatives.barrier_shape import _barrier, _squared_distances
 from diffsolids.contact.detection.collision_arrays import (
     CollisionArrays,
     collision_arrays,
@@ -73,14 +73,15 @@ def _point_point(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     p0, p1 = x[:, 0], x[:, 1]
     r = p1 - p0
     gamma = np.tile([1.0, -1.0, 0.0, 0.0], (len(x), 1))
+    d2 = _squared_distances(0, x)
     if x.shape[2] == 2:
         t = _unit(r)
-        return _dot(r, r), gamma, np.stack([-t[:, 1], t[:, 0]], axis=1)[:, :, None]
+        return d2, gamma, np.stack([-t[:, 1], t[:, 0]], axis=1)[:, :, None]
     cx = np.cross(np.array([1.0, 0.0, 0.0]), r)
     cy = np.cross(np.array([0.0, 1.0, 0.0]), r)
     c = np.where((_dot(cx, cx) > _dot(cy, cy))[:, None], cx, cy)
     basis = np.stack([_unit(c), _unit(np.cross(r, c))], axis=2)
-    return _dot(r, r), gamma, basis
+    return d2, gamma, basis
 
 
 def _point_edge(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -89,12 +90,11 @@ def _point_edge(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     ee = _dot(e, e)
     alpha = _dot(p - e0, e) / ee
     gamma = np.column_stack([np.ones(len(x)), alpha - 1.0, -alpha, np.zeros(len(x))])
+    d2 = _squared_distances(1, x)
     if x.shape[2] == 2:
-        num = e[:, 1] * p[:, 0] - e[:, 0] * p[:, 1] + e1[:, 0] * e0[:, 1] - e1[:, 1] * e0[:, 0]
-        return num * num / ee, gamma, _unit(e)[:, :, None]
-    c = np.cross(e0 - p, e1 - p)
+        return d2, gamma, _unit(e)[:, :, None]
     basis = np.stack([_unit(e), _unit(np.cross(e, p - e0))], axis=2)
-    return _dot(c, c) / ee, gamma, basis
+    return d2, gamma, basis
 
 
 def _edge_edge(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -120,9 +120,8 @@ def _face_vertex(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     b0, b1 = (a11 * r0 - a01 * r1) / det, (a00 * r1 - a01 * r0) / det
     gamma = np.column_stack([np.ones(len(x)), b0 + b1 - 1.0, -b0, -b1])
     n = np.cross(e0, e1)
-    plane = _dot(q, n)
     basis = np.stack([_unit(e0), _unit(np.cross(n, e0))], axis=2)
-    return plane * plane / _dot(n, n), gamma, basis
+    return _squared_distances(3, x), gamma, basis
 
 
 _KINDS = (_point_point, _point_edge, _edge_edge, _face_vertex)
