@@ -16,6 +16,9 @@ the default :class:`~diffsolids.SolverOptions` and ``formulation="convergent"`` 
 - ``ridge``: the drop's block landing on a roof ridge of two triangles (a genuine pair of
   local minima per landing step: it tips to one side or the other); (log E, log mu), with the
   branch reference of :class:`~diffsolids.ReducedFunctional` at q0.
+- ``wavy``: a 2D box thrown along a wavy ground, the polyline through samples of
+  y = -a cos(2 pi x / w) (``demos/puzzle_initial_velocity.py``'s ground): its vertices slide
+  across the polyline's kinks; (v_x, log mu), its final position.
 - ``damping``: PolyFEM's damping-transient test (a disk thrown along a clamped slab), (log psi,
   log phi), with the suggested barrier or PolyFEM's (``damping_polyfem``).
 """
@@ -27,7 +30,7 @@ from mpi4py import MPI
 
 import diffsolids as ds
 from diffsolids.contact import ContactTerm, Obstacle
-from diffsolids.controls import FrictionControl
+from diffsolids.controls import FrictionControl, RigidVelocity
 from diffsolids.objectives import center_of_mass, final_value
 
 __all__ = [
@@ -40,6 +43,7 @@ __all__ = [
     "ridge",
     "ridge_free",
     "slide",
+    "wavy",
 ]
 
 
@@ -128,6 +132,40 @@ def drop_2d(
     objective = final_value(com[0] * 100.0 + com[1] * 1000.0)
     rf = ds.ReducedFunctional(sim, objective, controls)
     return Scene(rf, np.array([np.log(5e4), np.log(0.3)]), 0.02, contact)
+
+
+def wavy(
+    comm: MPI.Comm = MPI.COMM_WORLD,
+    steps: int = 40,
+    formulation: str = "ipc",
+    spacing: float = 0.05,
+) -> Scene:
+    """A 2D box thrown along a wavy polyline ground (v_x, log mu).
+
+    The ground is the polyline through x = -1, -1 + ``spacing``, ..., 1.5 on
+    y = -0.03 cos(2 pi x / 0.4); the box [0, 0.16] x [0.035, 0.115] (5 mm above the crest at
+    x = 0.2) starts at (1.2, -0.3) m/s.
+    """
+    box = ds.mesh.simplex_box([[0.0, 0.035], [0.16, 0.115]], [4, 2])
+    domain = ds.combine_meshes(comm, [box], names={"box": 1})
+    model = ds.Model(domain, ds.NeoHookean(E=2e5, nu=0.3, density=1000.0))
+    model.add_gravity(9.81)
+    xs = np.arange(-1.0, 1.5 + spacing / 2, spacing)
+    ground = Obstacle(np.column_stack([xs, -0.03 * np.cos(2 * np.pi * xs / 0.4)]), name="ground")
+    contact = ContactTerm(
+        model, dhat=1e-3, friction=0.3, eps_v=0.01, obstacles=[ground], formulation=formulation
+    )
+    model.add_numeric_term(contact)
+    integrator = ds.BDF(2, 0.01, steps)
+    sim = ds.Simulation(model, integrator, ds.SolverOptions(), progress=False)
+    controls = [
+        RigidVelocity(sim, "box", angular=False),
+        FrictionControl(contact, pairs=[("box", "ground")], log=True),
+    ]
+    com = center_of_mass(model, "box")
+    objective = final_value(com[0] * 100.0 + com[1] * 1000.0)
+    rf = ds.ReducedFunctional(sim, objective, controls)
+    return Scene(rf, np.array([1.2, -0.3, np.log(0.3)]), 0.02, contact)
 
 
 def slide(comm: MPI.Comm = MPI.COMM_WORLD, steps: int = 20, formulation: str = "ipc") -> Scene:
@@ -270,4 +308,5 @@ SCENES = {
     "ridge_free": ridge_free,
     "damping": damping,
     "damping_polyfem": damping_polyfem,
+    "wavy": wavy,
 }

@@ -38,6 +38,7 @@ def _parse(argv):
             "drop",
             "drop_2d",
             "slide",
+            "wavy",
             "ridge",
             "ridge_free",
             "damping",
@@ -52,7 +53,7 @@ def _parse(argv):
         "--formulation",
         default="ipc",
         choices=["ipc", "convergent"],
-        help="contact formulation of the drop, 2D drop and slide (default: the library's)",
+        help="contact formulation of the drop, 2D drop, slide and wavy (default: the library's)",
     )
     p.add_argument("--bunny-steps", type=int, default=5, help="steps of the sliding bunny")
     p.add_argument("--throw-steps", type=int, default=3, help="steps of the throw")
