@@ -71,14 +71,12 @@ def build_scene(args, comm):
     model.add_dirichlet(lambda x: x[1] < 0.1, 0.0)  # the ground (the piece starts above 0.2)
     integrator = ds.BDF(2, args.dt, args.steps)
     contact = model.add_numeric_term(ContactTerm(model, DHAT, friction=FRICTION, eps_v=EPS_V))
-    # Exact Newton Hessian from the first iteration: with the projected phase first (the
-    # solver's default exact_hessian_below=1e-3) the piece's impacts end on minimisers that
-    # change with the throw at the 1e-3 scale (central differences of J along its gradient at
-    # (1.2079, 0.5008, -5.9095): 0.59 off at h = 1e-3, 4.4e-4 at 1e-4, 6.7e-8 at 1e-6) and
-    # L-BFGS stops 1% from the true throw after 30 iterations; exact from the start it recovers
-    # it to 3e-9 in 24 (measured 2026-12-02). With the default and a branch reference at the
-    # start throw (ReducedFunctional(..., branch_reference=START_THROW)) it stops 1.1% off
-    # after 104 forward solves (2026-12-07): the reference run is too far from the true throw.
+    # Exact Newton Hessian from the first iteration. J has jumps here (a step with two local
+    # minima where a vertex of the piece meets a kink of the polyline ground: docs/concepts.md,
+    # "A polyline's kink"); this setting does not remove them but L-BFGS's path with it
+    # recovers the throw to 3e-9 in 37 forward solves, with the default options it stops 1.01%
+    # off after 44, and with the default and a branch reference at the start throw
+    # (ReducedFunctional(..., branch_reference=START_THROW)) 1.1% off after 104 (2026-12-07).
     options = ds.SolverOptions(rtol=1e-9, exact_hessian_below=np.inf)
     sim = ds.Simulation(model, integrator, options, progress=False)
     return model, contact, sim
