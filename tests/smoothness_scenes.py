@@ -55,6 +55,16 @@ class Scene(NamedTuple):
     radius: float
     contact: ContactTerm
 
+    def central_differences(self, h: float, seed: int) -> tuple[float, list]:
+        """J(q0) and [(direction, central-difference check at q0)]: random, along the gradient."""
+        J, g = self.rf.value_and_gradient(self.q0)
+        d = np.random.default_rng(seed).standard_normal(len(g))
+        directions = (d / np.linalg.norm(d), g / np.linalg.norm(g))
+        return J, [
+            (u, ds.finite_difference_check(self.rf, self.q0, u, [h], gradient=g))
+            for u in directions
+        ]
+
 
 def ground_3d(triangles: int, size: float = 4.0, centre=(0.1, 0.1)) -> Obstacle:
     """A flat square ground [-1.4, -1.4 + size]^2 at z = 0 of 1 (half of it), 2 or 4 triangles.
