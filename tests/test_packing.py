@@ -2,8 +2,9 @@
 
 Forms of a damped dynamic Neo-Hookean model with a facet objective (cell and exterior-facet
 integrals, an integral that does not use every coefficient), P1 and P2, 2D and 3D: after the
-fields change, after only some change, and after none does; a form with an interior-facet
-integral is left to DOLFINx.
+fields change, after only some change, after one value of one changes and after none does,
+with the values compared as bytes (small arrays) and with np.array_equal (large ones); a form
+with an interior-facet integral is left to DOLFINx.
 """
 
 import numpy as np
@@ -17,6 +18,7 @@ from diffsolids.adjoint.forms import AdjointForms
 from diffsolids.adjoint.sensitivities import Targets
 from diffsolids.mesh import create_box, create_rectangle
 from diffsolids.objectives import stress_lp_norm, target_displacement, time_integral
+from diffsolids.solvers import packing
 from diffsolids.solvers.forms import compile_form
 from diffsolids.solvers.packing import CoefficientGathers, FormPacker
 
@@ -44,8 +46,10 @@ def _assert_packs_equal(packers) -> None:
             assert np.array_equal(mine[key], ref[key])
 
 
+@pytest.mark.parametrize("compare_bytes_below", [0, 2**40])
 @pytest.mark.parametrize(("dim", "degree"), [(2, 1), (2, 2), (3, 1), (3, 2)])
-def test_shared_packing_equals_dolfinx(dim, degree):
+def test_shared_packing_equals_dolfinx(dim, degree, compare_bytes_below, monkeypatch):
+    monkeypatch.setattr(packing, "_BYTES_COMPARE_MAX", compare_bytes_below)
     model, leaves = _model(dim, degree)
     forms = AdjointForms(model, True, leaves, Targets(shape=True))
     candidates = [forms.objective_u, forms.history_tilde, forms.history_prev, *forms.shape]
@@ -60,6 +64,8 @@ def test_shared_packing_equals_dolfinx(dim, degree):
         for field in changed:
             field.x.array[:] = rng.standard_normal(field.x.array.size)
         _assert_packs_equal(packers)
+    f.u_prev.x.array[3] += 1.0  # one value of one field
+    _assert_packs_equal(packers)
 
 
 def test_interior_facet_forms_are_left_to_dolfinx():

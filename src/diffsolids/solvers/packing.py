@@ -26,11 +26,16 @@ __all__ = ["CoefficientGathers", "FormPacker", "coefficient_layout"]
 _SUPPORTED = (fem.IntegralType.cell, fem.IntegralType.exterior_facet)
 
 
+# below this many dof values a gather's values are compared as bytes (0.4 us for 462 values
+# against 3.1 us for np.array_equal's checks and temporaries); above it np.array_equal is faster
+_BYTES_COMPARE_MAX = 16384
+
+
 @dataclass
 class _Gather:
     coefficient: object  # the C++ Function, kept alive with its id
     dofs: np.ndarray  # (num_entities, width) dof of each packed entry
-    values: np.ndarray | None = None  # the dof values the gather was taken from
+    values: np.ndarray | bytes | None = None  # the dof values the gather was taken from
     gathered: np.ndarray | None = None
 
 
@@ -50,9 +55,18 @@ class CoefficientGathers:
 
     @staticmethod
     def current(gather: _Gather) -> np.ndarray:
-        """The gathered values, gathered again only if the coefficient's values changed."""
+        """The gathered values, gathered again only if the coefficient's values changed.
+
+        Values are compared exactly: as bytes (bit for bit) for small arrays, with
+        ``np.array_equal`` for large ones.
+        """
         values = gather.coefficient.x.array
-        if gather.values is None or not np.array_equal(values, gather.values):
+        if values.size <= _BYTES_COMPARE_MAX:
+            raw = values.tobytes()
+            if raw != gather.values:
+                gather.values = raw
+                gather.gathered = values[gather.dofs]
+        elif not isinstance(gather.values, np.ndarray) or not np.array_equal(values, gather.values):
             gather.values = values.copy()
             gather.gathered = values[gather.dofs]
         return gather.gathered
