@@ -19,6 +19,9 @@ the default :class:`~diffsolids.SolverOptions` and ``formulation="convergent"`` 
 - ``wavy``: a 2D box thrown along a wavy ground, the polyline through samples of
   y = -a cos(2 pi x / w) (``demos/puzzle_initial_velocity.py``'s ground): its vertices slide
   across the polyline's kinks; (v_x, log mu), its final position.
+- ``roll``: a 2D disk thrown down a polyline slope with two kinks; it lands sliding and rolls
+  (its contacts stick): (v_x, v_y, spin), the squared distance of its final centre from the
+  origin.
 - ``damping``: PolyFEM's damping-transient test (a disk thrown along a clamped slab), (log psi,
   log phi), with the suggested barrier or PolyFEM's (``damping_polyfem``).
 """
@@ -42,6 +45,7 @@ __all__ = [
     "drop_2d",
     "ridge",
     "ridge_free",
+    "roll",
     "slide",
     "wavy",
 ]
@@ -177,6 +181,37 @@ def wavy(
     objective = final_value(com[0] * 100.0 + com[1] * 1000.0)
     rf = ds.ReducedFunctional(sim, objective, controls)
     return Scene(rf, np.array([1.2, -0.3, np.log(0.3)]), 0.02, contact)
+
+
+def roll(
+    comm: MPI.Comm = MPI.COMM_WORLD,
+    steps: int = 40,
+    formulation: str = "ipc",
+    solver_options: ds.SolverOptions | None = None,
+) -> Scene:
+    """A 2D disk (radius 0.1 m) thrown at (1, -0.5) m/s down a polyline slope with kinks.
+
+    It lands sliding, friction (mu 0.5) spins it up until it rolls: its contacts stick, which
+    the Newton steps from a sliding state overshoot (``contact.energy.stick_model``).
+    Parameters (v_x, v_y, angular velocity); J the squared distance of its final centre of
+    mass from the origin.
+    """
+    disk = ds.mesh.simplex_ball([0.0, 0.12], 0.1, 0.03)
+    domain = ds.combine_meshes(comm, [disk], names={"disk": 1})
+    model = ds.Model(domain, ds.NeoHookean(E=3e4, nu=0.4, density=800.0))
+    model.add_gravity(9.81)
+    slope = np.array([[-1.0, 0.1], [0.0, 0.0], [0.5, -0.1], [1.5, -0.12], [3.0, 0.05]])
+    ground = Obstacle(slope, name="ground")
+    contact = ContactTerm(
+        model, dhat=1e-3, friction=0.5, obstacles=[ground], formulation=formulation
+    )
+    model.add_numeric_term(contact)
+    options = solver_options or ds.SolverOptions()
+    sim = ds.Simulation(model, ds.BDF(2, 0.01, steps), options, progress=False)
+    com = center_of_mass(model, "disk")
+    objective = final_value(com[0]) ** 2 + final_value(com[1]) ** 2
+    rf = ds.ReducedFunctional(sim, objective, RigidVelocity(sim, "disk", angular=True))
+    return Scene(rf, np.array([1.0, -0.5, 0.0]), 0.05, contact)
 
 
 def slide(comm: MPI.Comm = MPI.COMM_WORLD, steps: int = 20, formulation: str = "ipc") -> Scene:
@@ -317,6 +352,7 @@ SCENES = {
     "slide": slide,
     "ridge": ridge,
     "ridge_free": ridge_free,
+    "roll": roll,
     "damping": damping,
     "damping_polyfem": damping_polyfem,
     "wavy": wavy,

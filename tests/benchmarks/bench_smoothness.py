@@ -39,6 +39,7 @@ def _parse(argv):
             "drop_2d",
             "slide",
             "wavy",
+            "roll",
             "ridge",
             "ridge_free",
             "damping",

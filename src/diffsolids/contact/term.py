@@ -153,6 +153,7 @@ class ContactTerm(NumericTerm):
     has_hessian_action = True
     grows_pattern = True
     has_stiffness_continuation = True
+    revises_newton_steps = True
     parameter_names = ("friction",)
 
     def __init__(
@@ -416,6 +417,9 @@ class ContactTerm(NumericTerm):
         ev = self._evaluate(u)
         free = self.free_dofs.mask(bc_dofs)
         H = self.potential.hessian(ev, project)
+        held = self.potential.held_hessian_change(ev) if project else None
+        if held is not None:
+            H = H + held
         keep = self.pattern.blocks(ev, self._step) if project else None
         with self._timed("insert"):
             self.surface.add_matrix(A, H, free, keep=keep)
@@ -594,6 +598,27 @@ class ContactTerm(NumericTerm):
         if ev is None or self.stiffness is None or self.partition.count(ev.collisions) == 0:
             return ()
         return continuation_schedule(self.stiffness, self.dhat, self._largest_force(ev))
+
+    def revise_newton_model(self, u: fem.Function, step: np.ndarray, bc_dofs: np.ndarray) -> bool:
+        """Hold at stick the sliding friction collisions whose slip ``step`` reverses.
+
+        See ``diffsolids.contact.energy.stick_model`` (collective).
+        """
+        if not self.lagging.active:
+            return False
+        ev = self._evaluate(u)
+        dU = self.surface.gather(np.asarray(step)).ravel()
+        return self.partition.total(self.potential.hold_reversed(ev, dU)) > 0
+
+    def add_model_change(self, b: PETSc.Vec, bc_dofs: np.ndarray) -> None:
+        """b[owned free rows] += the held collisions' stick-model minus exact gradient."""
+        g = self.potential.held_gradient_change(self._eval)
+        g[~self.free_dofs.mask(bc_dofs)] = 0.0
+        self.surface.add_to_owned(b.array_w, g)
+
+    def end_model_revision(self) -> None:
+        """Release the collisions held at stick."""
+        self.potential.held = None
 
     def held_at_floor(self) -> bool:
         """Whether the last collision-free step bound held a pair at its gap floor (collective).

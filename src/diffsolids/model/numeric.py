@@ -14,7 +14,9 @@ discovered: ``projectable_hessian`` (a PSD-projected Newton matrix exists),
 ``has_hessian_action`` (the exact Hessian can be applied matrix-free), ``grows_pattern`` (the
 Jacobian may need entries outside the finite-element sparsity, see :meth:`matrix_pattern`),
 ``has_stiffness_continuation`` (a stiffer version of the term exists from which a stalled solve
-may walk down to the term itself, see :meth:`continuation_factors`).
+may walk down to the term itself, see :meth:`continuation_factors`), ``revises_newton_steps``
+(the term may replace its model for one Newton step after seeing it, see
+:meth:`revise_newton_model`).
 """
 
 import inspect
@@ -69,6 +71,7 @@ class NumericTerm(ABC):
     has_hessian_action: ClassVar[bool] = False
     grows_pattern: ClassVar[bool] = False
     has_stiffness_continuation: ClassVar[bool] = False
+    revises_newton_steps: ClassVar[bool] = False
     parameter_names: ClassVar[tuple[str, ...]] = ()
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
@@ -156,6 +159,22 @@ class NumericTerm(ABC):
         steps. Only asked when ``has_stiffness_continuation`` (collective). Default: False.
         """
         return False
+
+    def revise_newton_model(self, u: fem.Function, step: np.ndarray, bc_dofs: np.ndarray) -> bool:
+        """Replace the term's model for a Newton step that ``step`` would take badly (collective).
+
+        Only asked when ``revises_newton_steps``. ``step`` is the Newton step from ``u`` (a
+        local V array). When this returns True (the same on all ranks) the solver solves the
+        step again with :meth:`add_jacobian` (``project=True``) and :meth:`add_model_change`
+        giving the revised model, then calls :meth:`end_model_revision`. Default: False.
+        """
+        return False
+
+    def add_model_change(self, b: PETSc.Vec, bc_dofs: np.ndarray) -> None:  # noqa: B027
+        """Add the revised model's gradient minus the term's own to the owned rows of ``b``."""
+
+    def end_model_revision(self) -> None:  # noqa: B027 - optional hook
+        """Back to the term's own model (after :meth:`revise_newton_model` returned True)."""
 
     def set_stiffness_factor(self, factor: float) -> None:
         """Scale the term's stiffness by ``factor`` (1: the term itself) for the next solves."""

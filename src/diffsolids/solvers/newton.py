@@ -118,6 +118,11 @@ class SolverOptions:
             ``continuation_after`` iterations is split: the step goes back to the converged
             stage's state and through a stage at the geometric mean of the two stiffnesses
             first (``diffsolids.solvers.continuation``).
+        revise_steps: Let numeric terms revise their model for a Newton step they would take
+            badly (``NumericTerm.revise_newton_model``) and solve the step again: contact holds
+            at stick the sliding friction contacts whose slip the step would reverse
+            (``diffsolids.contact.energy.stick_model``). The converged state is a stationary
+            point of the same potential either way; False: plain Newton steps.
     """
 
     rtol: float = 1e-9
@@ -133,6 +138,7 @@ class SolverOptions:
     atol: float = 0.0
     initial_guess: str = "predictor"
     continuation_after: int = 30
+    revise_steps: bool = True
 
     def __post_init__(self) -> None:
         if self.initial_guess not in INITIAL_GUESSES:
@@ -207,6 +213,8 @@ class NewtonSolver:
         self.step_bounds.extend(self.numeric_terms)
         self.patterns = GrowingPattern(self)
         self.projected_steps = 0
+        self.revised_steps = 0  # Newton steps solved again with a revised model
+        self._step_function = fem.Function(V)  # a Newton step as a ghosted V function
         self.retried_steps = 0  # steps solved again with the exact Hessian from the start
         self._exact_from_start = False
         self._keep_f_char = False
@@ -399,6 +407,8 @@ class NewtonSolver:
             slope = y.dot(F)
             self.projected_steps += 1
             self._exact_factors = False
+        if self.options.revise_steps and self._revising_terms:
+            slope = self._revised_step(x, y, F, slope)
         if not slope > 0:
             # Not a descent direction (indefinite Hessian): fall back to the gradient direction.
             y.scale(0.0)
@@ -433,6 +443,38 @@ class NewtonSolver:
         self._direction_exact = self._exact_factors
         self._drop_line_search()
         self._line_search = {"f0": None, "x0": x.copy(), "F0": F.copy()}
+
+    def _revised_step(self, x: PETSc.Vec, y: PETSc.Vec, F: PETSc.Vec, slope: float) -> float:
+        """The Newton step y again where numeric terms revise their model for it (collective).
+
+        Returns the slope y . F of the step (the revised one when a term revised its model).
+        """
+        self._assign(x)
+        step = self._step_function.x
+        step.petsc_vec.array_w[:] = y.array_r
+        step.petsc_vec.scale(-1.0)  # the step is x - y
+        step.scatter_forward()
+        bc_dofs = self.model.dirichlet_dofs()
+        terms = self._revising_terms
+        revising = [t.revise_newton_model(self.u, step.array, bc_dofs) for t in terms]
+        if not any(revising):
+            return slope
+        try:
+            self.assemble_projected_jacobian(self.A)
+            self._jacobian_key = None
+            rhs = F.copy()
+            for term, revised in zip(terms, revising, strict=True):
+                if revised:
+                    term.add_model_change(rhs, bc_dofs)
+            self.snes.getKSP().solve(rhs, y)
+            rhs.destroy()
+        finally:
+            for term, revised in zip(terms, revising, strict=True):
+                if revised:
+                    term.end_model_revision()
+        self._exact_factors = False
+        self.revised_steps += 1
+        return y.dot(F)
 
     def _drop_line_search(self) -> None:
         """Free the PETSc copies of the previous line search's start point."""
@@ -614,6 +656,11 @@ class NewtonSolver:
         )
 
     # -- numeric terms: projected Hessians and growing sparsity -------------------------------
+    @property
+    def _revising_terms(self) -> list:
+        """The numeric terms that may revise their model for a Newton step."""
+        return [t for t in self.numeric_terms if t.revises_newton_steps]
+
     def _projectable(self) -> bool:
         return any(t.projectable_hessian for t in self.numeric_terms)
 

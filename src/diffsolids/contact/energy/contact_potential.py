@@ -19,6 +19,7 @@ from diffsolids.contact.energy.evaluation import (
     contact_hessian,
 )
 from diffsolids.contact.energy.lagging import LaggedFriction
+from diffsolids.contact.energy.stick_model import StickModel
 from diffsolids.contact.timing import timed
 from diffsolids.errors import ParameterError
 
@@ -70,6 +71,8 @@ class ContactPotential:
         self.timings = timings
         self.stiffness: float | None = None
         self.barrier: ipctk.BarrierPotential | None = None
+        self._stick: StickModel | None = None
+        self.held: np.ndarray | None = None  # collisions held at stick for one Newton step
         if stiffness is not None:
             self.set_stiffness(stiffness)
 
@@ -151,3 +154,45 @@ class ContactPotential:
         return contact_hessian(
             self.barrier, self.friction_potential, self.surface.mesh, ev, V, beta_dt, method
         )
+
+    # -- Newton steps holding sliding contacts at stick (stick_model) ------------------------
+    def _stick_model(self, ev: Evaluation) -> StickModel | None:
+        T = ev.extras["friction"]
+        if T is None or not len(T):
+            return None
+        if self._stick is None or self._stick.tangential is not T:
+            self._stick = StickModel(T, self.surface.mesh, self.friction_potential.eps_v)
+        return self._stick
+
+    def hold_reversed(self, ev: Evaluation, dU: np.ndarray) -> int:
+        """Hold at stick the sliding collisions whose slip the step dU reverses (this rank's).
+
+        Args:
+            ev: The evaluation at the Newton iterate.
+            dU: (num_vertices * dim,) the Newton step at the collision vertices.
+
+        Returns:
+            The number of collisions held (this rank's share).
+        """
+        self.held = None
+        model = self._stick_model(ev)
+        if model is None:
+            return 0
+        V = self.lagging.friction_velocity(ev)
+        held = model.reversed(V, dU.reshape(V.shape) / self.lagging.step.beta_dt)
+        self.held = held if held.any() else None
+        return int(np.count_nonzero(held))
+
+    def held_gradient_change(self, ev: Evaluation) -> np.ndarray:
+        """The held collisions' stick-model minus exact gradient, summed over the ranks."""
+        g = np.zeros(self.surface.mesh.ndof)
+        if self.held is not None:
+            g = self._stick.gradient_change(self.lagging.friction_velocity(ev), self.held)
+        return self.partition.sum(g)
+
+    def held_hessian_change(self, ev: Evaluation) -> sp.csc_matrix | None:
+        """The held collisions' stick-model minus exact Hessian (this rank's share), or None."""
+        if self.held is None:
+            return None
+        V = self.lagging.friction_velocity(ev)
+        return self._stick.hessian_change(V, self.held) / self.lagging.step.beta_dt
