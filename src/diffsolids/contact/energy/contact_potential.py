@@ -161,7 +161,8 @@ class ContactPotential:
         if T is None or not len(T):
             return None
         if self._stick is None or self._stick.tangential is not T:
-            self._stick = StickModel(T, self.surface.mesh, self.friction_potential.eps_v)
+            with timed(self.timings, "stick_model"):
+                self._stick = StickModel(T, self.surface.mesh, self.friction_potential.eps_v)
         return self._stick
 
     def hold_reversed(self, ev: Evaluation, dU: np.ndarray) -> int:
@@ -179,7 +180,8 @@ class ContactPotential:
         if model is None:
             return 0
         V = self.lagging.friction_velocity(ev)
-        held = model.reversed(V, dU.reshape(V.shape) / self.lagging.step.beta_dt)
+        with timed(self.timings, "stick_check"):
+            held = model.reversed(V, dU.reshape(V.shape) / self.lagging.step.beta_dt)
         self.held = held if held.any() else None
         return int(np.count_nonzero(held))
 
