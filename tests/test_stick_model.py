@@ -48,9 +48,11 @@ def test_maps_reproduce_ipctk_friction_gradient(rolled, scale):
     assert np.allclose(ours[:-1], theirs, rtol=1e-10, atol=1e-12 * np.abs(theirs).max())
 
 
+@pytest.mark.parametrize("along", ["random", "gradient"])
 @pytest.mark.parametrize("scale", [1.0, 1e-5])
-def test_hessian_change_is_the_derivative_of_the_gradient_change(rolled, scale):
-    """ipctk's friction Hessian + hessian_change = d/dV (ipctk's gradient + gradient_change)."""
+def test_hessian_change_is_the_derivative_of_the_gradient_change(rolled, scale, along):
+    """ipctk's friction Hessian + hessian_change = d/dV (ipctk's gradient + gradient_change),
+    in a random direction and along that gradient itself."""
     contact, model = rolled
     T, mesh = contact.lagging.tangential, contact.surface.mesh
     held = np.random.default_rng(5).random(len(T)) < 0.6
@@ -62,6 +64,9 @@ def test_hessian_change_is_the_derivative_of_the_gradient_change(rolled, scale):
 
     V = _velocities(contact, scale, seed=7)
     d = _velocities(contact, scale, seed=8)
+    if along == "gradient":
+        g = gradient(V)
+        d = (np.linalg.norm(d) / np.linalg.norm(g)) * g.reshape(d.shape)
     H = contact.friction_potential.hessian(T, mesh, V) + model.hessian_change(V, held)
     h = 1e-6
     fd = (gradient(V + h * d) - gradient(V - h * d)) / (2 * h)

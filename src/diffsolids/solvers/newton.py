@@ -401,12 +401,9 @@ class NewtonSolver:
         if not slope > 0 and self._projectable():
             # paper sec. 5: PSD-project the contact Hessian only when the exact one fails
             self._assign(x)
-            self.assemble_projected_jacobian(self.A)
-            self._jacobian_key = None
-            self.snes.getKSP().solve(F, y)
+            self._solve_projected(F, y)
             slope = y.dot(F)
             self.projected_steps += 1
-            self._exact_factors = False
         if self.options.revise_steps and self._revising_terms:
             slope = self._revised_step(x, y, F, slope)
         if not slope > 0:
@@ -459,22 +456,25 @@ class NewtonSolver:
         revising = [t.revise_newton_model(self.u, step.array, bc_dofs) for t in terms]
         if not any(revising):
             return slope
+        revised = [t for t, r in zip(terms, revising, strict=True) if r]
+        rhs = F.copy()
         try:
-            self.assemble_projected_jacobian(self.A)
-            self._jacobian_key = None
-            rhs = F.copy()
-            for term, revised in zip(terms, revising, strict=True):
-                if revised:
-                    term.add_model_change(rhs, bc_dofs)
-            self.snes.getKSP().solve(rhs, y)
-            rhs.destroy()
+            for term in revised:
+                term.add_model_change(rhs, bc_dofs)
+            self._solve_projected(rhs, y)
         finally:
-            for term, revised in zip(terms, revising, strict=True):
-                if revised:
-                    term.end_model_revision()
-        self._exact_factors = False
+            rhs.destroy()
+            for term in revised:
+                term.end_model_revision()
         self.revised_steps += 1
         return y.dot(F)
+
+    def _solve_projected(self, rhs: PETSc.Vec, y: PETSc.Vec) -> None:
+        """Solve A y = rhs with A the projected Newton matrix at the current u (collective)."""
+        self.assemble_projected_jacobian(self.A)
+        self._jacobian_key = None
+        self.snes.getKSP().solve(rhs, y)
+        self._exact_factors = False
 
     def _drop_line_search(self) -> None:
         """Free the PETSc copies of the previous line search's start point."""
