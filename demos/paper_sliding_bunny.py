@@ -9,14 +9,14 @@ contact with dhat 1e-3, eps_v 1e-3 and friction 0.5), ``target.json`` (the same 
 friction 0.1) and ``opt.json`` (the objective: 100 |c(T) - c_target(T)|^2, c the bunny's
 centre of mass at the final time; L-BFGS, grad_norm 1e-4).
 
-The control is the logarithm of the friction coefficient of the bunny-slide pair (the paper's
-single friction parameter; self-contact of the bunny never touches).
+The problem is opt.json's as the runner builds it (``python -m diffsolids.polyfem
+--follow-branch``; :func:`friction_problem`): the control is its friction variable, mu of every
+pair (the bunny's self-contact never touches), the slide a kinematic obstacle; the demo keeps
+opt.json's objective and gradient stop and replaces its iteration limit (5) with
+``--iterations`` and limits a step of mu to 0.2.
 The outcome checked (``--check``): mu = 0.1 recovered from 0.5 to 1e-3 relative, and no
 intersection or inverted element in the target, initial and final runs. Measured (default
-size, serial, 2-core AMD EPYC at load 4-10): mu 0.5 -> 0.1000000 (relative error 3.5e-7), J
-7.65 -> 5.3e-15 in 16 iterations and 23 forward solves (6 line-search trials of the first 4
-iterations, mu 0.5 -> 0.256, failed in a Newton solve of steps 6-10 and were cut back), 772 s
-CPU.
+size, serial): see the gallery.
 
 The barrier stiffness is ``suggest_barrier_stiffness``'s (``--kappa scene``: the scene's 1e4 as
 PolyFEM means it, see ``diffsolids.polyfem.contact``: pairs rest ~2e-9 m apart and the first
@@ -32,7 +32,7 @@ collision-free step bound, and the paths for mu = 0.4999 and 0.5 part at iterati
 the Newton tolerance nor the Hessian (CLAMP or ABS projection, exact from the start: a third
 stationary point) decides it deterministically, so J jumps by 1.4% (J = 3.392 at
 mu = 0.4999, 3.440 at 0.5 and 0.5001 over 8 steps). The functional therefore follows the
-branch of the initial mu (``ReducedFunctional(..., branch_reference=log mu0)``): each step's
+branch of the initial mu (``ReducedFunctional(..., branch_reference=mu0)``): each step's
 Newton iteration starts at the reference run's state when that state is admissible, and J is
 one smooth function of mu whatever was evaluated before. Central differences then agree with
 the adjoint (5 steps: 1.7e-9 at h = 1e-6, 6.7e-7 at 1e-5, 6.7e-5 at 1e-4, 1.2e-2 at 1e-3 in
@@ -46,29 +46,22 @@ Output in ``output/paper_sliding_bunny/``: ``history.jsonl``, ``result.json``,
 ``paper_sliding_bunny.png``.
 """
 
-import numpy as np
 from common import DemoReport, DemoRun, by_size, run_demo
 from mpi4py import MPI
 from paper_common import (
     add_data_argument,
-    build,
-    experiment,
     finish_paper,
     gradient_stop_options,
     optimise_paths,
-    paper_functional,
-    paper_setup,
+    polyfem_problem,
+    record_time_grid,
     recovery_outcome,
 )
 
-import diffsolids as ds
-from diffsolids.controls import FrictionControl
-from diffsolids.objectives import center_of_mass, final_value, series_values
-from diffsolids.polyfem import read_polyfem_scene
-from diffsolids.reduced_functional import ReducedFunctional
+from diffsolids.polyfem import PolyFEMOptimization, PolyFEMProblem
 
 FOLDER = "fig21_friction_bunny"
-BUNNY, SLIDE = 1, 3  # volume_selection of the bunny and of the slide (obstacle "obstacle3")
+BUNNY = 1  # the bunny's body id (volume_selection)
 RECOVERY_RTOL = 1e-3
 SIZES = by_size(steps=(3, 10, None), iterations=(1, 20, 20))
 
@@ -80,66 +73,38 @@ def parse_args(argv, comm: MPI.Comm) -> DemoRun:
     return DemoRun(parser, argv, comm, SIZES)
 
 
-def paper_objective(model, opt: dict, target_centre: np.ndarray):
-    """opt.json's objective: weight x |c(T) - c_target(T)|^2 (``center-target``, ``final``).
+def friction_problem(
+    data, comm: MPI.Comm, steps: int | None, kappa="suggest"
+) -> tuple[PolyFEMOptimization, PolyFEMProblem]:
+    """opt.json's problem as ``python -m diffsolids.polyfem --follow-branch`` builds it.
 
-    Raises:
-        ds.ParameterError: opt.json holds another objective.
-    """
-    functional, _ = paper_functional(opt, "final", "center-target", volume_selection=[BUNNY])
-    com = center_of_mass(model, BUNNY)
-    misfit = sum((com[k] - float(target_centre[k])) ** 2 for k in range(model.dim))
-    return final_value(misfit) * float(functional.get("weight", 1.0))
-
-
-def friction_problem(data, comm: MPI.Comm, steps: int | None, kappa="suggest") -> tuple:
-    """The scene, simulation, control and the paper's objective (target centre computed).
-
-    The slide is a kinematic obstacle (no dofs: 2 799 instead of 17 046, same trajectory);
-    the functional follows the branch of the initial mu (its ``branch_reference``, see the
-    module docstring).
+    The run at the initial mu is the branch reference of every forward (see the module
+    docstring); the slide is a kinematic obstacle.
 
     Returns:
-        (model, contact, simulation, rf, target trajectory, true mu, initial mu, opt.json)
+        (the opt.json read, the problem: q is mu, ``targets[1]`` the target run)
     """
-    path, opt = experiment(data, FOLDER)
-    run_scene, target_scene = (read_polyfem_scene(path / s["path"]) for s in opt["states"])
-    if not run_scene.same_geometry(target_scene):
-        raise ds.ParameterError(f"{target_scene.path}: other meshes than {run_scene.path}")
-    model, contact, sim = build(run_scene, comm, steps, kappa)
-    control = FrictionControl(contact, pairs=[(BUNNY, f"obstacle{SLIDE}")], log=True)
-    true = np.array([float(target_scene.raw["contact"]["friction_coefficient"])])
-    q0 = np.array([float(run_scene.raw["contact"]["friction_coefficient"])])
-    control.assign(np.log(true))
-    target = sim.run()
-    com = center_of_mass(model, BUNNY)
-    centre = series_values(sim, com, target, steps=[-1])[0]
-    control.assign(np.log(q0))
-    objective = paper_objective(model, opt, centre)
-    rf = ReducedFunctional(sim, objective, control, branch_reference=np.log(q0))
-    return model, contact, sim, rf, target, true, q0, opt
-
-
-def setup(args, comm):
-    """:func:`friction_problem` of the run's arguments."""
-    return friction_problem(args.data, comm, args.steps, args.kappa)
+    return polyfem_problem(data, comm, FOLDER, steps, kappa, follow_branch=True)
 
 
 def main(argv=None, comm: MPI.Comm = MPI.COMM_WORLD) -> DemoReport:
     """Identify the bunny's friction coefficient; returns the report (printed on rank 0)."""
     run = parse_args(argv, comm)
     args = run.args
-    _, contact, sim, rf, target, true, q0, opt = paper_setup(run, setup)
-    options = gradient_stop_options(opt, args.iterations, initial_step=0.5, max_change=0.5)
-    result, _, trajs = optimise_paths(run, rf, np.log(q0), options, target)
-    mu = float(np.exp(result.q[0]))
-    values = (true[0], q0[0], mu, contact)
+    optimization, problem = friction_problem(args.data, comm, args.steps, args.kappa)
+    record_time_grid(run, problem.simulation)
+    sim, contact, q0 = problem.simulation, problem.contact, problem.q0
+    true = float(optimization.states[1].raw["contact"]["friction_coefficient"])
+    options = gradient_stop_options(optimization.raw, args.iterations, max_change=0.2)
+    result, _, trajs = optimise_paths(run, problem.rf, q0, options, problem.targets[1])
+    mu = float(result.q[0])
+    values = (true, q0[0], mu, contact)
     report, figures, (error0, error1) = recovery_outcome(
         run, result, sim, trajs, "mu", values, RECOVERY_RTOL
     )
     figures["eps_v"] = contact.eps_v
     headline = (
-        f"paper_sliding_bunny (Fig. 21): mu {q0[0]:g} -> {mu:.5f} (true {true[0]:g}); "
+        f"paper_sliding_bunny (Fig. 21): mu {q0[0]:g} -> {mu:.5f} (true {true:g}); "
         f"relative error {error0:.3f} -> {error1:.2e}; {args.steps} steps, "
         f"kappa {contact.stiffness:.3g}"
     )

@@ -86,3 +86,47 @@ def test_bad_reference_refused(scene, q_ref):
         ds.ReducedFunctional(
             rf.simulation, rf.objective, rf.controls.controls, branch_reference=q_ref
         )
+
+
+def _fail_once(sim, monkeypatch, step: int) -> list:
+    """Make the solver's first solve of ``step`` fail; the list records the forced failures."""
+    real, forced = sim.solver.solve, []
+
+    def solve(i):
+        if i == step and not forced:
+            forced.append(i)
+            raise ds.NewtonConvergenceError(i, 100, 1.0, 1e-9, "forced by the test")
+        return real(i)
+
+    monkeypatch.setattr(sim.solver, "solve", solve)
+    return forced
+
+
+def test_failed_solve_from_the_reference_solved_again_from_the_default_guess(
+    scene, monkeypatch, caplog
+):
+    rf, q = scene.rf, scene.q0 + np.array([0.004, -0.003])
+    J_reference_route = rf(q)
+    its_reference_route = [r.iterations for r in rf.trajectory.records]
+    reference = rf.simulation.branch_reference
+    rf(scene.q0)  # another point: the next call at q runs again
+    forced = _fail_once(rf.simulation, monkeypatch, 7)
+    with caplog.at_level("WARNING", logger="diffsolids"):
+        J = rf(q)
+    assert forced == [7]
+    assert "step 7: no convergence from the branch reference's state" in caplog.text
+    assert np.isfinite(J) and rf.simulation.branch_reference is reference
+    # step 7 started at the predictor, not at the reference's u^7: more Newton iterations,
+    # the same minimum here (the block has tipped to the reference's side by step 7)
+    its = [r.iterations for r in rf.trajectory.records]
+    assert its[6] > its_reference_route[6], (its, its_reference_route)
+    assert pytest.approx(J, rel=1e-6) == J_reference_route
+
+
+def test_failed_solve_without_a_reference_raises(scene, monkeypatch):
+    rf = scene.rf
+    plain = ds.ReducedFunctional(rf.simulation, rf.objective, rf.controls.controls)
+    forced = _fail_once(plain.simulation, monkeypatch, 7)
+    with pytest.raises(ds.NewtonConvergenceError, match="forced by the test"):
+        plain(scene.q0)
+    assert forced == [7]

@@ -1,9 +1,10 @@
 """Central differences verify the adjoint friction gradient of the paper's Fig. 21 sliding bunny.
 
 The scene ``fig21_friction_bunny`` (a Stanford bunny thrown along a slide, 2 799 dofs with the
-slide as a kinematic obstacle) with the demo's objective and control
-(``demos/paper_sliding_bunny.friction_problem``: 100 |c(T) - c_target(T)|^2 of the bunny's
-centre of mass, the target run at mu = 0.1; the control log mu of the bunny-slide pair) over
+slide as a kinematic obstacle) as the demo builds it from opt.json
+(``demos/paper_sliding_bunny.friction_problem``, the runner's problem with ``follow_branch``:
+100 |c(T) - c_target(T)|^2 of the bunny's centre of mass, the target run at mu = 0.1; the
+control opt.json's friction coefficient mu) over
 the first ``STEPS`` steps at mu = 0.5: the bunny lands in step 1 (20 pairs), friction acts from
 step 2, step 3 is the impact (79 pairs) and the bunny slides in steps 4-5.
 
@@ -15,7 +16,7 @@ them. The demo's functional has a branch reference at the initial mu
 iteration at the reference run's state, so the perturbed runs stay on its branch.
 
 Checked here: the perturbed runs keep the base run's contact pattern, central differences in
-log mu agree with the adjoint to ``TOLERANCE`` at h = 1e-5 and 1e-6 along a random direction
+mu agree with the adjoint to ``TOLERANCE`` at h = 1e-5 and 1e-6 along a random direction
 and along the gradient, and from h = 1e-4 to 1e-5 the error falls like h^2 (by more than
 30x); the base parameters again reproduce J to the last bit.
 """
@@ -23,7 +24,6 @@ and along the gradient, and from h = 1e-4 to 1e-5 the error falls like h^2 (by m
 import os
 from pathlib import Path
 
-import numpy as np
 import pytest
 from contact_checks import central_differences
 from mpi4py import MPI
@@ -36,7 +36,7 @@ DIFFIPC = DATA / "diffipc"
 
 STEPS = 5  # landing, friction, the impact step with two local minima, sliding
 TOLERANCE = 1e-6
-SMALL_H = (1e-5, 1e-6)  # central-difference steps of log mu checked against TOLERANCE
+SMALL_H = (1e-5, 1e-6)  # central-difference steps of mu checked against TOLERANCE
 TRUNCATION_H = 1e-4  # the error from TRUNCATION_H to SMALL_H[0] must fall like h^2
 
 
@@ -47,8 +47,8 @@ def friction(steps: int, comm: MPI.Comm = COMM):
     demo = load_demo("paper_sliding_bunny")
     if not (DIFFIPC / demo.FOLDER / "opt.json").is_file():
         pytest.skip(f"the paper's data is not at {DIFFIPC} (set DIFFSOLIDS_DATA)")
-    _, contact, sim, rf, _, _, q0, _ = demo.friction_problem(DIFFIPC, comm, steps)
-    return rf, np.log(q0), contact, sim
+    _, problem = demo.friction_problem(DIFFIPC, comm, steps)
+    return problem.rf, problem.q0, problem.contact, problem.simulation
 
 
 @pytest.mark.slow

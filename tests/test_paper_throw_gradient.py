@@ -1,8 +1,9 @@
 """Central differences verify the adjoint gradient of the paper's Fig. 1 throw (3D, paper data).
 
-The scene ``fig1_bunnies`` (pool + two Stanford bunnies, 6 183 dofs) with the demo's objective
-and control (``demos/paper_throw_bunnies.throw_problem``: the second bunny's final centre of
-mass (x, z), squared distance to the spot; the first bunny's rigid initial velocity) over the
+The scene ``fig1_bunnies`` (pool + two Stanford bunnies, 6 183 dofs) as the demo builds it from
+opt.json (``demos/paper_throw_bunnies.throw_problem``, the runner's problem with area-weighted
+pairs: the second bunny's final centre of mass (x, z), squared distance to the spot; the
+first bunny's initial velocity; default solver options) over the
 first ``STEPS`` steps: the bunnies touch in step 2 (17 pairs) and step 3 (56 pairs).
 
 Measured on this scene (2 steps, h = 1e-3 .. 1e-6, random direction and along the gradient):
@@ -40,8 +41,6 @@ DATA = Path(
 DIFFIPC = DATA / "diffipc"
 
 STEPS = 3  # contact in steps 2 and 3
-RTOL = 1e-8  # Newton tolerance (the demo's)
-EXACT_HESSIAN_BELOW = 1e-3  # projected Newton steps above 1e-3 f_char (see the docstring)
 H = 1e-4  # central-difference step of the velocity [m/s] (|v0| = 2.06)
 TOLERANCE = 1e-6
 
@@ -50,13 +49,11 @@ def throw(steps: int, comm: MPI.Comm = COMM):
     """(rf, q0, contact) of the demo's throw over ``steps`` steps (skips without the data)."""
     from demo_modules import load_demo
 
-    common = load_demo("paper_common")
     demo = load_demo("paper_throw_bunnies")
     if not (DIFFIPC / demo.FOLDER / "opt.json").is_file():
         pytest.skip(f"the paper's data is not at {DIFFIPC} (set DIFFSOLIDS_DATA)")
-    path, opt = common.experiment(DIFFIPC, demo.FOLDER)
-    scene, _ = common.scenes(path, opt)
-    return demo.throw_problem(scene, comm, steps, "suggest", RTOL, EXACT_HESSIAN_BELOW)
+    _, problem = demo.throw_problem(DIFFIPC, comm, steps)
+    return problem.rf, problem.q0, problem.contact
 
 
 @pytest.mark.slow

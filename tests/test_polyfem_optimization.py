@@ -137,6 +137,11 @@ def test_bounds_and_options(tmp_path):
     opt = read_polyfem_optimization(write_experiment(tmp_path, "initial", solver=solver))
     options = opt.lbfgs_options()
     assert (options.max_iterations, options.gradient_atol, options.max_change) == (7, 1e-5, 0.5)
+    options = opt.lbfgs_options(max_iterations=3, grad_norm=1e-12)
+    assert (options.max_iterations, options.gradient_atol) == (3, 1e-12)
+    with pytest.raises(ds.ParameterError, match="grad_norm must be >= 0, got -1"):
+        opt.lbfgs_options(grad_norm=-1.0)
+    assert opt.build(steps=2, grad_norm=1e-11).options.gradient_atol == 1e-11
     problem = opt.build(steps=4)
     lo, hi = problem.rf.bounds()
     assert np.all(lo == -3) and np.all(hi == 3)
@@ -209,7 +214,7 @@ def test_command_line_writes_its_outputs(tmp_path):
     path = write_experiment(tmp_path / "exp", "initial", steps=8)
     out = tmp_path / "out"
     args = ["--out", str(out), "--max-iterations", "2", "--steps", "6", "--area-weighting"]
-    args.append("--follow-branch")
+    args += ["--follow-branch", "--grad-norm", "1e-14"]
     proc = _run_cli(str(path), *args)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     result = json.loads((out / "result.json").read_text())

@@ -15,7 +15,7 @@ from diffsolids.errors import InvertedElementError, NewtonConvergenceError, Para
 from diffsolids.integrators import Integrator, TimeStep
 from diffsolids.mesh.ordering import CanonicalLayout
 from diffsolids.parallel import collective_comm
-from diffsolids.solvers import NewtonSolver, SolverOptions
+from diffsolids.solvers import NewtonResult, NewtonSolver, SolverOptions
 from diffsolids.states import (
     Phase,
     RunDriver,
@@ -250,8 +250,19 @@ class Simulation:
         phase = Phase.FORWARD if len(traj.u) == i else Phase.BACKWARD
         return self.prepare_step(i, traj, phase).step
 
-    def _initial_guess(self, i: int, traj: StateHistory, step: TimeStep) -> None:
-        """The step's first Newton iterate, with the step's Dirichlet values applied.
+    def _initial_guess(self, i: int, traj: StateHistory, step: TimeStep) -> bool:
+        """The step's first Newton iterate; whether it is the branch reference's state.
+
+        The branch reference's u^i when it is admissible (:meth:`_reference_guess`), else
+        :meth:`_default_guess`.
+        """
+        if self._reference_guess(i, traj.u[i - 1]):
+            return True
+        self._default_guess(i, traj, step)
+        return False
+
+    def _default_guess(self, i: int, traj: StateHistory, step: TimeStep) -> None:
+        """The step's first Newton iterate without a branch reference, Dirichlet values applied.
 
         Candidates in turn: the warm start (if any), the guess chosen by
         :attr:`SolverOptions.initial_guess <diffsolids.solvers.SolverOptions.initial_guess>`
@@ -264,8 +275,6 @@ class Simulation:
         """
         u = self.model.fields.u
         prev = traj.u[i - 1]
-        if self._reference_guess(i, prev):
-            return
         choice = self.solver.options.initial_guess
         if choice == "predictor":
             candidates = [step.extrapolation(traj.u, traj.v), prev]
@@ -467,12 +476,14 @@ class Simulation:
                     bc.set(u.x.array)
             self.solver.set_reference_force()
         self._guess_origin = traj.u[i - 1]
-        self._initial_guess(i, traj, c)
+        from_reference = self._initial_guess(i, traj, c)
         try:
             result = self.solver.solve(i)
         except NewtonConvergenceError:
-            logger.error("step %d (t = %g) failed", i, self.integrator.time(i))
-            raise
+            if not from_reference:
+                logger.error("step %d (t = %g) failed", i, self.integrator.time(i))
+                raise
+            result = self._solve_again_without_reference(i, traj, c)
         u_i = self.model.fields.u.x.array.copy()
         v_i = c.velocity(u_i, traj.u)
         rec = StepRecord(
@@ -499,6 +510,29 @@ class Simulation:
             rec.energy,
             rec.seconds,
         )
+
+    def _solve_again_without_reference(
+        self, i: int, traj: StateRecorder, step: TimeStep
+    ) -> NewtonResult:
+        """Step ``i`` from the default initial guess after the solve from the reference failed.
+
+        The rule is deterministic in q: the reference's state first, the default guess only
+        where Newton cannot converge from it (e.g. parameters far from the reference's).
+
+        Raises:
+            NewtonConvergenceError: The second solve failed too.
+        """
+        logger.warning(
+            "step %d: no convergence from the branch reference's state; solving again from "
+            "the default initial guess",
+            i,
+        )
+        self._default_guess(i, traj, step)
+        try:
+            return self.solver.solve(i)
+        except NewtonConvergenceError:
+            logger.error("step %d (t = %g) failed", i, self.integrator.time(i))
+            raise
 
     def _prescribe(self, i: int, traj: StateRecorder) -> None:
         u_i, v_i = self.startup[i - 1]

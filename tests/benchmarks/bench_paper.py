@@ -12,8 +12,8 @@ Scenes read from their PolyFEM JSON (``diffsolids.polyfem.scene``; data in
   (3.67854, 0.137261). ``--throw-steps`` of the paper's 40 (default 8: a partial run; the
   per-Newton-iteration cost is what it measures; 0 skips it).
 - ``sliding_bunny`` (Fig. 21, 3D): run-new.json, the bunny on a slide (a kinematic obstacle),
-  2 799 dofs; log mu of the bunny-slide pair; the demo's objective (``paper_sliding_bunny.
-  friction_problem``: 100 |c(T) - c_target(T)|^2, target at mu = 0.1) over
+  2 799 dofs; opt.json's problem as the demo builds it (``paper_sliding_bunny.
+  friction_problem``: mu; 100 |c(T) - c_target(T)|^2, target at mu = 0.1) over
   ``--sliding-steps`` of the paper's 40 (default 10, the demo's default; 0 skips it).
 
 Per scene: forward seconds (wall and process CPU: the machine is shared; the objective's forward
@@ -89,19 +89,17 @@ def build(name: str, data: Path, kappa, steps: int | None, comm):
     if name == "sliding_bunny":
         from paper_sliding_bunny import friction_problem
 
-        _, _contact, sim, rf, _, _, q0, _ = friction_problem(data, comm, steps, kappa)
-        return rf, np.log(q0), sim
-    path, opt = experiment(data, FOLDERS[name])
-    run, target = scenes(path, opt)
+        _, problem = friction_problem(data, comm, steps, kappa)
+        return problem.rf, problem.q0, problem.simulation
     if name == "throw":
-        # the demo's problem (paper_throw_bunnies.throw_problem): area-weighted pairs (with
-        # PolyFEM's unweighted pairs the suggested kappa is 3.9e13 and step 2 fails), rtol 1e-8,
-        # projected Newton steps above 1e-3 f_char (exact from the start: 633 instead of 539
-        # Newton iterations over the 40 steps, and J jumps between stationary points)
+        # the demo's problem (paper_throw_bunnies.throw_problem): opt.json through the runner,
+        # area-weighted pairs (with PolyFEM's unweighted pairs the suggested kappa is 3.9e13)
         from paper_throw_bunnies import throw_problem
 
-        rf, q, _contact = throw_problem(run, comm, steps, kappa)
-        return rf, q, rf.simulation
+        _, problem = throw_problem(data, comm, steps, kappa)
+        return problem.rf, problem.q0, problem.simulation
+    path, opt = experiment(data, FOLDERS[name])
+    run, target = scenes(path, opt)
     model, _contact, sim = build_scene(run, comm, steps, kappa)
     if name == "puzzle":
         controls = RigidVelocity(sim, 1, angular=False)
@@ -144,9 +142,12 @@ def measure(name: str, args, comm) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
     J = rf(q)
     forward, forward_cpu = time.perf_counter() - t0, time.process_time() - c0
-    its = rf.trajectory.newton_iterations()
     contact = next(t for t in sim.model.numeric_terms if isinstance(t, ContactTerm))
     per_step = [r.iterations for r in rf.trajectory.records]
+    if sim.branch_reference is not None:  # this forward solved the reference run first
+        reference = [r.iterations for r in sim.branch_reference.records]
+        per_step = [a + b for a, b in zip(per_step, reference, strict=True)]
+    its = sum(per_step)
     in_contact = [n for n, c in zip(per_step, contact.records, strict=True) if c.num_collisions]
     in_contact = in_contact or per_step
     contact.timings.clear()  # from here: the contact work of the gradient only

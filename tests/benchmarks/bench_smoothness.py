@@ -62,26 +62,23 @@ def _parse(argv):
 
 
 def paper_scene(name: str, args):
-    """The sliding bunny (log mu) or the throw (v0) as a smoothness Scene, or None."""
+    """The sliding bunny (mu) or the throw (v0) as a smoothness Scene, or None."""
     from demo_modules import load_demo
     from mpi4py import MPI
     from smoothness_scenes import Scene
 
-    common = load_demo("paper_common")
     if name == "sliding_bunny":
         demo = load_demo("paper_sliding_bunny")
         if not (DATA / demo.FOLDER / "opt.json").is_file():
             return None
-        problem = demo.friction_problem(DATA, MPI.COMM_WORLD, args.bunny_steps)
-        _, contact, _, rf, _, _, q0, _ = problem
-        return Scene(rf, np.log(q0), 0.01, contact)
+        _, problem = demo.friction_problem(DATA, MPI.COMM_WORLD, args.bunny_steps)
+        # radius 0.005 in mu at mu = 0.5 (0.01 in log mu)
+        return Scene(problem.rf, problem.q0, 0.005, problem.contact)
     demo = load_demo("paper_throw_bunnies")
     if not (DATA / demo.FOLDER / "opt.json").is_file():
         return None
-    path, opt = common.experiment(DATA, demo.FOLDER)
-    scene, _ = common.scenes(path, opt)
-    rf, q0, contact = demo.throw_problem(scene, MPI.COMM_WORLD, args.throw_steps)
-    return Scene(rf, q0, 0.01, contact)
+    _, problem = demo.throw_problem(DATA, MPI.COMM_WORLD, args.throw_steps)
+    return Scene(problem.rf, problem.q0, 0.01, problem.contact)
 
 
 def contact_iterations(scene) -> dict:

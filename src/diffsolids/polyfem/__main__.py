@@ -33,6 +33,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("opt_json", type=Path, help="PolyFEM optimisation JSON (opt.json)")
     p.add_argument("--out", type=Path, default=None, help="output folder")
     p.add_argument("--max-iterations", type=int, default=None, help="replace max_iterations")
+    p.add_argument(
+        "--grad-norm", type=float, default=None, help="replace solver.nonlinear.grad_norm"
+    )
     p.add_argument("--steps", type=int, default=None, help="run only the first N time steps")
     p.add_argument(
         "--kappa",
@@ -113,6 +116,7 @@ def main(argv: list[str] | None = None) -> int:
             comm,
             steps=args.steps,
             max_iterations=args.max_iterations,
+            grad_norm=args.grad_norm,
             stiffness=_stiffness(args.kappa),
             contact_options={"area_weighting": True} if args.area_weighting else None,
             follow_branch=args.follow_branch,

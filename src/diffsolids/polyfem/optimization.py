@@ -186,17 +186,28 @@ class PolyFEMOptimization:
         init = self.raw["parameters"][0].get("initial")
         return None if init is None else np.asarray(init, dtype=float)
 
-    def lbfgs_options(self, max_iterations: int | None = None) -> "LBFGSOptions":
-        """The LBFGSOptions of ``solver.nonlinear``."""
+    def lbfgs_options(
+        self, max_iterations: int | None = None, grad_norm: float | None = None
+    ) -> "LBFGSOptions":
+        """The LBFGSOptions of ``solver.nonlinear``.
+
+        Args:
+            max_iterations: Replace ``max_iterations``.
+            grad_norm: Replace ``grad_norm`` (the projected gradient's norm at which to stop).
+        """
         from diffsolids.optimize import LBFGSOptions
 
         nl = self.raw.get("solver", {}).get("nonlinear", {})
         box = nl.get("box_constraints", {})
         iterations = max_iterations if max_iterations is not None else nl.get("max_iterations")
         max_change = box.get("max_change")
+        if grad_norm is None:
+            grad_norm = float(nl.get("grad_norm", 1e-8))
+        elif not grad_norm >= 0.0:
+            raise ParameterError(f"grad_norm must be >= 0, got {grad_norm}")
         return LBFGSOptions(
             max_iterations=int(iterations if iterations is not None else 100),
-            gradient_atol=float(nl.get("grad_norm", 1e-8)),
+            gradient_atol=float(grad_norm),
             gradient_rtol=0.0,
             max_change=None if max_change is None else float(max_change),
         )
@@ -222,6 +233,7 @@ class PolyFEMOptimization:
         stiffness: float | str | None = "suggest",
         contact_options: Mapping[str, Any] | None = None,
         follow_branch: bool = False,
+        grad_norm: float | None = None,
     ) -> PolyFEMProblem:
         """Build the problem: state 0's simulation, the target runs, controls and objective.
 
@@ -239,6 +251,8 @@ class PolyFEMOptimization:
             follow_branch: Make the run at the initial parameters the branch reference of
                 every forward (``ReducedFunctional(..., branch_reference=q0)``): for scenes
                 whose contact steps have several local minima.
+            grad_norm: Replace ``solver.nonlinear.grad_norm`` (where a parameter barely
+                seen by J needs a smaller one than the file's).
 
         Raises:
             ParameterError: An unsupported or inconsistent entry (named).
@@ -292,7 +306,7 @@ class PolyFEMOptimization:
             rf=rf,
             labels=labels,
             q0=np.asarray(q0, dtype=float),
-            options=self.lbfgs_options(max_iterations),
+            options=self.lbfgs_options(max_iterations, grad_norm),
             stopping=StoppingConditions(sim, stops),
             inner_product=ShapeInnerProduct(rf) if shapes else None,
         )
