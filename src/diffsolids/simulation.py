@@ -478,12 +478,14 @@ class Simulation:
         self._guess_origin = traj.u[i - 1]
         from_reference = self._initial_guess(i, traj, c)
         try:
-            result = self.solver.solve(i)
-        except NewtonConvergenceError:
+            # from the reference's state one attempt, then the default guess with every retry
+            result = self.solver.solve(i, retries=not from_reference)
+        except NewtonConvergenceError as error:
             if not from_reference:
                 logger.error("step %d (t = %g) failed", i, self.integrator.time(i))
                 raise
             result = self._solve_again_without_reference(i, traj, c)
+            result.iterations += error.iterations  # the step's record counts both solves
         u_i = self.model.fields.u.x.array.copy()
         v_i = c.velocity(u_i, traj.u)
         rec = StepRecord(
@@ -516,8 +518,9 @@ class Simulation:
     ) -> NewtonResult:
         """Step ``i`` from the default initial guess after the solve from the reference failed.
 
-        The rule is deterministic in q: the reference's state first, the default guess only
-        where Newton cannot converge from it (e.g. parameters far from the reference's).
+        The rule is deterministic in q: the reference's state first (one Newton attempt,
+        without the solver's retries), the default guess with every retry only where Newton
+        does not converge from it (e.g. parameters far from the reference's).
 
         Raises:
             NewtonConvergenceError: The second solve failed too.

@@ -22,3 +22,32 @@ def test_ridge_with_reference_equals_serial():
     assert parallel.rf(q) == J
     pairs = [r.num_collisions for r in parallel.contact.records]
     assert COMM.allreduce(sum(pairs), op=MPI.SUM) > 0
+
+
+def _forced_fallback(comm, q, step: int = 7):
+    """J at q when the solve of ``step`` from the reference's state is made to fail."""
+    from diffsolids.errors import NewtonConvergenceError
+
+    scene = ridge(comm, steps=9, offset=OFFSET)
+    scene.rf(scene.q0)  # the reference run
+    solver = scene.rf.simulation.solver
+    real, forced = solver.solve, []
+
+    def solve(i, retries=True):
+        if i == step and not forced:
+            forced.append(retries)
+            raise NewtonConvergenceError(i, 1000, 1.0, 1e-9, "forced by the test")
+        return real(i, retries)
+
+    solver.solve = solve
+    J = scene.rf(q)
+    assert forced == [False]
+    return J, [r.iterations for r in scene.rf.trajectory.records]
+
+
+def test_fallback_from_the_reference_equals_serial():
+    q = np.log([6e4, 0.2]) + np.array([0.003, -0.002])  # near the ridge scene's q0
+    J, its = _forced_fallback(COMM, q)
+    Js, its_serial = _forced_fallback(MPI.COMM_SELF, q)
+    assert abs(J - Js) <= 1e-10 * abs(Js), (J, Js)
+    assert its == its_serial and its[6] > 1000, (its, its_serial)

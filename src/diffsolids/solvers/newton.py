@@ -904,8 +904,14 @@ class NewtonSolver:
         )
         return its, reason, converged
 
-    def solve(self, step: int) -> NewtonResult:
+    def solve(self, step: int, retries: bool = True) -> NewtonResult:
         """Minimise from the current ``u`` (which must satisfy the Dirichlet conditions).
+
+        Args:
+            step: The step (for messages and the factor store).
+            retries: After a failed first attempt, solve again with the exact Hessian from the
+                start and then with the stiffness continuation (False: fail at once; for a
+                guess that has a fallback of its own).
 
         Raises:
             NewtonConvergenceError: The solve failed; names the step, iterations and residual.
@@ -933,7 +939,8 @@ class NewtonSolver:
         x0 = self.x.copy()
         try:
             its, reason, converged = self._attempt()
-            if not converged and not self._stalled and self._hybrid() and self._projectable():
+            retry = retries and not converged and not self._stalled
+            if retry and self._hybrid() and self._projectable():
                 # The projected phase crawled (or the exact one failed): the step again from
                 # its initial guess with the exact Hessian from the first iteration (projected
                 # only where its step is not a descent direction, as exact_hessian_below=inf).
@@ -950,7 +957,7 @@ class NewtonSolver:
                 self.retried_steps += 1
                 its, reason, converged = self._attempt()
                 its += first
-            if not converged:
+            if not converged and retries:
                 more, reason, converged = self._continued_attempt(step, x0)
                 its += more
         finally:
