@@ -47,7 +47,7 @@ def friction(steps: int, comm: MPI.Comm = COMM):
     demo = load_demo("paper_sliding_bunny")
     if not (DIFFIPC / demo.FOLDER / "opt.json").is_file():
         pytest.skip(f"the paper's data is not at {DIFFIPC} (set DIFFSOLIDS_DATA)")
-    _, problem = demo.friction_problem(DIFFIPC, comm, steps)
+    _, problem = demo.friction_problem(DIFFIPC, comm, steps, follow_branch=True)
     return problem.rf, problem.q0, problem.contact, problem.simulation
 
 

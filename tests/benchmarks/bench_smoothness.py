@@ -71,7 +71,9 @@ def paper_scene(name: str, args):
         demo = load_demo("paper_sliding_bunny")
         if not (DATA / demo.FOLDER / "opt.json").is_file():
             return None
-        _, problem = demo.friction_problem(DATA, MPI.COMM_WORLD, args.bunny_steps)
+        _, problem = demo.friction_problem(
+            DATA, MPI.COMM_WORLD, args.bunny_steps, follow_branch=True
+        )
         # radius 0.005 in mu at mu = 0.5 (0.01 in log mu)
         return Scene(problem.rf, problem.q0, 0.005, problem.contact)
     demo = load_demo("paper_throw_bunnies")
