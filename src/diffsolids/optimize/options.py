@@ -41,7 +41,9 @@ class LBFGSOptions:
         max_change: Largest change of a parameter per iteration (max-norm per control block):
             one number for all controls, a sequence with one entry per control (``None`` for no
             limit) or a mapping from control name (or index) to a limit.
-        warm_start: Start every forward solve from the trajectory of the last accepted iterate.
+        warm_start: Start every forward solve from the trajectory of the last accepted iterate
+            (off by default: J at a trial point then depends on the iterate it was reached
+            from, where a step has several minima even on another branch).
         curvature_tol: A pair (s, y) enters the L-BFGS memory only if
             ``s.y > curvature_tol * max(|s| |y|, |g.s|)``.
     """
@@ -58,7 +60,7 @@ class LBFGSOptions:
     max_trials: int = 20
     initial_step: float | None = None
     max_change: float | Sequence | Mapping | None = None
-    warm_start: bool = True
+    warm_start: bool = False
     curvature_tol: float = 1e-10
 
     def validate(self) -> None:
