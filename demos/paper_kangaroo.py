@@ -23,8 +23,9 @@ to 0.5. opt.json's stop (grad_norm 1e-3) ends at the third iterate (E 9.93e6, nu
 (``--iterations``, 60). In the log Lamé parameters L-BFGS-B follows the floor (in log E and
 nu it crawled: nu 0.433 after 20 iterations, hence ``diffsolids.optimize.FloorSearch`` for
 such pairs). Measured (2026-12-07, serial, a second job on the machine): default (60 steps)
-45 iterations, 52 forward solves, E = 1e7 to 1.1e-8, nu = 0.3 to 4.0e-7, J 3.8e-2 -> 8.8e-19,
-CPU 49 s; ``--tiny`` (35 steps) 30 iterations, nu to 4e-7, CPU 14 s.
+44 iterations, 51 forward solves, E = 1e7 to 8e-11, nu = 0.3 to 7.5e-10, J 3.8e-2 -> 1.7e-24,
+CPU 84 s (with the optimiser's former warm start 45 iterations, 49 s); ``--tiny`` (35 steps)
+30 iterations, nu to 4e-7, CPU 14 s.
 
 The outcome checked (``--check``, every size): E and nu within 1% of 1e7 and 0.3, no
 intersection or inverted element in the three runs.

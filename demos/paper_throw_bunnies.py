@@ -25,15 +25,14 @@ cannot be verified (``tests/test_paper_throw_gradient.py``).
 The outcome checked (``--check``, default size): the paper's stop test, both squared
 deviations of the centre from the spot in x and z <= 0.005 (the paper's 0.005 stop tolerance:
 |dx|, |dz| <= 0.0707 m; the distance in x and z is reported in the figures); no intersection
-or inverted element in the initial and final runs. Measured (serial, 2-core AMD EPYC with a
-second demo running, 2026-12-07): 3 iterations, 6 forward solves, stopped by opt.json's
-stopping conditions; J 0.4007 -> 0.00834, squared deviations 0.00433 and 0.00401, v0 (2, 0.5,
-0) -> (2.655, 0.484, -0.004), the same digits as the demo's own set-up before it used the
-runner; 350 s wall, 274 s CPU, 609 Newton iterations in the final run. ``make demo`` runs
-it. ``--tiny``: 2 steps (the bunnies collide in the first), 1 iteration, objective decreased.
-The default is the paper's whole run (40 steps; the spot is where the second bunny rests at
-t = 2 s, so there is no shorter version of the outcome); ``--steps N`` runs fewer steps
-against the same spot (no outcome check).
+or inverted element in the initial and final runs. Measured (serial, 2-core AMD EPYC with the
+test suite running, 2026-12-07): 3 iterations, 4 forward solves, stopped by opt.json's
+stopping conditions; J 0.4007 -> 0.00104, squared deviations 5.4e-6 and 1.03e-3, v0 (2, 0.5,
+0) -> (2.586, 0.497, 0.054); 232 s wall, 186 s CPU, 591 Newton iterations in the final run.
+``make demo`` runs it. ``--tiny``: 2 steps (the bunnies collide in the first), 1 iteration,
+objective decreased. The default is the paper's whole run (40 steps; the spot is where the
+second bunny rests at t = 2 s, so there is no shorter version of the outcome); ``--steps N``
+runs fewer steps against the same spot (no outcome check).
 Every forward starts each step from the previous state, without a branch reference: the
 optimiser's first step changes v0 by 0.5, where Newton started from the states of the run at
 the scene's v0 (``ReducedFunctional(..., branch_reference=q0)``) needs 5x longer per forward.
