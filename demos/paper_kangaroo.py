@@ -25,7 +25,8 @@ nu it crawled: nu 0.433 after 20 iterations, hence ``diffsolids.optimize.FloorSe
 such pairs). Measured (2026-12-07, serial, a second job on the machine): default (60 steps)
 44 iterations, 51 forward solves, E = 1e7 to 8e-11, nu = 0.3 to 7.5e-10, J 3.8e-2 -> 1.7e-24,
 CPU 84 s (with the optimiser's former warm start 45 iterations, 49 s); ``--tiny`` (35 steps)
-30 iterations, nu to 4e-7, CPU 14 s.
+27 iterations, nu to 1.5e-6, CPU 22 s (on 2 ranks 28 iterations, nu to 7e-9: along the flat
+valley the iterates part at round-off).
 
 The outcome checked (``--check``, every size): E and nu within 1% of 1e7 and 0.3, no
 intersection or inverted element in the three runs.
