@@ -41,9 +41,9 @@ class LBFGSOptions:
         max_change: Largest change of a parameter per iteration (max-norm per control block):
             one number for all controls, a sequence with one entry per control (``None`` for no
             limit) or a mapping from control name (or index) to a limit.
-        warm_start: Start every forward solve from the trajectory of the last accepted iterate
-            (off by default: J at a trial point then depends on the iterate it was reached
-            from, where a step has several minima even on another branch).
+        warm_start: Start every forward solve from the trajectory of the last accepted iterate.
+            Off by default: with it, J at a trial point depends on the iterate it was reached
+            from (by the Newton tolerance, and by a branch where a step has several minima).
         curvature_tol: A pair (s, y) enters the L-BFGS memory only if
             ``s.y > curvature_tol * max(|s| |y|, |g.s|)``.
     """
