@@ -3,6 +3,7 @@
 import numpy as np
 from mpi4py import MPI
 from smoothness_scenes import ridge
+from test_branch_reference import _fail_once
 
 COMM = MPI.COMM_WORLD
 OFFSET = 0.004  # the block tips to the side of its offset on any number of ranks
@@ -24,30 +25,19 @@ def test_ridge_with_reference_equals_serial():
     assert COMM.allreduce(sum(pairs), op=MPI.SUM) > 0
 
 
-def _forced_fallback(comm, q, step: int = 7):
+def _forced_fallback(comm, q, monkeypatch, step: int = 7):
     """J at q when the solve of ``step`` from the reference's state is made to fail."""
-    from diffsolids.errors import NewtonConvergenceError
-
     scene = ridge(comm, steps=9, offset=OFFSET)
     scene.rf(scene.q0)  # the reference run
-    solver = scene.rf.simulation.solver
-    real, forced = solver.solve, []
-
-    def solve(i, retries=True):
-        if i == step and not forced:
-            forced.append(retries)
-            raise NewtonConvergenceError(i, 1000, 1.0, 1e-9, "forced by the test")
-        return real(i, retries)
-
-    solver.solve = solve
+    forced = _fail_once(scene.rf.simulation, monkeypatch, step)
     J = scene.rf(q)
-    assert forced == [False]
+    assert forced == [(step, False)]
     return J, [r.iterations for r in scene.rf.trajectory.records]
 
 
-def test_fallback_from_the_reference_equals_serial():
+def test_fallback_from_the_reference_equals_serial(monkeypatch):
     q = np.log([6e4, 0.2]) + np.array([0.003, -0.002])  # near the ridge scene's q0
-    J, its = _forced_fallback(COMM, q)
-    Js, its_serial = _forced_fallback(MPI.COMM_SELF, q)
+    J, its = _forced_fallback(COMM, q, monkeypatch)
+    Js, its_serial = _forced_fallback(MPI.COMM_SELF, q, monkeypatch)
     assert abs(J - Js) <= 1e-10 * abs(Js), (J, Js)
     assert its == its_serial and its[6] > 1000, (its, its_serial)
