@@ -19,8 +19,11 @@ from test_contact_kernels import _Checker, _scene
 import diffsolids.contact.derivatives.barrier_shape as contact_shape
 import diffsolids.contact.derivatives.step_adjoint as step_adjoint
 from diffsolids.contact.derivatives.area_weights import area_gradient_adjoint
-from diffsolids.contact.derivatives.friction_weights import _gather
 from diffsolids.contact.derivatives.step_adjoint import ContactAdjoint
+from diffsolids.contact.energy.lagged_arrays import (
+    barrier_derivatives,
+    friction_collision_arrays,
+)
 
 TOL = 1e-12
 
@@ -132,7 +135,7 @@ def test_vectorised_contact_adjoint_equals_the_loops(
     # the friction collisions read from the normal set they are lagged from: ids as ipctk's
     # tangential collisions hold them
     x, C = lagging.lagged_state(shape_derivatives=True)
-    gathered = _gather(C, contact.surface.mesh, x)
+    gathered = friction_collision_arrays(C, contact.surface.mesh, x)
     ids, kind = gathered.ids, gathered.kind
     E, F = contact.surface.mesh.edges, contact.surface.mesh.faces
     groups = (T.vv_collisions, T.ev_collisions, T.ee_collisions, T.fv_collisions)
@@ -195,7 +198,7 @@ def test_edge_edge_distance_types_and_barrier():
         assert _rel(grad.reshape(-1, 12), np.array(ref_g)) <= TOL
     barrier = ipctk.ClampedLogBarrier()
     s = np.linspace(1e-6, 2.0, 57)
-    b, db = contact_shape._barrier(barrier, s, 1.0)
+    b, db = barrier_derivatives(barrier, s, 1.0)
     assert _rel(b, np.array([barrier(v, 1.0) for v in s])) <= TOL
     assert _rel(db, np.array([barrier.first_derivative(v, 1.0) for v in s])) <= TOL
 

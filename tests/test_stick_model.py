@@ -1,6 +1,8 @@
 """Newton steps that hold sliding friction contacts at stick (contact.energy.stick_model).
 
-The stick model's maps reproduce ipctk's friction gradient, its Hessian change is the
+The lagged friction arrays equal ipctk's tangential collisions read one by one (2D and 3D, every
+collision type, area-weighted or not, per-pair coefficients), the stick model's maps reproduce
+ipctk's friction gradient, its Hessian change is the
 derivative of its gradient change (central differences), and on a disk that lands sliding and
 then rolls the revised steps reach the same states in fewer Newton iterations, with an exact
 gradient.
@@ -8,11 +10,67 @@ gradient.
 
 import numpy as np
 import pytest
+from mpi4py import MPI
 from smoothness_scenes import roll
+from test_contact_kernels import _scene
 
 import diffsolids as ds
+from diffsolids.contact.energy.lagged_arrays import friction_arrays
 from diffsolids.contact.energy.stick_model import StickModel
 from diffsolids.verification import line_scan
+
+
+def _stick_model(contact) -> StickModel:
+    """The stick model of the contact's current step, from its lagged friction arrays."""
+    lagging = contact.lagging
+    x, C = lagging.lagged_state()
+    potential = contact.potential
+    arrays = friction_arrays(
+        C,
+        contact.surface.mesh,
+        x,
+        potential.barrier,
+        potential.stiffness,
+        lagging.mu_table(lagging.mu),
+        contact.surface.body_index,
+    )
+    return StickModel(arrays, contact.surface.num_vertices, contact.eps_v)
+
+
+def _reference_maps(T, mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """dofs, P^T Gamma and w mu N of every collision, read from ipctk one by one."""
+    dim, n = mesh.dim, len(T)
+    dofs = np.full((n, 4 * dim), -1, dtype=np.int64)
+    maps = np.zeros((n, dim - 1, 4 * dim))
+    coefficients = np.zeros(n)
+    for k, c in enumerate(T):
+        ids = np.asarray(c.vertex_ids(mesh.edges, mesh.faces))
+        nd = int(np.count_nonzero(ids >= 0)) * dim
+        dofs[k, :nd] = (ids[ids >= 0, None] * dim + np.arange(dim)).ravel()
+        G = np.asarray(c.relative_velocity_jacobian(c.closest_point))[:, :nd]
+        maps[k, :, :nd] = np.asarray(c.tangent_basis).T @ G
+        coefficients[k] = c.weight * c.mu_k * c.normal_force_magnitude
+    return dofs, maps, coefficients
+
+
+@pytest.mark.parametrize(
+    ("dim", "formulation"), [(2, "ipc"), (3, "ipc"), (2, "convergent"), (3, "convergent")]
+)
+def test_friction_arrays_equal_ipctk_collisions(dim, formulation):
+    _, contact, _, u, _ = _scene(dim, 1, 1, 0.5, comm=MPI.COMM_SELF, formulation=formulation)
+    contact.set_friction(1, 2, 0.3)
+    contact.set_friction(1, 1, 0.7)
+    ev = contact._evaluate(u)
+    T = ev.extras["friction"]
+    assert T is not None and len(T) > 0
+    kinds = [len(g) > 0 for g in (T.vv_collisions, T.ev_collisions, T.ee_collisions)]
+    assert sum(kinds) + (len(T.fv_collisions) > 0) >= 2  # more than one collision type
+    dofs, maps, coefficients = _reference_maps(T, contact.surface.mesh)
+    model = _stick_model(contact)
+    assert np.array_equal(model.dofs, dofs)
+    assert np.abs(model.maps - maps).max() <= 1e-12 * np.abs(maps).max()
+    assert np.abs(coefficients).max() > 0
+    assert np.abs(model.coefficients - coefficients).max() <= 1e-12 * coefficients.max()
 
 
 @pytest.fixture(scope="module")
@@ -23,7 +81,7 @@ def rolled():
     contact = scene.contact
     T = contact.lagging.tangential
     assert T is not None and len(T) > 0
-    return contact, StickModel(T, contact.surface.mesh, contact.eps_v)
+    return contact, _stick_model(contact)
 
 
 def _velocities(contact, scale, seed):

@@ -43,6 +43,8 @@ from diffsolids.contact.detection.collision_arrays import (
     collision_arrays,
     cross_squared_norms,
 )
+from diffsolids.contact.energy.lagged_arrays import barrier_derivatives
+from diffsolids.contact.geometry.tangent_frames import squared_distances
 
 __all__ = ["barrier_shape_adjoint", "barrier_shape_derivative"]
 
@@ -158,19 +160,6 @@ def _edge_edge_distance(xp: np.ndarray, dtype: np.ndarray) -> tuple[np.ndarray, 
     return d, grad
 
 
-def _barrier(kappa_b: ipctk.Barrier, d: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
-    """b(d, t) and b'(d, t) of ipctk's barrier function at squared distances d (array)."""
-    if type(kappa_b) is ipctk.ClampedLogBarrier:  # barrier.cpp, vectorised
-        inside = (d > 0) & (d < t)
-        dd = np.where(inside, d, t)
-        log = np.log(dd / t)
-        b = np.where(inside, -((dd - t) ** 2) * log, 0.0)
-        db = np.where(inside, (t - dd) * (2.0 * log - t / dd + 1.0), 0.0)
-        return b, db
-    values = [(kappa_b(float(s), t), kappa_b.first_derivative(float(s), t)) for s in d]
-    return tuple(np.array(v, dtype=float).reshape(len(d)) for v in zip(*values, strict=True))
-
-
 @dataclass
 class _Terms:
     """Per mollified pair: its dofs and the vectors and scalars of the correction."""
@@ -206,7 +195,7 @@ def _ee_terms(
     w = np.array([ee[k].weight for k in pairs.index], dtype=float)
     xp, xr, eps, s = pairs.positions, pairs.rest, pairs.eps, pairs.s
     d, grad_d = _edge_edge_distance(xp, dtype)
-    b, db = _barrier(barrier.barrier, d, barrier.dhat**2)
+    b, db = barrier_derivatives(barrier.barrier, d, barrier.dhat**2)
     f = w * stiffness * b
     gf = (w * stiffness * db)[:, None] * grad_d.reshape(-1, 12)
     # cross squared norm s = |u x v|^2 (u = ea1 - ea0, v = eb1 - eb0) and its gradient
@@ -276,28 +265,6 @@ def barrier_shape_derivative(
     return sp.csc_matrix(S)
 
 
-def _squared_distances(kind: int, xs: np.ndarray) -> np.ndarray:
-    """Squared distances of vv (point-point), ev (point-line) and fv (point-plane) collisions.
-
-    Rational in the coordinates, so a complex step gives exact directional derivatives.
-    """
-    if kind == 0:
-        r = xs[:, 0] - xs[:, 1]
-        return _dot(r, r)
-    if kind == 1:
-        p, e0, e1 = xs[:, 0], xs[:, 1], xs[:, 2]
-        e = e1 - e0
-        if xs.shape[2] == 2:
-            num = e[:, 1] * p[:, 0] - e[:, 0] * p[:, 1] + e1[:, 0] * e0[:, 1] - e1[:, 1] * e0[:, 0]
-            return num * num / _dot(e, e)
-        c = np.cross(e0 - p, e1 - p)
-        return _dot(c, c) / _dot(e, e)
-    p, t0, t1, t2 = xs[:, 0], xs[:, 1], xs[:, 2], xs[:, 3]
-    n = np.cross(t1 - t0, t2 - t0)
-    plane = _dot(p - t0, n)
-    return plane * plane / _dot(n, n)
-
-
 def _directional_barrier(
     c: CollisionArrays,
     rest: np.ndarray,
@@ -321,15 +288,15 @@ def _directional_barrier(
         sel = np.flatnonzero(c.kind == kind)
         if len(sel):
             xs, ls = x[c.ids[sel, :nv]], lam[c.ids[sel, :nv]]
-            dd2 = _squared_distances(kind, xs + 1j * h * ls).imag / h
-            _, db = _barrier(barrier.barrier, _squared_distances(kind, xs), t)
+            dd2 = squared_distances(kind, xs + 1j * h * ls).imag / h
+            _, db = barrier_derivatives(barrier.barrier, squared_distances(kind, xs), t)
             out[sel] = stiffness * db * dd2
     sel = np.flatnonzero(c.kind == 2)
     if len(sel):
         vid = c.ids[sel]
         xp, lp, xr = x[vid], lam[vid], rest[vid]
         d2, grad = _edge_edge_distance(xp, c.ee_dtype)
-        b, db = _barrier(barrier.barrier, d2, t)
+        b, db = barrier_derivatives(barrier.barrier, d2, t)
         u, v = xp[:, 1] - xp[:, 0], xp[:, 3] - xp[:, 2]
         n = np.cross(u, v)
         s = _dot(n, n)

@@ -32,100 +32,14 @@ import numpy as np
 import scipy.sparse
 
 from diffsolids.contact.derivatives.area_weights import weight_gradient_adjoint
-from diffsolids.contact.derivatives.barrier_shape import _barrier, _squared_distances
-from diffsolids.contact.detection.collision_arrays import (
-    CollisionArrays,
-    collision_arrays,
-    cross_squared_norms,
+from diffsolids.contact.energy.lagged_arrays import (
+    collision_sides,
+    friction_collision_arrays,
+    normal_force_magnitudes,
 )
+from diffsolids.contact.geometry.tangent_frames import collision_frames
 
 __all__ = ["friction_weight_adjoint"]
-
-
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.einsum("...i,...i->...", a, b)
-
-
-def _unit(a: np.ndarray) -> np.ndarray:
-    return a / np.linalg.norm(a, axis=-1, keepdims=True)
-
-
-def _gather(
-    C: ipctk.NormalCollisions,
-    mesh: ipctk.CollisionMesh,
-    lagged_positions: np.ndarray,
-) -> CollisionArrays:
-    """The friction collisions lagged from the normal collisions ``C`` at ``lagged_positions``.
-
-    ipctk's ``TangentialCollisions::build`` copies C's collisions in order, less the edge-edge
-    pairs mollified at the lagged positions (cross norm below eps_x); the same rule is
-    applied here to C's attributes, which read ~10x faster than the tangential collisions'.
-    """
-    arrays = collision_arrays(C, mesh)
-    if not len(arrays.ee_eps):
-        return arrays
-    x = lagged_positions[arrays.ids[arrays.kind == 2]]
-    return arrays.without_ee(cross_squared_norms(x) < arrays.ee_eps)
-
-
-def _point_point(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """d^2, beta-weights of Gamma and the tangent basis of vertex-vertex pairs (2D and 3D)."""
-    p0, p1 = x[:, 0], x[:, 1]
-    r = p1 - p0
-    gamma = np.tile([1.0, -1.0, 0.0, 0.0], (len(x), 1))
-    d2 = _squared_distances(0, x)
-    if x.shape[2] == 2:
-        t = _unit(r)
-        return d2, gamma, np.stack([-t[:, 1], t[:, 0]], axis=1)[:, :, None]
-    cx = np.cross(np.array([1.0, 0.0, 0.0]), r)
-    cy = np.cross(np.array([0.0, 1.0, 0.0]), r)
-    c = np.where((_dot(cx, cx) > _dot(cy, cy))[:, None], cx, cy)
-    basis = np.stack([_unit(c), _unit(np.cross(r, c))], axis=2)
-    return d2, gamma, basis
-
-
-def _point_edge(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    p, e0, e1 = x[:, 0], x[:, 1], x[:, 2]
-    e = e1 - e0
-    ee = _dot(e, e)
-    alpha = _dot(p - e0, e) / ee
-    gamma = np.column_stack([np.ones(len(x)), alpha - 1.0, -alpha, np.zeros(len(x))])
-    d2 = _squared_distances(1, x)
-    if x.shape[2] == 2:
-        return d2, gamma, _unit(e)[:, :, None]
-    basis = np.stack([_unit(e), _unit(np.cross(e, p - e0))], axis=2)
-    return d2, gamma, basis
-
-
-def _edge_edge(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    ea0, ea1, eb0, eb1 = x[:, 0], x[:, 1], x[:, 2], x[:, 3]
-    ea, eb, w = ea1 - ea0, eb1 - eb0, ea0 - eb0
-    a00, a01, a11 = _dot(ea, ea), -_dot(eb, ea), _dot(eb, eb)
-    r0, r1 = -_dot(w, ea), _dot(w, eb)
-    det = a00 * a11 - a01 * a01
-    ba, bb = (a11 * r0 - a01 * r1) / det, (a00 * r1 - a01 * r0) / det
-    gamma = np.column_stack([1.0 - ba, ba, bb - 1.0, -bb])
-    n = np.cross(ea, eb)
-    line = _dot(eb0 - ea0, n)
-    basis = np.stack([_unit(ea), _unit(np.cross(n, ea))], axis=2)
-    return line * line / _dot(n, n), gamma, basis
-
-
-def _face_vertex(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    p, t0, t1, t2 = x[:, 0], x[:, 1], x[:, 2], x[:, 3]
-    e0, e1, q = t1 - t0, t2 - t0, p - t0
-    a00, a01, a11 = _dot(e0, e0), _dot(e0, e1), _dot(e1, e1)
-    r0, r1 = _dot(e0, q), _dot(e1, q)
-    det = a00 * a11 - a01 * a01
-    b0, b1 = (a11 * r0 - a01 * r1) / det, (a00 * r1 - a01 * r0) / det
-    gamma = np.column_stack([np.ones(len(x)), b0 + b1 - 1.0, -b0, -b1])
-    n = np.cross(e0, e1)
-    basis = np.stack([_unit(e0), _unit(np.cross(n, e0))], axis=2)
-    return _squared_distances(3, x), gamma, basis
-
-
-_KINDS = (_point_point, _point_edge, _edge_edge, _face_vertex)
-_NUM_VERTICES = (2, 3, 4, 4)
 
 
 def _collision_terms(
@@ -140,31 +54,16 @@ def _collision_terms(
 ) -> np.ndarray:
     """Per collision N_c f1(|tau_c|)/|tau_c| tau_c . (P_c^T Gamma_c lam) (module docstring)."""
     dim = lagged_positions.shape[1]
-    lam = lam.reshape(-1, dim)
-    out = np.zeros(len(ids))
-    for k, (geometry, nv) in enumerate(zip(_KINDS, _NUM_VERTICES, strict=True)):
-        sel = np.flatnonzero(kind == k)
-        if not len(sel):
-            continue
-        vid = ids[sel, :nv]
-        d2, gamma, basis = geometry(lagged_positions[vid])
-        gamma = gamma[:, :nv]
-        rel_v = np.einsum("kj,kjd->kd", gamma, velocities[vid])
-        rel_l = np.einsum("kj,kjd->kd", gamma, lam[vid])
-        tau = np.einsum("kdt,kd->kt", basis, rel_v)
-        q = np.einsum("kdt,kd->kt", basis, rel_l)
-        _, db = _barrier(barrier.barrier, d2, barrier.dhat**2)
-        normal = -stiffness * db * 2.0 * np.sqrt(d2)  # barrier_force_magnitude.cpp, dmin = 0
-        y = np.linalg.norm(tau, axis=1)
-        f1_over_y = np.where(y >= eps_v, 1.0 / np.maximum(y, eps_v), (2.0 - y / eps_v) / eps_v)
-        out[sel] = normal * f1_over_y * _dot(tau, q)
-    return out
-
-
-def _sides(ids: np.ndarray, body_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Body index of the two sides of each collision (first and last vertex)."""
-    last = np.where(ids[:, 3] >= 0, ids[:, 3], np.where(ids[:, 2] >= 0, ids[:, 2], ids[:, 1]))
-    return body_index[ids[:, 0]], body_index[last]
+    d2, gamma, basis = collision_frames(ids, kind, lagged_positions)
+    v, lam = np.append(velocities, np.zeros((1, dim)), axis=0), lam.reshape(-1, dim)
+    rel_v = np.einsum("kj,kjd->kd", gamma, v[ids])
+    rel_l = np.einsum("kj,kjd->kd", gamma, np.append(lam, np.zeros((1, dim)), axis=0)[ids])
+    tau = np.einsum("kdt,kd->kt", basis, rel_v)
+    q = np.einsum("kdt,kd->kt", basis, rel_l)
+    normal = normal_force_magnitudes(d2, barrier, stiffness)
+    y = np.linalg.norm(tau, axis=1)
+    f1_over_y = np.where(y >= eps_v, 1.0 / np.maximum(y, eps_v), (2.0 - y / eps_v) / eps_v)
+    return normal * f1_over_y * np.einsum("kt,kt->k", tau, q)
 
 
 def friction_weight_adjoint(
@@ -203,11 +102,11 @@ def friction_weight_adjoint(
     """
     if len(C) == 0:
         return np.zeros(lagged_positions.size)
-    gathered = _gather(C, mesh, lagged_positions)
+    gathered = friction_collision_arrays(C, mesh, lagged_positions)
     ids, kind = gathered.ids, gathered.kind
     terms = _collision_terms(
         ids, kind, lagged_positions, velocities, lam, barrier, stiffness, eps_v
     )
-    a, b = _sides(ids, body_index)
+    a, b = collision_sides(ids, body_index)
     s = -mu_table[a, b] * terms
     return weight_gradient_adjoint(mesh, gathered, s, merged_rows)

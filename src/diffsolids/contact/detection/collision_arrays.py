@@ -13,7 +13,13 @@ import numpy as np
 
 from diffsolids.solvers.sparsity import sorted_unique
 
-__all__ = ["CollisionArrays", "collision_arrays", "cross_squared_norms", "stencil_blocks"]
+__all__ = [
+    "CollisionArrays",
+    "collision_arrays",
+    "cross_squared_norms",
+    "read_weights",
+    "stencil_blocks",
+]
 
 
 @dataclass
@@ -26,6 +32,7 @@ class CollisionArrays:
         ee_edges: (number of ee, 2) edge ids of the edge-edge collisions.
         ee_dtype: (number of ee,) their ipctk ``EdgeEdgeDistanceType`` values.
         ee_eps: (number of ee,) their mollifier thresholds eps_x.
+        weight: (n,) the collisions' weights, when read (:func:`read_weights`).
     """
 
     ids: np.ndarray
@@ -33,14 +40,21 @@ class CollisionArrays:
     ee_edges: np.ndarray
     ee_dtype: np.ndarray
     ee_eps: np.ndarray
+    weight: np.ndarray | None = None
 
     def without_ee(self, dropped: np.ndarray) -> "CollisionArrays":
         """These collisions less the edge-edge ones flagged in ``dropped`` (one per ee)."""
         keep = np.ones(len(self.kind), dtype=bool)
         keep[self.kind == 2] = ~dropped
         k = ~dropped
+        weight = None if self.weight is None else self.weight[keep]
         return CollisionArrays(
-            self.ids[keep], self.kind[keep], self.ee_edges[k], self.ee_dtype[k], self.ee_eps[k]
+            self.ids[keep],
+            self.kind[keep],
+            self.ee_edges[k],
+            self.ee_dtype[k],
+            self.ee_eps[k],
+            weight,
         )
 
 
@@ -69,6 +83,13 @@ def collision_arrays(
     ).astype(np.int64)
     kind = np.repeat(np.arange(4), [len(vv), len(ev), len(ee), len(fv)])
     return CollisionArrays(ids, kind, ee_ids[:, :2], ee_ids[:, 2], ee[:, 3])
+
+
+def read_weights(collisions: ipctk.NormalCollisions) -> np.ndarray:
+    """The weights of the collisions of a set, in the order of :func:`collision_arrays`."""
+    lists = (collisions.vv_collisions, collisions.ev_collisions)
+    lists += (collisions.ee_collisions, collisions.fv_collisions)
+    return np.concatenate([_rows(items, "weight")[:, 0] for items in lists])
 
 
 def cross_squared_norms(edge_positions: np.ndarray) -> np.ndarray:

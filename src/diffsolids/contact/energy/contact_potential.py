@@ -18,6 +18,7 @@ from diffsolids.contact.energy.evaluation import (
     contact_gradient,
     contact_hessian,
 )
+from diffsolids.contact.energy.lagged_arrays import friction_arrays
 from diffsolids.contact.energy.lagging import LaggedFriction
 from diffsolids.contact.energy.stick_model import StickModel
 from diffsolids.contact.timing import timed
@@ -72,6 +73,7 @@ class ContactPotential:
         self.stiffness: float | None = None
         self.barrier: ipctk.BarrierPotential | None = None
         self._stick: StickModel | None = None
+        self._stick_of: ipctk.TangentialCollisions | None = None  # the collisions it models
         self.held: np.ndarray | None = None  # collisions held at stick for one Newton step
         if stiffness is not None:
             self.set_stiffness(stiffness)
@@ -160,9 +162,21 @@ class ContactPotential:
         T = ev.extras["friction"]
         if T is None or not len(T):
             return None
-        if self._stick is None or self._stick.tangential is not T:
+        if self._stick is None or self._stick_of is not T:
             with timed(self.timings, "stick_model"):
-                self._stick = StickModel(T, self.surface.mesh, self.friction_potential.eps_v)
+                x, C = self.lagging.lagged_state()
+                lagged = friction_arrays(
+                    C,
+                    self.surface.mesh,
+                    x,
+                    self.barrier,
+                    self.stiffness,
+                    self.lagging.mu_table(self.lagging.mu),
+                    self.surface.body_index,
+                )
+                eps_v = self.friction_potential.eps_v
+                self._stick = StickModel(lagged, self.surface.num_vertices, eps_v)
+                self._stick_of = T
         return self._stick
 
     def hold_reversed(self, ev: Evaluation, dU: np.ndarray) -> int:

@@ -19,9 +19,10 @@ stationary point of the same potential (a semismooth Newton step on the active s
 contacts, after the active-set treatment of friction in nonsmooth contact mechanics).
 """
 
-import ipctk
 import numpy as np
 import scipy.sparse as sp
+
+from diffsolids.contact.energy.lagged_arrays import FrictionArrays
 
 __all__ = ["StickModel"]
 
@@ -30,31 +31,23 @@ class StickModel:
     """The lagged linear maps of a step's friction collisions (this rank's share).
 
     Args:
-        tangential: The step's TangentialCollisions.
-        mesh: The collision mesh.
+        friction: The step's friction collisions as arrays
+            (:func:`~diffsolids.contact.energy.lagged_arrays.friction_arrays`).
+        num_vertices: Vertices of the collision mesh.
         eps_v: The friction's smoothing velocity.
     """
 
-    def __init__(
-        self, tangential: ipctk.TangentialCollisions, mesh: ipctk.CollisionMesh, eps_v: float
-    ) -> None:
-        self.tangential = tangential
+    def __init__(self, friction: FrictionArrays, num_vertices: int, eps_v: float) -> None:
         self.eps_v = eps_v
-        self.size = mesh.ndof
-        dim = mesh.dim
-        n = len(tangential)
+        n, dim = friction.basis.shape[:2]
+        self.size = num_vertices * dim
         # per collision: its dofs (-1 padded) and P^T Gamma over them; w mu N
-        self.dofs = np.full((n, 4 * dim), -1, dtype=np.int64)
-        self.maps = np.zeros((n, dim - 1, 4 * dim))
-        self.coefficients = np.zeros(n)
-        E, F = mesh.edges, mesh.faces
-        for k, c in enumerate(tangential):  # once per step; ipctk hands collisions over one by one
-            ids = np.asarray(c.vertex_ids(E, F))
-            nd = int(np.count_nonzero(ids >= 0)) * dim
-            self.dofs[k, :nd] = (ids[ids >= 0, None] * dim + np.arange(dim)).ravel()
-            G = np.asarray(c.relative_velocity_jacobian(c.closest_point))[:, :nd]
-            self.maps[k, :, :nd] = np.asarray(c.tangent_basis).T @ G
-            self.coefficients[k] = c.weight * c.mu_k * c.normal_force_magnitude
+        ids = friction.ids
+        dofs = ids[:, :, None] * dim + np.arange(dim)
+        self.dofs = np.where(ids[:, :, None] >= 0, dofs, -1).reshape(n, 4 * dim)
+        maps = np.einsum("kai,kj->kija", friction.basis, friction.gamma)
+        self.maps = maps.reshape(n, dim - 1, 4 * dim)
+        self.coefficients = friction.coefficients
 
     def tangential_velocities(self, velocities: np.ndarray) -> np.ndarray:
         """(n, dim - 1) tau of every collision at vertex velocities (num_vertices, dim)."""
