@@ -43,6 +43,12 @@ __all__ = ["INITIAL_GUESSES", "NewtonResult", "NewtonSolver", "SolverOptions"]
 #: The choices of :attr:`SolverOptions.initial_guess`.
 INITIAL_GUESSES = ("predictor", "previous", "zero")
 
+# Exact Newton steps in a row that are no descent direction (an indefinite Hessian below
+# exact_hessian_below f_char, where the solve should be converging) after which the first
+# attempt gives up: the iterate is near a saddle of the potential, which the projected steps
+# that replace the exact ones leave at a linear rate (the fig21 sliding bunny's step 5 at
+# mu = 0.1: 70 iterations); the step is solved again with exact steps from the start.
+SADDLE_STREAK = 8
 _DEFAULT_PETSC = {"snes_type": "newtonls", "snes_linesearch_type": "bt"}
 
 
@@ -216,6 +222,7 @@ class NewtonSolver:
         self.revised_steps = 0  # Newton steps solved again with a revised model
         self._step_function = fem.Function(V)  # a Newton step as a ghosted V function
         self.retried_steps = 0  # steps solved again with the exact Hessian from the start
+        self.saddle_stops = 0  # of which the first attempt stopped near a saddle
         self._exact_from_start = False
         self._keep_f_char = False
         self._first_attempt = 0
@@ -398,6 +405,8 @@ class NewtonSolver:
             return
         F = self.snes.getFunction()[0]
         slope = y.dot(F)  # the trial point is x - lambda y: descent needs y . F > 0
+        if self._exact_factors and self._hybrid() and not self._continuation:
+            self._indefinite_streak = 0 if slope > 0 else self._indefinite_streak + 1
         if not slope > 0 and self._projectable():
             # paper sec. 5: PSD-project the contact Hessian only when the exact one fails
             self._assign(x)
@@ -560,6 +569,11 @@ class NewtonSolver:
             return R.CONVERGED_FNORM_ABS
         if it >= self.options.max_iterations:
             return R.DIVERGED_MAX_IT
+        if self._indefinite_streak >= SADDLE_STREAK:
+            # near a saddle of the potential: the projected steps that replace the exact ones
+            # leave it at a linear rate; the step goes again with exact steps from the start
+            self._left_saddle = True
+            return R.DIVERGED_LINE_SEARCH
         if self._stalled_soft(it):
             self._stalled = True
             return R.DIVERGED_LINE_SEARCH
@@ -789,6 +803,8 @@ class NewtonSolver:
         self._held_at_floor = self._floor_asked = False
         self._stall_cause = None
         self._stalled = False
+        self._indefinite_streak = 0
+        self._left_saddle = False
         self._assign(self.x)
         self._restarted_after = 0
         self._restart = False
@@ -946,15 +962,17 @@ class NewtonSolver:
                 # only where its step is not a descent direction, as exact_hessian_below=inf).
                 first = self._first_attempt = its
                 logger.info(
-                    "step %d: Newton with projected steps above %g f_char failed after %d "
+                    "step %d: Newton with projected steps above %g f_char %s after %d "
                     "iterations; again with the exact contact Hessian from the start",
                     step,
                     self.options.exact_hessian_below,
+                    "stopped near a saddle" if self._left_saddle else "failed",
                     first,
                 )
                 self._exact_from_start = self._keep_f_char = True
                 x0.copy(self.x)
                 self.retried_steps += 1
+                self.saddle_stops += self._left_saddle
                 its, reason, converged = self._attempt()
                 its += first
             if not converged and retries:
