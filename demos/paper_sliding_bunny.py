@@ -50,8 +50,9 @@ impact step): the optimiser drifted to mu = 0.0950 (J 8.1e-5) in 5 iterations an
 
 Sizes: ``--tiny`` (3 steps, 1 iteration: a smoke test), default (10 steps of the paper's 40: the
 bunny lands and slides for 0.5 s) and ``--full`` (the paper's 40 steps, with the default
-solver options: measured once, the target run at mu = 0.1 takes at most 92 Newton iterations
-per step, mean 46.1, 377 s; the run at mu = 0.5 at most 50, mean 26.1, 299 s).
+solver options: measured once, the target run at mu = 0.1 takes at most 89 Newton iterations
+per step, mean 44.3, 164 s CPU (2026-12-07; step 5 took 151 before the first Newton attempt
+stopped near a saddle); the run at mu = 0.5 at most 50, mean 26.1, 299 s).
 Output in ``output/paper_sliding_bunny/``: ``history.jsonl``, ``result.json``,
 ``paper_sliding_bunny.png``.
 """
