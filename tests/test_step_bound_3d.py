@@ -154,3 +154,46 @@ def test_a_dip_inside_the_step_does_not_cut_it():
         bound, near = _bound("fv", start, end)
         d = [_distance("fv", start + t * (end - start)) for t in np.linspace(0.0, bound, 101)]
         assert near and 0.0 < bound < 0.5 and min(d) > 0.0
+
+
+def _grid(n: int, z: float, shift: float, offset: int) -> tuple[np.ndarray, np.ndarray]:
+    """An n x n vertex grid of the unit square at height z, triangulated, its ids from offset."""
+    s = np.linspace(0.0, 1.0, n)
+    X, Y = np.meshgrid(s + shift, s + shift, indexing="ij")
+    V = np.column_stack([X.ravel(), Y.ravel(), np.full(n * n, z)])
+    k = np.arange(n * n).reshape(n, n)[:-1, :-1].ravel()
+    F = np.concatenate(
+        [np.column_stack([k, k + n, k + 1]), np.column_stack([k + 1, k + n, k + n + 1])]
+    )
+    return V, F + offset
+
+
+def test_near_pairs_screened_by_box_distance_as_without_screening():
+    """The pairs farther apart at x0 than the near radius are left out before the bounds: the
+    bounds and the near pairs of a sheet sliding 1e-11 m above a ground, with a second sheet
+    within dhat but not near, are those computed on every candidate."""
+    import diffsolids.contact.detection.step_bound as step_bound
+
+    n = 12
+    parts = [_grid(n, 0.0, 0.0, 0), _grid(n, 1e-11, 0.013, n * n), _grid(n, 5e-4, 0.031, 2 * n * n)]
+    V = np.concatenate([p[0] for p in parts])
+    F = np.concatenate([p[1] for p in parts])
+    E = ipctk.edges(F)
+    mesh = ipctk.CollisionMesh(V, E, F)
+    x0 = np.asfortranarray(V)
+    x1 = x0.copy()
+    x1[n * n :, 0] += 2e-3  # both sheets slide; the near one slightly down
+    x1[n * n : 2 * n * n, 2] -= 1e-12
+    x1 = np.asfortranarray(x1)
+    candidates = ipctk.Candidates()
+    candidates.build(mesh, x0, x1, 1e-3, ipctk.HashGrid())
+    radius = step_bound._near_radius(x0, x1, ETA)
+    for name, cands, bounds in step_bound._near_pair_kinds(candidates, mesh):
+        assert len(cands) > 0, name
+        screened = bounds(x0, x1, ETA, radius)
+        full = bounds(x0, x1, ETA, np.inf)
+        assert screened[1].any() and not screened[1].all(), name  # near and far pairs
+        assert np.array_equal(screened[1], full[1]), name
+        near = full[1]
+        assert np.array_equal(screened[0][near], full[0][near]), name
+        assert np.array_equal(screened[2] & near, full[2] & near), name

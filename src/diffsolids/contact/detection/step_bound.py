@@ -15,6 +15,7 @@ the pairs.
 """
 
 from collections.abc import Callable
+from operator import attrgetter
 
 import ipctk
 import numpy as np
@@ -169,50 +170,127 @@ class StepBound:
             return np.inf, candidates
         if not self._any_near(candidates, x0, x1, cached, eta):
             return np.inf, candidates
+        radius = _near_radius(x0, x1, eta)
         bound, held = np.inf, np.inf
         far = ipctk.Candidates()
+        bounded = [name for name, _, _ in kinds]
         for name in ("ev_candidates", "vv_candidates", "fv_candidates", "ee_candidates"):
-            setattr(far, name, list(getattr(candidates, name)))
+            if name not in bounded:
+                setattr(far, name, getattr(candidates, name))
         for name, cands, pair_bounds in kinds:
             if not len(cands):
                 continue
-            b, near, floored, floor = pair_bounds(x0, x1, eta)
+            b, near, floored, floor = pair_bounds(x0, x1, eta, radius)
             if near.any():
                 bound = min(bound, float(b[near].min()))
             h = floored & near & (b < 1.0)
             if h.any():
                 held = min(held, float(floor[h].min()))
-            setattr(far, name, [cands[int(k)] for k in np.flatnonzero(~near)])
+            setattr(far, name, _without(cands, np.flatnonzero(near)))
         if np.isfinite(held):  # for failure_report: the floor, not the barrier, holds pairs
             self.floor_held = held
         return bound, far
 
 
+def _without(items: list, dropped: np.ndarray) -> list:
+    """``items`` less the entries at the sorted indices ``dropped``."""
+    if len(dropped) > 64:
+        keep = np.ones(len(items), dtype=bool)
+        keep[dropped] = False
+        return [items[int(k)] for k in np.flatnonzero(keep)]
+    out = list(items)
+    for k in dropped[::-1]:
+        del out[int(k)]
+    return out
+
+
+def _ids(items: list, *names: str) -> np.ndarray:
+    """(len(items), len(names)) integer attributes of ipctk candidates."""
+    n = len(items)
+    return np.column_stack([np.fromiter(map(attrgetter(a), items), np.int64, n) for a in names])
+
+
+def _near_radius(x0: np.ndarray, x1: np.ndarray, eta: float) -> float:
+    """A distance at x0 beyond which no pair of the path x0 -> x1 is near.
+
+    The near tests of :func:`_with_displacement_bound` with the largest coordinate of the
+    path and 4 x its largest vertex displacement, which bounds every pair's reach.
+    """
+    eps = np.finfo(float).eps
+    coord = max(float(np.abs(x0).max()), float(np.abs(x1).max()))
+    reach = 4.0 * float(np.sqrt(np.einsum("ij,ij->i", x1 - x0, x1 - x0).max()))
+    radius = max(
+        np.sqrt(_DRIFT_ULPS * eps * coord * reach),
+        _NEAR_RATIO * reach,
+        _GAP_FLOOR_ULPS * eps * coord / eta,
+    )
+    return 1.01 * radius
+
+
+def _boxes_within(x: np.ndarray, first: list, second: list, radius: float) -> np.ndarray:
+    """Pairs whose bounding boxes at x are within ``radius`` of each other.
+
+    A pair's primitives have the vertex id arrays ``first`` and ``second``; the distance of
+    their boxes bounds the primitives' distance from below.
+    """
+    a, b = np.stack([x[k] for k in first], axis=1), np.stack([x[k] for k in second], axis=1)
+    gap = np.maximum(np.maximum(a.min(axis=1) - b.max(axis=1), b.min(axis=1) - a.max(axis=1)), 0)
+    return np.einsum("ij,ij->i", gap, gap) <= radius * radius
+
+
+def _bounds_within(bounds: Callable, corners: list, n: int, mask: np.ndarray) -> tuple:
+    """``bounds(corners)`` on the pairs of ``mask``; the others not near (bound inf)."""
+    out = (np.full(n, np.inf), np.zeros(n, bool), np.zeros(n, bool), np.zeros(n))
+    if mask.any():
+        for full, part in zip(out, bounds([k[mask] for k in corners]), strict=True):
+            full[mask] = part
+    return out
+
+
 def _near_pair_kinds(candidates: ipctk.Candidates, mesh: ipctk.CollisionMesh) -> list[tuple]:
-    """(candidate list name, the candidates, their bounds ``f(x0, x1, eta)``) per pair kind.
+    """(candidate list name, the candidates, their bounds ``f(x0, x1, eta, radius)``) per kind.
 
     2D: vertex-edge pairs (:func:`_edge_vertex_bounds`); 3D: face-vertex and edge-edge pairs
-    (:func:`_plane_bounds`).
+    (:func:`_plane_bounds`). Pairs farther apart at x0 than ``radius`` (:func:`_near_radius`)
+    are not near and are not bounded.
     """
     if mesh.dim == 2:
         ev = candidates.ev_candidates
 
-        def ev_bounds(x0: np.ndarray, x1: np.ndarray, eta: float) -> tuple:
-            pairs = np.array([(c.edge_id, c.vertex_id) for c in ev], dtype=np.int64)
-            return _edge_vertex_bounds(x0, x1, mesh.edges, pairs, eta)
+        def ev_bounds(x0: np.ndarray, x1: np.ndarray, eta: float, radius: float) -> tuple:
+            pairs = _ids(ev, "edge_id", "vertex_id")
+            edge = mesh.edges[pairs[:, 0]]
+            mask = _boxes_within(x0, [pairs[:, 1]], [edge[:, 0], edge[:, 1]], radius)
+
+            def bounds(cols: list) -> tuple:
+                return _edge_vertex_bounds(x0, x1, mesh.edges, np.column_stack(cols), eta)
+
+            return _bounds_within(bounds, [pairs[:, 0], pairs[:, 1]], len(pairs), mask)
 
         return [("ev_candidates", ev, ev_bounds)]
     fv, ee = candidates.fv_candidates, candidates.ee_candidates
 
-    def fv_bounds(x0: np.ndarray, x1: np.ndarray, eta: float) -> tuple:
-        ids = np.array([(c.face_id, c.vertex_id) for c in fv], dtype=np.int64)
+    def fv_bounds(x0: np.ndarray, x1: np.ndarray, eta: float, radius: float) -> tuple:
+        ids = _ids(fv, "face_id", "vertex_id")
         tri = mesh.faces[ids[:, 0]]
-        return _plane_bounds(x0, x1, [ids[:, 1], tri[:, 0], tri[:, 1], tri[:, 2]], "fv", eta)
+        corners = [ids[:, 1], tri[:, 0], tri[:, 1], tri[:, 2]]
+        mask = _boxes_within(x0, corners[:1], corners[1:], radius)
 
-    def ee_bounds(x0: np.ndarray, x1: np.ndarray, eta: float) -> tuple:
-        ids = np.array([(c.edge0_id, c.edge1_id) for c in ee], dtype=np.int64)
+        def bounds(cols: list) -> tuple:
+            return _plane_bounds(x0, x1, cols, "fv", eta)
+
+        return _bounds_within(bounds, corners, len(ids), mask)
+
+    def ee_bounds(x0: np.ndarray, x1: np.ndarray, eta: float, radius: float) -> tuple:
+        ids = _ids(ee, "edge0_id", "edge1_id")
         e0, e1 = mesh.edges[ids[:, 0]], mesh.edges[ids[:, 1]]
-        return _plane_bounds(x0, x1, [e0[:, 0], e0[:, 1], e1[:, 0], e1[:, 1]], "ee", eta)
+        corners = [e0[:, 0], e0[:, 1], e1[:, 0], e1[:, 1]]
+        mask = _boxes_within(x0, corners[:2], corners[2:], radius)
+
+        def bounds(cols: list) -> tuple:
+            return _plane_bounds(x0, x1, cols, "ee", eta)
+
+        return _bounds_within(bounds, corners, len(ids), mask)
 
     return [("fv_candidates", fv, fv_bounds), ("ee_candidates", ee, ee_bounds)]
 
