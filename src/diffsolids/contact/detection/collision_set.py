@@ -19,6 +19,11 @@ __all__ = ["FORMULATIONS", "CollisionBuilder", "new_collision_set"]
 
 #: The barrier formulations of :class:`~diffsolids.contact.ContactTerm` (``formulation``).
 FORMULATIONS = ("convergent", "ipc")
+# a line search point on the CCD's segment reuses the segment's candidates (no broad phase) while
+# they are at most this many times the candidates of the last whole build: the segment's boxes
+# cover the swept path inflated by dhat, ~2.5x a build's candidates in the median but up to
+# ~100x where pairs rest far inside dhat (each candidate costs ~1 us in the narrow phase)
+_SEGMENT_REUSE_RATIO = 8
 
 
 def new_collision_set(
@@ -88,6 +93,7 @@ class CollisionBuilder:
         self.dhat = dhat
         self.area_weighting = area_weighting
         self.segment: tuple | None = None
+        self._whole_candidates = 0  # candidates of the last whole build
         self._shape_builds: list[tuple] = []
 
     def build(self, x: np.ndarray, shape_derivatives: bool = False) -> ipctk.NormalCollisions:
@@ -117,6 +123,7 @@ class CollisionBuilder:
         candidates = ipctk.Candidates()
         x = np.asfortranarray(x)
         candidates.build(self.surface.mesh, x, 0.5 * self.dhat, self.broad_phase)
+        self._whole_candidates = len(candidates)
         self._build(C, candidates, x)
         return C
 
@@ -138,13 +145,16 @@ class CollisionBuilder:
 
         The line search only visits points x0 + t dx, t in [0, 1], of the segment the CCD swept
         (to 2 dx) with boxes inflated by dhat: its candidates contain every pair within dhat
-        there, so only the narrow phase runs. ``token``: the term's current evaluation token
-        (the segment is reused only if it was swept under the same one).
+        there, so only the narrow phase runs, unless they are more than
+        ``_SEGMENT_REUSE_RATIO`` times the last whole build's. ``token``: the term's current
+        evaluation token (the segment is reused only if it was swept under the same one).
         """
         seg = self.segment
         if seg is not None:
             U0, dU, candidates, seg_token = seg
-            if seg_token == token:
+            if seg_token == token and len(candidates) <= _SEGMENT_REUSE_RATIO * max(
+                self._whole_candidates, 1
+            ):
                 diff = U - U0
                 t = float(np.vdot(diff, dU) / np.vdot(dU, dU))
                 tol = 1e-10 * (np.abs(U0).max() + np.abs(dU).max())

@@ -15,12 +15,12 @@ the pairs.
 """
 
 from collections.abc import Callable
-from operator import attrgetter
 
 import ipctk
 import numpy as np
 from mpi4py import MPI
 
+from diffsolids.contact.geometry.candidate_ids import candidate_ids
 from diffsolids.contact.geometry.distances import pair_distances
 from diffsolids.contact.geometry.surface import CollisionSurface
 from diffsolids.contact.partition import CollisionPartition
@@ -204,12 +204,6 @@ def _without(items: list, dropped: np.ndarray) -> list:
     return out
 
 
-def _ids(items: list, *names: str) -> np.ndarray:
-    """(len(items), len(names)) integer attributes of ipctk candidates."""
-    n = len(items)
-    return np.column_stack([np.fromiter(map(attrgetter(a), items), np.int64, n) for a in names])
-
-
 def _near_radius(x0: np.ndarray, x1: np.ndarray, eta: float) -> float:
     """A distance at x0 beyond which no pair of the path x0 -> x1 is near.
 
@@ -258,7 +252,7 @@ def _near_pair_kinds(candidates: ipctk.Candidates, mesh: ipctk.CollisionMesh) ->
         ev = candidates.ev_candidates
 
         def ev_bounds(x0: np.ndarray, x1: np.ndarray, eta: float, radius: float) -> tuple:
-            pairs = _ids(ev, "edge_id", "vertex_id")
+            pairs = candidate_ids(ev, "edge_id", "vertex_id")
             edge = mesh.edges[pairs[:, 0]]
             mask = _boxes_within(x0, [pairs[:, 1]], [edge[:, 0], edge[:, 1]], radius)
 
@@ -271,7 +265,7 @@ def _near_pair_kinds(candidates: ipctk.Candidates, mesh: ipctk.CollisionMesh) ->
     fv, ee = candidates.fv_candidates, candidates.ee_candidates
 
     def fv_bounds(x0: np.ndarray, x1: np.ndarray, eta: float, radius: float) -> tuple:
-        ids = _ids(fv, "face_id", "vertex_id")
+        ids = candidate_ids(fv, "face_id", "vertex_id")
         tri = mesh.faces[ids[:, 0]]
         corners = [ids[:, 1], tri[:, 0], tri[:, 1], tri[:, 2]]
         mask = _boxes_within(x0, corners[:1], corners[1:], radius)
@@ -282,7 +276,7 @@ def _near_pair_kinds(candidates: ipctk.Candidates, mesh: ipctk.CollisionMesh) ->
         return _bounds_within(bounds, corners, len(ids), mask)
 
     def ee_bounds(x0: np.ndarray, x1: np.ndarray, eta: float, radius: float) -> tuple:
-        ids = _ids(ee, "edge0_id", "edge1_id")
+        ids = candidate_ids(ee, "edge0_id", "edge1_id")
         e0, e1 = mesh.edges[ids[:, 0]], mesh.edges[ids[:, 1]]
         corners = [e0[:, 0], e0[:, 1], e1[:, 0], e1[:, 1]]
         mask = _boxes_within(x0, corners[:2], corners[2:], radius)

@@ -27,9 +27,12 @@ region, only the nearest is kept (:meth:`FlatRegions.nearest`): the vertex sees 
 to the region, one polygon of a plane.
 """
 
+from itertools import compress
+
 import ipctk
 import numpy as np
 
+from diffsolids.contact.geometry.candidate_ids import candidate_ids
 from diffsolids.contact.geometry.distances import pair_distances, point_segment_distances
 
 __all__ = ["FlatRegions", "flat_edge_mask", "flat_primitive_regions", "flat_vertex_mask"]
@@ -198,24 +201,19 @@ class FlatRegions:
         A flat vertex's candidates are those against the bodies' faces (3D) or edges (2D):
         the obstacle's side of the quadrature inside its plane.
         """
-        if len(self.edges) and candidates.ee_candidates:
+        if len(self.edges):
             ee = candidates.ee_candidates
-            ids = np.array([(c.edge0_id, c.edge1_id) for c in ee], dtype=np.int64)
+            ids = candidate_ids(ee, "edge0_id", "edge1_id")
             keep = ~np.isin(ids, self.edges).any(axis=1)
             if not keep.all():
-                candidates.ee_candidates = [c for c, k in zip(ee, keep, strict=True) if k]
+                candidates.ee_candidates = list(compress(ee, keep.tolist()))
         if not len(self.vertices):
             return candidates
-        if self.dim == 3 and candidates.fv_candidates:
-            fv = candidates.fv_candidates
-            keep = ~np.isin(np.array([c.vertex_id for c in fv], dtype=np.int64), self.vertices)
-            if not keep.all():
-                candidates.fv_candidates = [c for c, k in zip(fv, keep, strict=True) if k]
-        if self.dim == 2 and candidates.ev_candidates:
-            ev = candidates.ev_candidates
-            keep = ~np.isin(np.array([c.vertex_id for c in ev], dtype=np.int64), self.vertices)
-            if not keep.all():
-                candidates.ev_candidates = [c for c, k in zip(ev, keep, strict=True) if k]
+        name = "fv_candidates" if self.dim == 3 else "ev_candidates"
+        pairs = getattr(candidates, name)
+        keep = ~np.isin(candidate_ids(pairs, "vertex_id")[:, 0], self.vertices)
+        if not keep.all():
+            setattr(candidates, name, list(compress(pairs, keep.tolist())))
         return candidates
 
     def nearest(
@@ -234,14 +232,14 @@ class FlatRegions:
             pairs = candidates.fv_candidates
             if not pairs:
                 return candidates
-            ids = np.array([(c.face_id, c.vertex_id) for c in pairs], dtype=np.int64)
+            ids = candidate_ids(pairs, "face_id", "vertex_id")
             a, b, c = (x[np.asarray(mesh.faces)[ids[:, 0], k]] for k in range(3))
             dist = pair_distances([x[ids[:, 1]], a, b, c], "fv")
         else:
             pairs = candidates.ev_candidates
             if not pairs:
                 return candidates
-            ids = np.array([(c.edge_id, c.vertex_id) for c in pairs], dtype=np.int64)
+            ids = candidate_ids(pairs, "edge_id", "vertex_id")
             a, b = (x[np.asarray(mesh.edges)[ids[:, 0], k]] for k in range(2))
             dist = point_segment_distances(x[ids[:, 1]], a, b)
         region = self.primitive_region[ids[:, 0]]
@@ -262,7 +260,7 @@ class FlatRegions:
         out.ee_candidates = candidates.ee_candidates
         out.vv_candidates = candidates.vv_candidates
         out.pv_candidates = candidates.pv_candidates
-        kept = [c for c, k in zip(pairs, keep, strict=True) if k]
+        kept = list(compress(pairs, keep.tolist()))
         if self.dim == 3:
             out.ev_candidates = candidates.ev_candidates
             out.fv_candidates = kept
