@@ -32,38 +32,25 @@ import numpy as np
 import scipy.sparse
 
 from diffsolids.contact.derivatives.area_weights import weight_gradient_adjoint
-from diffsolids.contact.energy.lagged_arrays import (
-    collision_sides,
-    friction_collision_arrays,
-    normal_force_magnitudes,
-)
-from diffsolids.contact.geometry.tangent_frames import collision_frames
+from diffsolids.contact.energy.lagged_arrays import FrictionArrays, friction_arrays
 
 __all__ = ["friction_weight_adjoint"]
 
 
 def _collision_terms(
-    ids: np.ndarray,
-    kind: np.ndarray,
-    lagged_positions: np.ndarray,
-    velocities: np.ndarray,
-    lam: np.ndarray,
-    barrier: ipctk.BarrierPotential,
-    stiffness: float,
-    eps_v: float,
+    lagged: FrictionArrays, velocities: np.ndarray, lam: np.ndarray, eps_v: float
 ) -> np.ndarray:
-    """Per collision N_c f1(|tau_c|)/|tau_c| tau_c . (P_c^T Gamma_c lam) (module docstring)."""
-    dim = lagged_positions.shape[1]
-    d2, gamma, basis = collision_frames(ids, kind, lagged_positions)
-    v, lam = np.append(velocities, np.zeros((1, dim)), axis=0), lam.reshape(-1, dim)
-    rel_v = np.einsum("kj,kjd->kd", gamma, v[ids])
-    rel_l = np.einsum("kj,kjd->kd", gamma, np.append(lam, np.zeros((1, dim)), axis=0)[ids])
-    tau = np.einsum("kdt,kd->kt", basis, rel_v)
-    q = np.einsum("kdt,kd->kt", basis, rel_l)
-    normal = normal_force_magnitudes(d2, barrier, stiffness)
+    """Per collision mu_c N_c f1(|tau_c|)/|tau_c| tau_c . (P_c^T Gamma_c lam) (docstring)."""
+    dim = velocities.shape[1]
+
+    def slips(w: np.ndarray) -> np.ndarray:  # P_c^T Gamma_c w
+        w = np.append(w.reshape(-1, dim), np.zeros((1, dim)), axis=0)  # padding id -1 reads 0
+        return np.einsum("kdt,kj,kjd->kt", lagged.basis, lagged.gamma, w[lagged.ids])
+
+    tau, q = slips(velocities), slips(lam)
     y = np.linalg.norm(tau, axis=1)
     f1_over_y = np.where(y >= eps_v, 1.0 / np.maximum(y, eps_v), (2.0 - y / eps_v) / eps_v)
-    return normal * f1_over_y * np.einsum("kt,kt->k", tau, q)
+    return lagged.coefficients * f1_over_y * np.einsum("kt,kt->k", tau, q)
 
 
 def friction_weight_adjoint(
@@ -102,11 +89,8 @@ def friction_weight_adjoint(
     """
     if len(C) == 0:
         return np.zeros(lagged_positions.size)
-    gathered = friction_collision_arrays(C, mesh, lagged_positions)
-    ids, kind = gathered.ids, gathered.kind
-    terms = _collision_terms(
-        ids, kind, lagged_positions, velocities, lam, barrier, stiffness, eps_v
+    lagged = friction_arrays(
+        C, mesh, lagged_positions, barrier, stiffness, mu_table, body_index, weighted=False
     )
-    a, b = collision_sides(ids, body_index)
-    s = -mu_table[a, b] * terms
-    return weight_gradient_adjoint(mesh, gathered, s, merged_rows)
+    s = -_collision_terms(lagged, velocities, lam, eps_v)
+    return weight_gradient_adjoint(mesh, lagged.collisions, s, merged_rows)

@@ -81,13 +81,15 @@ class FrictionArrays:
         ids: (n, 4) vertex ids (-1 padded).
         gamma: (n, 4) vertex weights of the relative velocity Gamma_c = sum_j gamma_cj I.
         basis: (n, dim, dim - 1) tangent bases P_c.
-        coefficients: (n,) w_c mu_c N_c.
+        coefficients: (n,) w_c mu_c N_c (mu_c N_c unweighted).
+        collisions: The collisions' ids and types (:func:`friction_collision_arrays`).
     """
 
     ids: np.ndarray
     gamma: np.ndarray
     basis: np.ndarray
     coefficients: np.ndarray
+    collisions: CollisionArrays
 
 
 def friction_arrays(
@@ -98,6 +100,7 @@ def friction_arrays(
     stiffness: float,
     mu_table: np.ndarray,
     body_index: np.ndarray,
+    weighted: bool = True,
 ) -> FrictionArrays:
     """The TangentialCollisions ipctk lags from C, as arrays.
 
@@ -109,12 +112,15 @@ def friction_arrays(
         stiffness: Its stiffness kappa.
         mu_table: (num_bodies, num_bodies) friction coefficient of each pair of bodies.
         body_index: Body index of each collision vertex.
+        weighted: Whether the coefficients include the collisions' weights w_c.
     """
-    arrays = friction_collision_arrays(C, mesh, lagged_positions, weights=True)
+    arrays = friction_collision_arrays(C, mesh, lagged_positions, weights=weighted)
     d2, gamma, basis = collision_frames(arrays.ids, arrays.kind, lagged_positions)
     a, b = collision_sides(arrays.ids, body_index)
-    normal = normal_force_magnitudes(d2, barrier, stiffness)
-    return FrictionArrays(arrays.ids, gamma, basis, arrays.weight * mu_table[a, b] * normal)
+    coefficients = mu_table[a, b] * normal_force_magnitudes(d2, barrier, stiffness)
+    if weighted:
+        coefficients = arrays.weight * coefficients
+    return FrictionArrays(arrays.ids, gamma, basis, coefficients, arrays)
 
 
 def collision_sides(ids: np.ndarray, body_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
