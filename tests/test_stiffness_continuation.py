@@ -96,6 +96,25 @@ def test_continuation_reaches_the_direct_minimiser():
     assert np.abs(g - g_direct).max() <= 1e-9 * np.abs(g_direct).max()
 
 
+def test_loose_stages_and_expanded_steps_save_iterations(monkeypatch):
+    """The stages before the last end at 1e-2 f_char, and uncut steps are doubled while the
+    potential falls: the continued steps reach the direct minimiser in fewer iterations than
+    with every stage converged to rtol and plain Newton steps (measured: 273 -> 189)."""
+    import diffsolids.solvers.newton as newton
+
+    _, _, J_direct, _, _, _ = _run(30, rtol=1e-12)
+    rf, _, J, _, continued, _ = _run(1, rtol=1e-12)
+    its = sum(r.iterations for r in rf.trajectory.records)
+    monkeypatch.setattr(newton, "_STAGE_RTOL", 0.0)
+    monkeypatch.setattr(newton, "_EXPAND_DOUBLINGS", 0)
+    rf_plain, _, J_plain, _, continued_plain, _ = _run(1, rtol=1e-12)
+    its_plain = sum(r.iterations for r in rf_plain.trajectory.records)
+    assert continued == continued_plain >= STEPS // 2
+    assert its < 0.8 * its_plain, (its, its_plain)
+    for value in (J, J_plain):
+        assert abs(value - J_direct) <= 1e-10 * abs(J_direct)
+
+
 def test_gradient_through_continued_steps_against_central_differences():
     rf, q, _, g, continued, _ = _run(continuation_after=1, rtol=1e-12)
     assert continued >= STEPS // 2

@@ -49,6 +49,20 @@ INITIAL_GUESSES = ("predictor", "previous", "zero")
 # that replace the exact ones leave at a linear rate (the fig21 sliding bunny's step 5 at
 # mu = 0.1: 70 iterations); the step is solved again with exact steps from the start.
 SADDLE_STREAK = 8
+# The intermediate stages of a stiffness continuation end once the residual is below
+# _STAGE_RTOL f_char: each is only the way to the next, whose stiffness differs by a factor
+# of ~100 (the fig22 ball at its kappa 1e4: 1e-2 -> 19% fewer iterations than converging
+# them fully, 1e-1 -> 25%, 0.3 fails: the last stage starts with pairs pressed unevenly).
+_STAGE_RTOL = 1e-2
+# In a continuation an uncut Newton step is extended by doublings, at most _EXPAND_DOUBLINGS
+# times, while the potential keeps falling along it (see NewtonSolver._expand).
+_EXPAND_DOUBLINGS = 10
+# A first attempt whose last SOFT_BARRIER_STREAK Newton steps were all cut asks for a
+# stiffness continuation (offered only where the contact forces show a barrier too soft for
+# them): on the fig21 bunny at its kappa 1e4 the 22 more cut steps before continuation_after
+# (30) gained nothing (step 2: 108 -> 90 iterations; the suggested-kappa scenes of bench_paper
+# never reach it).
+SOFT_BARRIER_STREAK = 12
 _DEFAULT_PETSC = {"snes_type": "newtonls", "snes_linesearch_type": "bt"}
 
 
@@ -112,14 +126,18 @@ class SolverOptions:
 
             A warm start the Simulation is given (a Trajectory of an earlier run) comes first
             whatever this option says.
-        continuation_after: A solve whose last ``continuation_after`` Newton steps were all
-            cut by a step bound, in which a step bound held a contact pair at its round-off
-            gap floor (the barrier did not stop it above), or that fails, asks the numeric
+        continuation_after: A solve whose last ``continuation_after`` Newton steps (or the
+            last 12, ``SOFT_BARRIER_STREAK``) were all cut by a step bound, in which a step
+            bound held a contact pair at its round-off gap floor (the barrier did not stop it
+            above), or that fails, asks the numeric
             terms for a stiffness continuation (contact: a barrier too soft for its load,
             whose pairs rest so far inside dhat that the collision check cuts every step)
             and, if one is offered, solves the step again from its initial guess through
             stiffer barriers down to the term's own (``NewtonSolver._continued_attempt``).
             0: only after a failed solve.
+            The stages before the last end once the residual is below 1e-2 f_char, and
+            within the continuation a Newton step that no bound cuts is extended by
+            doublings while the potential falls along it.
             A stage after a converged one that does not converge within
             ``continuation_after`` iterations is split: the step goes back to the converged
             stage's state and through a stage at the geometric mean of the two stiffnesses
@@ -231,6 +249,7 @@ class NewtonSolver:
         self.floor_continuations = 0  # continuations started by a pair held at a gap floor
         self._continuation: tuple[float, ...] = ()
         self._stage_splittable = False  # a stalled stage would be split (in a continuation)
+        self._stage_rtol = 0.0  # an intermediate continuation stage's looser tolerance
         self._eager_march = False
         self._held_at_floor = self._floor_asked = False  # a pair at a step bound's gap floor
         self._stall_cause: str | None = None  # why the last attempt stopped early
@@ -445,6 +464,8 @@ class NewtonSolver:
             self._last_cut = scale
         else:
             self._cut_streak = 0
+            if self._continuation:
+                y.scale(self._expand(x, y))
         self._planned_step = y.norm()  # the line search takes a fraction of it
         self._direction_exact = self._exact_factors
         self._drop_line_search()
@@ -541,6 +562,50 @@ class NewtonSolver:
                 v.destroy()
         return t
 
+    def _expand(self, x: PETSc.Vec, y: PETSc.Vec) -> float:
+        """How far beyond the full Newton step, x - s y with s >= 1, it is extended.
+
+        A stage of a stiffness continuation starts with its pairs far from the gaps at which
+        its barrier holds them: a pair much closer than that is pushed by a log-like barrier
+        whose Newton step only doubles its gap (the first stage from the step's initial
+        guess: its residual halves per iteration, 20 iterations on the fig21 bunny). The step
+        is doubled while (1) the potential decreases, (2) its slope along the direction is
+        still negative, (3) the step bounds admit the extension and (4) the residual norm does
+        not more than double, as in :meth:`_march`; every point of the path is admissible.
+        """
+        safety = self.options.step_safety
+        back = y.copy()
+        back.scale(-1.0)
+        xt = x.copy()
+        xt.axpy(-1.0, y)
+        xn = x.duplicate()
+        t = 1.0
+        try:
+            energy = self._energy_at(xt)
+            slope, fnorm = self._slope_at(xt, y)
+            for _ in range(_EXPAND_DOUBLINGS):
+                if not (np.isfinite(energy) and slope < 0.0):
+                    break
+                bound = min((b.max_step(xt, back) for b in self.step_bounds), default=np.inf)
+                if bound * safety < t:
+                    break
+                t_next = 2.0 * t
+                x.copy(xn)
+                xn.axpy(-t_next, y)
+                e_next = self._energy_at(xn)
+                if not e_next < energy:
+                    break
+                s_next, f_next = self._slope_at(xn, y)
+                if f_next > 2.0 * fnorm:
+                    break
+                t, energy, slope, fnorm = t_next, e_next, s_next, f_next
+                xn.copy(xt)
+                self.expanded_steps += 1
+        finally:
+            for v in (back, xt, xn):
+                v.destroy()
+        return t
+
     def _slope_at(self, x: PETSc.Vec, y: PETSc.Vec) -> tuple[float, float]:
         """(d/ds E(x - s y) at s = 0, residual norm) at ``x``; uses the work vector."""
         self._assign(x)
@@ -587,8 +652,9 @@ class NewtonSolver:
         """Whether the solve stops here to go on through (another) continuation stage.
 
         Outside a continuation: when a step bound has held a pair at its gap floor (asked
-        once per attempt) or the last ``continuation_after`` steps were cut (asked every
-        ``continuation_after`` cut steps in a row), and a continuation is offered. In
+        once per attempt) or the last ``SOFT_BARRIER_STREAK`` or ``continuation_after`` steps
+        were cut (asked at the ``SOFT_BARRIER_STREAK``-th and every ``continuation_after``-th
+        cut step in a row), and a continuation is offered. In
         a continuation: a stage that a split would bring closer to its start
         (``ContinuationPath.can_split``) gets ``continuation_after`` iterations. Collective:
         the counts and the terms' answers are the same on every rank.
@@ -601,7 +667,9 @@ class NewtonSolver:
         if self._held_at_floor and not self._floor_asked:
             self._floor_asked = True  # asked once per attempt
             cause = "floor"
-        elif self._cut_streak >= n and self._cut_streak % n == 0:
+        elif self._cut_streak == SOFT_BARRIER_STREAK or (
+            self._cut_streak >= n and self._cut_streak % n == 0
+        ):
             cause = "cuts"
         else:
             return False
@@ -616,8 +684,11 @@ class NewtonSolver:
         return bool(np.isfinite(self.options.exact_hessian_below)) and not self._exact_from_start
 
     def _tolerance(self) -> float:
-        """The residual norm below which the step is converged: max(atol, rtol * f_char)."""
-        relative = self.options.rtol * self._f_char  # nan before the first residual
+        """The residual norm below which the step is converged: max(atol, rtol * f_char).
+
+        In a continuation stage before the last, rtol is at least ``_STAGE_RTOL``.
+        """
+        relative = max(self.options.rtol, self._stage_rtol) * self._f_char  # nan at first
         return self.options.atol if self.options.atol > relative else relative
 
     def _failure_details(self, iterations: int) -> str:
@@ -893,6 +964,7 @@ class NewtonSolver:
         finally:
             kept.destroy()
             self._eager_march = self._stage_splittable = False
+            self._stage_rtol = 0.0
             for term in terms:
                 term.set_stiffness_factor(1.0)
             self._forget_energy()
@@ -914,6 +986,7 @@ class NewtonSolver:
             term.set_stiffness_factor(factor)
         self._forget_energy()  # the potential has changed
         self._eager_march = position < path.stages
+        self._stage_rtol = _STAGE_RTOL if position < path.stages else 0.0
         its, reason, converged = self._attempt()
         logger.debug(
             "continuation stage %d (position %g): %d Newton iterations", index, position, its
@@ -940,6 +1013,7 @@ class NewtonSolver:
         self.fallbacks = 0
         self.bounded_steps = 0
         self.marched_substeps = 0
+        self.expanded_steps = 0
         self._cut_streak = 0
         self._last_cut = 1.0
         self._magnitude = abs(
