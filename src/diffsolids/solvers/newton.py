@@ -6,6 +6,7 @@ and a residual tolerance scaled by a characteristic force of the simulation.
 """
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from numbers import Real
 from typing import TYPE_CHECKING
@@ -57,12 +58,6 @@ _STAGE_RTOL = 1e-2
 # In a continuation an uncut Newton step is extended by doublings, at most _EXPAND_DOUBLINGS
 # times, while the potential keeps falling along it (see NewtonSolver._expand).
 _EXPAND_DOUBLINGS = 10
-# A first attempt whose last SOFT_BARRIER_STREAK Newton steps were all cut asks for a
-# stiffness continuation (offered only where the contact forces show a barrier too soft for
-# them): on the fig21 bunny at its kappa 1e4 the 22 more cut steps before continuation_after
-# (30) gained nothing (step 2: 108 -> 90 iterations; the suggested-kappa scenes of bench_paper
-# never reach it).
-SOFT_BARRIER_STREAK = 12
 _DEFAULT_PETSC = {"snes_type": "newtonls", "snes_linesearch_type": "bt"}
 
 
@@ -126,10 +121,9 @@ class SolverOptions:
 
             A warm start the Simulation is given (a Trajectory of an earlier run) comes first
             whatever this option says.
-        continuation_after: A solve whose last ``continuation_after`` Newton steps (or the
-            last 12, ``SOFT_BARRIER_STREAK``) were all cut by a step bound, in which a step
-            bound held a contact pair at its round-off gap floor (the barrier did not stop it
-            above), or that fails, asks the numeric
+        continuation_after: A solve whose last ``continuation_after`` Newton steps were all
+            cut by a step bound, in which a step bound held a contact pair at its round-off
+            gap floor (the barrier did not stop it above), or that fails, asks the numeric
             terms for a stiffness continuation (contact: a barrier too soft for its load,
             whose pairs rest so far inside dhat that the collision check cuts every step)
             and, if one is offered, solves the step again from its initial guess through
@@ -531,35 +525,17 @@ class NewtonSolver:
         and the line search then starts from the point reached.
         """
         safety = self.options.step_safety
-        back = y.copy()
-        back.scale(-1.0)
-        xt = x.copy()
-        xt.axpy(-t, y)
-        xn = x.duplicate()
-        try:
-            energy = self._energy_at(xt)
-            slope, fnorm = self._slope_at(xt, y)
-            for _ in range(self.options.march_substeps):
-                if not (np.isfinite(energy) and slope < 0.0 and t < 1.0):
-                    break
-                bound = min(b.max_step(xt, back) for b in self.step_bounds)
-                t_next = 1.0 if bound * safety >= 1.0 - t else t + safety * bound
-                if not t_next > t * (1.0 + 1e-12):
-                    break  # the bound has shrunk to round-off of t: nothing to gain
-                x.copy(xn)
-                xn.axpy(-t_next, y)
-                e_next = self._energy_at(xn)
-                if not e_next < energy:
-                    break
-                s_next, f_next = self._slope_at(xn, y)
-                if f_next > 2.0 * fnorm:
-                    break
-                t, energy, slope, fnorm = t_next, e_next, s_next, f_next
-                xn.copy(xt)
-                self.marched_substeps += 1
-        finally:
-            for v in (back, xt, xn):
-                v.destroy()
+
+        def next_fraction(t: float, bound: Callable[[], float]) -> float | None:
+            if not t < 1.0:
+                return None
+            b = bound()
+            t_next = 1.0 if b * safety >= 1.0 - t else t + safety * b
+            # a bound shrunk to round-off of t: nothing to gain
+            return t_next if t_next > t * (1.0 + 1e-12) else None
+
+        t, substeps = self._extend(x, y, t, self.options.march_substeps, next_fraction)
+        self.marched_substeps += substeps
         return t
 
     def _expand(self, x: PETSc.Vec, y: PETSc.Vec) -> float:
@@ -569,27 +545,51 @@ class NewtonSolver:
         its barrier holds them: a pair much closer than that is pushed by a log-like barrier
         whose Newton step only doubles its gap (the first stage from the step's initial
         guess: its residual halves per iteration, 20 iterations on the fig21 bunny). The step
-        is doubled while (1) the potential decreases, (2) its slope along the direction is
-        still negative, (3) the step bounds admit the extension and (4) the residual norm does
-        not more than double, as in :meth:`_march`; every point of the path is admissible.
+        is doubled while the step bounds admit the doubled step and :meth:`_extend`'s
+        conditions hold.
         """
         safety = self.options.step_safety
+
+        def next_fraction(t: float, bound: Callable[[], float]) -> float | None:
+            return 2.0 * t if bound() * safety >= t else None
+
+        t, doublings = self._extend(x, y, 1.0, _EXPAND_DOUBLINGS, next_fraction)
+        self.expanded_steps += doublings
+        return t
+
+    def _extend(
+        self, x: PETSc.Vec, y: PETSc.Vec, t: float, limit: int, next_fraction: Callable
+    ) -> tuple[float, int]:
+        """Extend the step x - t y along y while the potential falls (collective).
+
+        ``next_fraction(t, bound)`` proposes the next fraction (None: stop); ``bound()`` is
+        the step bound at x - t y along -y. An extension is taken while (1) the potential
+        decreases, (2) its slope along the direction is still negative and (3) the residual
+        norm does not more than double in one extension (a pair blocking the direction at a
+        tiny gap is then pressed far below its equilibrium gap, which the energy hardly shows
+        but the residual does). Every point of the path is admissible (each extension is
+        checked from its start).
+
+        Returns:
+            (the fraction reached, the number of extensions)
+        """
         back = y.copy()
         back.scale(-1.0)
         xt = x.copy()
-        xt.axpy(-1.0, y)
+        xt.axpy(-t, y)
         xn = x.duplicate()
-        t = 1.0
+        taken = 0
         try:
             energy = self._energy_at(xt)
             slope, fnorm = self._slope_at(xt, y)
-            for _ in range(_EXPAND_DOUBLINGS):
+            for _ in range(limit):
                 if not (np.isfinite(energy) and slope < 0.0):
                     break
-                bound = min((b.max_step(xt, back) for b in self.step_bounds), default=np.inf)
-                if bound * safety < t:
+                t_next = next_fraction(
+                    t, lambda: min((b.max_step(xt, back) for b in self.step_bounds), default=np.inf)
+                )
+                if t_next is None:
                     break
-                t_next = 2.0 * t
                 x.copy(xn)
                 xn.axpy(-t_next, y)
                 e_next = self._energy_at(xn)
@@ -600,11 +600,11 @@ class NewtonSolver:
                     break
                 t, energy, slope, fnorm = t_next, e_next, s_next, f_next
                 xn.copy(xt)
-                self.expanded_steps += 1
+                taken += 1
         finally:
             for v in (back, xt, xn):
                 v.destroy()
-        return t
+        return t, taken
 
     def _slope_at(self, x: PETSc.Vec, y: PETSc.Vec) -> tuple[float, float]:
         """(d/ds E(x - s y) at s = 0, residual norm) at ``x``; uses the work vector."""
@@ -652,9 +652,8 @@ class NewtonSolver:
         """Whether the solve stops here to go on through (another) continuation stage.
 
         Outside a continuation: when a step bound has held a pair at its gap floor (asked
-        once per attempt) or the last ``SOFT_BARRIER_STREAK`` or ``continuation_after`` steps
-        were cut (asked at the ``SOFT_BARRIER_STREAK``-th and every ``continuation_after``-th
-        cut step in a row), and a continuation is offered. In
+        once per attempt) or the last ``continuation_after`` steps were cut (asked every
+        ``continuation_after`` cut steps in a row), and a continuation is offered. In
         a continuation: a stage that a split would bring closer to its start
         (``ContinuationPath.can_split``) gets ``continuation_after`` iterations. Collective:
         the counts and the terms' answers are the same on every rank.
@@ -667,9 +666,7 @@ class NewtonSolver:
         if self._held_at_floor and not self._floor_asked:
             self._floor_asked = True  # asked once per attempt
             cause = "floor"
-        elif self._cut_streak == SOFT_BARRIER_STREAK or (
-            self._cut_streak >= n and self._cut_streak % n == 0
-        ):
+        elif self._cut_streak >= n and self._cut_streak % n == 0:
             cause = "cuts"
         else:
             return False
