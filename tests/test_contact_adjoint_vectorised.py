@@ -176,7 +176,7 @@ def test_vectorised_contact_adjoint_equals_the_loops(
     monkeypatch.setattr(
         step_adjoint,
         "barrier_shape_adjoint",
-        lambda C, mesh, x, b, k, lam, Hb_lam, rows: _reference_barrier_shape_adjoint(
+        lambda C, mesh, x, b, k, lam, Hb_lam, rows, arrays: _reference_barrier_shape_adjoint(
             C, mesh, x, b, k, lam
         ),
     )

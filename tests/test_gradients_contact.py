@@ -160,7 +160,7 @@ def check_gradient(rf, contact, direction: np.ndarray, taylor_h0: float = 1.0):
     return random, along, taylor
 
 
-def _ipctk_barrier_shape_adjoint(C, mesh, x, barrier, stiffness, lam, hessian_lam, rows):
+def _ipctk_barrier_shape_adjoint(C, mesh, x, barrier, stiffness, lam, hessian_lam, rows, arrays):
     """S^T lam with ipctk's own shape derivative S (no mollifier correction)."""
     return sp.csc_matrix(barrier.shape_derivative(C, mesh, x)).T @ lam
 

@@ -350,6 +350,7 @@ def barrier_shape_adjoint(
     lam: np.ndarray,
     hessian_lam: np.ndarray,
     merged_rows: sp.csr_matrix,
+    arrays: CollisionArrays | None = None,
 ) -> np.ndarray:
     """S^T lam with S of :func:`barrier_shape_derivative`, batched over the collisions.
 
@@ -374,11 +375,12 @@ def barrier_shape_adjoint(
         hessian_lam: H lam, H the exact barrier Hessian of ``collisions`` at x.
         merged_rows: Weight gradients of the collisions'
             :func:`~diffsolids.contact.derivatives.area_weights.merged_weight_collisions`.
+        arrays: The collisions' :func:`collision_arrays` if already read.
     """
     g = np.array(hessian_lam, dtype=float)
     if len(collisions) == 0:
         return g
-    c = collision_arrays(collisions, mesh)
+    c = collision_arrays(collisions, mesh) if arrays is None else arrays
     rest = np.asarray(mesh.rest_positions)
     if collisions.use_area_weighting:
         s = _directional_barrier(c, rest, x, lam, barrier, stiffness)

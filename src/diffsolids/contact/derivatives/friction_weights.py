@@ -32,6 +32,7 @@ import numpy as np
 import scipy.sparse
 
 from diffsolids.contact.derivatives.area_weights import weight_gradient_adjoint
+from diffsolids.contact.detection.collision_arrays import CollisionArrays
 from diffsolids.contact.energy.lagged_arrays import FrictionArrays, friction_arrays
 
 __all__ = ["friction_weight_adjoint"]
@@ -65,6 +66,7 @@ def friction_weight_adjoint(
     mu_table: np.ndarray,
     body_index: np.ndarray,
     merged_rows: scipy.sparse.csr_matrix,
+    arrays: CollisionArrays | None = None,
 ) -> np.ndarray:
     """sum_c (F_c . lam / w_c) grad_X w_c over the friction collisions (module docstring).
 
@@ -83,6 +85,7 @@ def friction_weight_adjoint(
         body_index: Body index of each collision vertex.
         merged_rows: Weight gradients of C's collisions with merged weights, one row each
             (``area_weights.merged_weight_collisions``).
+        arrays: C's ``collision_arrays`` if already read.
 
     Returns:
         (num_vertices * dim,) the weight part of (dF/dX)^T lam.
@@ -90,7 +93,7 @@ def friction_weight_adjoint(
     if len(C) == 0:
         return np.zeros(lagged_positions.size)
     lagged = friction_arrays(
-        C, mesh, lagged_positions, barrier, stiffness, mu_table, body_index, weighted=False
+        C, mesh, lagged_positions, barrier, stiffness, mu_table, body_index, False, arrays
     )
     s = -_collision_terms(lagged, velocities, lam, eps_v)
     return weight_gradient_adjoint(mesh, lagged.collisions, s, merged_rows)

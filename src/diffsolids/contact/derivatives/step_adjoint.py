@@ -23,6 +23,7 @@ from diffsolids.contact.derivatives.area_weights import (
 )
 from diffsolids.contact.derivatives.barrier_shape import barrier_shape_adjoint
 from diffsolids.contact.derivatives.friction_weights import friction_weight_adjoint
+from diffsolids.contact.detection.collision_arrays import CollisionArrays, collision_arrays
 from diffsolids.contact.energy.contact_potential import ContactPotential
 from diffsolids.contact.energy.evaluation import Evaluation
 from diffsolids.contact.energy.lagging import LaggedFriction
@@ -62,6 +63,7 @@ class ContactAdjoint:
         # step index -> (surface state key, U^i, collisions) of the converged forward
         self._kept: dict[int, tuple] = {}
         self._merged: list[tuple] = []  # (collision set, its merged_rows), the last two
+        self._arrays: list[tuple] = []  # (collision set, its collision_arrays), the last two
 
     def keep_collisions(self, step: ContactStep | None, ev: Evaluation) -> None:
         """Keep the collision set of the converged state of a forward step.
@@ -175,6 +177,7 @@ class ContactAdjoint:
             lam_c,
             Hb_lam,
             self.merged_rows(C),
+            self.collision_arrays(C),
         )
         if self.lagging.active:
             g = g - self.friction_rest(ev, lam_c)
@@ -217,6 +220,7 @@ class ContactAdjoint:
             self.lagging.mu_table(self.lagging.mu),
             self.surface.body_index,
             self.merged_rows(C),
+            self.collision_arrays(C),
         )
 
     def merged_rows(self, C: ipctk.NormalCollisions) -> sp.csr_matrix:
@@ -232,6 +236,15 @@ class ContactAdjoint:
         rows = weight_gradient_rows(collisions, self.surface.mesh.ndof)
         self._merged = [(C, rows), *self._merged[:1]]
         return rows
+
+    def collision_arrays(self, C: ipctk.NormalCollisions) -> CollisionArrays:
+        """C's ids and types, read once per set (kept for the last two, as :meth:`merged_rows`)."""
+        for kept, arrays in self._arrays:
+            if kept is C:
+                return arrays
+        arrays = collision_arrays(C, self.surface.mesh)
+        self._arrays = [(C, arrays), *self._arrays[:1]]
+        return arrays
 
     def friction(self, ev: Evaluation, lam: fem.Function | np.ndarray) -> np.ndarray:
         """(d g / d mu_p)^T lam for each pair p of bodies (global, the same on all ranks).
