@@ -181,12 +181,21 @@ def test_edge_vertex_bound_is_conservative_and_sharp():
     assert 0.5 * (1e-13 - fl) < b * 2e-13 < 1e-13 - fl
 
 
-def test_too_soft_for_double_precision_says_so():
-    """At kappa = 5e-4 the block would rest ~1e-16 m apart, finer than its coordinates resolve.
+def test_too_soft_for_double_precision_stops_early():
+    """With default options the same block fails once the continuation's last stage (kappa =
+    5e-4 itself) fails: its pairs would settle within 2x the gap floor, so no stage split
+    between it and the converged stiffer one can help (268 Newton iterations before, 37 now)."""
+    model, contact = _too_soft_block()
+    sim = ds.Simulation(model, ds.BDF(1, DT, 3))
+    with pytest.raises(ds.NewtonConvergenceError) as info:
+        sim.run()
+    assert info.value.step == 1 and info.value.iterations < 60, info.value.iterations
+    assert sim.solver.split_stages == 0
+    assert "cannot in double precision" in str(info.value)
+    assert contact.below_round_off()
 
-    The collision check holds the pairs ~100 ulps apart (no intersection at any iterate), and
-    the error says so and what to try.
-    """
+
+def _too_soft_block():
     slab = simplex_box([[0, 0], [1, 0.1]], [10, 1])
     block = simplex_box([[0.1, 0.1 + 0.5 * DHAT], [0.2, 0.15 + 0.5 * DHAT]], [4, 2])
     model = ds.Model(
@@ -196,6 +205,16 @@ def test_too_soft_for_double_precision_says_so():
     model.add_dirichlet(lambda x: x[1] < 0.1 + 1e-9, 0.0)
     contact = ContactTerm(model, dhat=DHAT, stiffness=5e-4, area_weighting=False)
     model.add_numeric_term(contact)
+    return model, contact
+
+
+def test_too_soft_for_double_precision_says_so():
+    """At kappa = 5e-4 the block would rest ~1e-16 m apart, finer than its coordinates resolve.
+
+    The collision check holds the pairs ~100 ulps apart (no intersection at any iterate), and
+    the error says so and what to try.
+    """
+    model, contact = _too_soft_block()
     sim = ds.Simulation(model, ds.BDF(1, DT, 3), ds.SolverOptions(max_iterations=12))
     monitor = IntersectionMonitor(sim, contact)
     with pytest.raises(ds.NewtonConvergenceError) as info:

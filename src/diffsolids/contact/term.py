@@ -64,6 +64,7 @@ from diffsolids.contact.diagnostics import (
     ContactRecord,
     continuation_schedule,
     failure_report,
+    settling_gap,
     step_record,
 )
 from diffsolids.contact.energy.contact_potential import ContactPotential, projection_method
@@ -88,6 +89,11 @@ if TYPE_CHECKING:
     from diffsolids.states import StateHistory, StepContext
 
 __all__ = ["ContactRecord", "ContactTerm"]
+
+# a failed last continuation stage ends the solve when the most loaded pair would settle within
+# this factor of the collision check's gap floor (the too-soft block of tests/test_soft_barrier:
+# 1.1; the fig22 ball at its kappa 1e4, which converges: 9)
+_ROUND_OFF_MARGIN = 2.0
 
 logger = logging.getLogger("diffsolids")
 
@@ -627,6 +633,21 @@ class ContactTerm(NumericTerm):
         """
         floor = self.step_bound.floor_held
         return bool(np.isfinite(self.partition.minimum(np.inf if floor is None else floor)))
+
+    def below_round_off(self) -> bool:
+        """Whether kappa cannot hold the pairs above the collision check's gap floor (collective).
+
+        True when the last step bound held a pair at its gap floor and the pair carrying the
+        largest force at the last iterate settles (2 kappa dhat^4 / f) within
+        ``_ROUND_OFF_MARGIN`` times that floor.
+        """
+        floor = self.step_bound.floor_held
+        floor = self.partition.minimum(np.inf if floor is None else floor)
+        ev = self._last_evaluation()
+        if not np.isfinite(floor) or ev is None or self.partition.count(ev.collisions) == 0:
+            return False
+        force = self._largest_force(ev)
+        return settling_gap(self.stiffness, self.dhat, force) < _ROUND_OFF_MARGIN * floor
 
     def set_stiffness_factor(self, factor: float) -> None:
         """Evaluate the barrier with ``factor`` x kappa until set back to 1 (a continuation).

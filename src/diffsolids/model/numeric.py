@@ -160,6 +160,15 @@ class NumericTerm(ABC):
         """
         return False
 
+    def below_round_off(self) -> bool:
+        """Whether the term's own stiffness cannot hold its pairs above round-off (collective).
+
+        Asked when the last stage of a stiffness continuation fails: True ends the solve at
+        once (no stage between it and a converged one can help). Only asked when
+        ``has_stiffness_continuation``. Default: False.
+        """
+        return False
+
     def revise_newton_model(self, u: fem.Function, step: np.ndarray, bc_dofs: np.ndarray) -> bool:
         """Replace the term's model for a Newton step that ``step`` would take badly (collective).
 

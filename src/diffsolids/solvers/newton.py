@@ -942,6 +942,10 @@ class NewtonSolver:
                 if converged:
                     self.x.copy(kept)
                     kept_at = path.positions[index]
+                elif path.positions[index] == path.stages and any(
+                    [t.below_round_off() for t in terms]
+                ):
+                    break  # the barrier's own stiffness cannot hold the pairs: no way on
                 elif kept_at is not None and path.split(index, kept_at):
                     # the stage was too far from the last converged one: go half the way first
                     self._continuation = path.largest_factors()
