@@ -626,13 +626,17 @@ class ContactTerm(NumericTerm):
         """Release the collisions held at stick."""
         self.potential.held = None
 
+    def _floor_held(self) -> float:
+        """The smallest gap floor that held a pair in the ranks' last step bounds, else inf."""
+        floor = self.step_bound.floor_held
+        return self.partition.minimum(np.inf if floor is None else floor)
+
     def held_at_floor(self) -> bool:
         """Whether the last collision-free step bound held a pair at its gap floor (collective).
 
         See ``StepBound.floor_held``: the pair's barrier did not stop it above round-off.
         """
-        floor = self.step_bound.floor_held
-        return bool(np.isfinite(self.partition.minimum(np.inf if floor is None else floor)))
+        return bool(np.isfinite(self._floor_held()))
 
     def below_round_off(self) -> bool:
         """Whether kappa cannot hold the pairs above the collision check's gap floor (collective).
@@ -641,8 +645,7 @@ class ContactTerm(NumericTerm):
         largest force at the last iterate settles (2 kappa dhat^4 / f) within
         ``_ROUND_OFF_MARGIN`` times that floor.
         """
-        floor = self.step_bound.floor_held
-        floor = self.partition.minimum(np.inf if floor is None else floor)
+        floor = self._floor_held()
         ev = self._last_evaluation()
         if not np.isfinite(floor) or ev is None or self.partition.count(ev.collisions) == 0:
             return False
@@ -668,8 +671,7 @@ class ContactTerm(NumericTerm):
             return failure_report(self.stiffness, self.dhat)
         d = self.partition.minimum_distance(ev.collisions, self.surface.mesh, ev.x)
         force = self._largest_force(ev)
-        floor = self.step_bound.floor_held
-        floor = self.partition.minimum(np.inf if floor is None else floor)
+        floor = self._floor_held()
         return failure_report(
             self.stiffness, self.dhat, count, d, force, None if np.isinf(floor) else floor
         )

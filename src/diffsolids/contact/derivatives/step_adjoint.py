@@ -10,7 +10,8 @@ lam, each rank on its share of the collision set, then summed over the ranks. Ob
 neither shape dofs nor state: only the body rows are kept.
 """
 
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import ipctk
 import numpy as np
@@ -229,22 +230,24 @@ class ContactAdjoint:
         The set at x^i serves the barrier of step i and the lagged friction of step i + 1
         (the builder keeps it for both); the two last read sets are kept.
         """
-        for kept, rows in self._merged:
-            if kept is C:
-                return rows
-        collisions = merged_weight_collisions(C, self.dim)
-        rows = weight_gradient_rows(collisions, self.surface.mesh.ndof)
-        self._merged = [(C, rows), *self._merged[:1]]
-        return rows
+        return self._read_once(self._merged, C, self._weight_rows)
 
     def collision_arrays(self, C: ipctk.NormalCollisions) -> CollisionArrays:
         """C's ids and types, read once per set (kept for the last two, as :meth:`merged_rows`)."""
-        for kept, arrays in self._arrays:
-            if kept is C:
-                return arrays
-        arrays = collision_arrays(C, self.surface.mesh)
-        self._arrays = [(C, arrays), *self._arrays[:1]]
-        return arrays
+        return self._read_once(self._arrays, C, lambda C: collision_arrays(C, self.surface.mesh))
+
+    def _weight_rows(self, C: ipctk.NormalCollisions) -> sp.csr_matrix:
+        return weight_gradient_rows(merged_weight_collisions(C, self.dim), self.surface.mesh.ndof)
+
+    @staticmethod
+    def _read_once(kept: list[tuple], C: ipctk.NormalCollisions, read: Callable) -> Any:
+        """``read(C)``, or what it gave for C if C is one of the last two sets in ``kept``."""
+        for collisions, value in kept:
+            if collisions is C:
+                return value
+        value = read(C)
+        kept[:] = [(C, value), *kept[:1]]
+        return value
 
     def friction(self, ev: Evaluation, lam: fem.Function | np.ndarray) -> np.ndarray:
         """(d g / d mu_p)^T lam for each pair p of bodies (global, the same on all ranks).
