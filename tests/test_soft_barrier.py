@@ -7,6 +7,7 @@ bounds (AdditiveCCD: gap / |step| per iteration, up to 1e7 iterations) cut every
 fraction of a percent: the solver stalled at the first impact.
 """
 
+import logging
 from decimal import Decimal, getcontext
 
 import ipctk
@@ -195,7 +196,8 @@ def test_too_soft_for_double_precision_stops_early():
     assert contact.below_round_off()
 
 
-def _too_soft_block():
+def _too_soft_block(stiffness: float | None = 5e-4):
+    """A block resting on a slab under gravity, ``stiffness`` None: the suggested kappa."""
     slab = simplex_box([[0, 0], [1, 0.1]], [10, 1])
     block = simplex_box([[0.1, 0.1 + 0.5 * DHAT], [0.2, 0.15 + 0.5 * DHAT]], [4, 2])
     model = ds.Model(
@@ -203,7 +205,7 @@ def _too_soft_block():
     )
     model.add_gravity(G)
     model.add_dirichlet(lambda x: x[1] < 0.1 + 1e-9, 0.0)
-    contact = ContactTerm(model, dhat=DHAT, stiffness=5e-4, area_weighting=False)
+    contact = ContactTerm(model, dhat=DHAT, stiffness=stiffness, area_weighting=False)
     model.add_numeric_term(contact)
     return model, contact
 
@@ -225,6 +227,34 @@ def test_too_soft_for_double_precision_says_so():
     assert "ulps of the coordinates" in text and "cannot in double precision" in text
     assert "most Newton steps were cut by a step bound; what to try:" in text
     assert "then the step again through a stiffness continuation (factors" in text
+
+
+def test_steps_converged_only_to_round_off_are_reported(caplog):
+    """At kappa = 0.1 the block's pairs rest ~1e-14 m apart: its steps end where the Newton
+    step vanishes at a residual ~1e-3 of the characteristic force, far above rtol. The run says
+    so (a warning once per simulation, then info); at the suggested kappa nothing is said.
+    """
+    model, _ = _too_soft_block(0.1)
+    sim = ds.Simulation(model, ds.BDF(1, DT, 3), progress=False)
+    with caplog.at_level(logging.INFO, logger="diffsolids"):
+        sim.run()
+        sim.run()
+    steps = sim.solver.round_off_steps
+    assert [s[0] for s in steps] == [1, 2, 3]
+    assert all(tol < 1e-3 * r and r > 1e-5 * f_char for _, r, tol, f_char in steps), steps
+    said = [r for r in caplog.records if "converged only to round-off" in r.getMessage()]
+    assert [r.levelno for r in said] == [logging.WARNING, logging.INFO]
+    worst = max(steps, key=lambda s: s[1] / s[3])
+    assert f"at step {worst[0]} {worst[1] / worst[3]:.3g} of the characteristic force" in (
+        said[0].getMessage()
+    )
+    caplog.clear()
+    model, _ = _too_soft_block(None)
+    sim = ds.Simulation(model, ds.BDF(1, DT, 3), progress=False)
+    with caplog.at_level(logging.INFO, logger="diffsolids"):
+        sim.run()
+    assert all(r <= 1e-7 * f_char for _, r, _, f_char in sim.solver.round_off_steps)
+    assert "converged only to round-off" not in caplog.text
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -38,6 +38,9 @@ if TYPE_CHECKING:
 __all__ = ["CanonicalValues", "Simulation"]
 
 logger = logging.getLogger("diffsolids")
+# steps accepted at round-off with a residual above this fraction of the characteristic
+# force are reported (well-converged steps stop below 1e-8 where round-off ends them)
+_ROUND_OFF_WARN = 1e-7
 
 
 @dataclass(frozen=True)
@@ -207,6 +210,7 @@ class Simulation:
         self.warm_start: Trajectory | None = None
         self.branch_reference: Trajectory | None = None
         self.max_substeps = 50
+        self._round_off_reported = False
         self.substeps: dict[int, int] = {}
         # the solver compiled the model's forms and collected its step bounds: a term added
         # from now on would be ignored (or miss its collision-free bound), so none may be
@@ -440,8 +444,37 @@ class Simulation:
                 checkpoints.forward(stepped)
         if writer:
             writer.close()
+        self._report_round_off()
         self.trajectory = traj
         return traj
+
+    def _report_round_off(self) -> None:
+        """Warn when steps ended at round-off with their residual above ``_ROUND_OFF_WARN``.
+
+        A step whose Newton increment vanished at machine precision is accepted whatever its
+        residual (nothing is left to gain); its state, and J and its gradient with it, then
+        hold only to about its residual over the characteristic force, not to ``rtol``. The
+        first such run of a simulation warns, later ones log at info level.
+        """
+        steps = [s for s in self.solver.round_off_steps if s[1] > _ROUND_OFF_WARN * s[3]]
+        if not steps:
+            return
+        step, residual, tolerance, f_char = max(steps, key=lambda s: s[1] / s[3])
+        level = logging.INFO if self._round_off_reported else logging.WARNING
+        self._round_off_reported = True  # a warning once per simulation, then info
+        logger.log(
+            level,
+            "%d step(s) converged only to round-off (the Newton step vanished) with the "
+            "residual above its tolerance: at step %d %.3g of the characteristic force "
+            "(tolerance %.3g). Their states, J and its gradient hold to about that precision, "
+            "not to rtol. With contact: pairs resting within a few hundred ulps of the "
+            "coordinates; a stiffer barrier (e.g. ContactTerm's suggested stiffness) holds "
+            "them farther apart.",
+            len(steps),
+            step,
+            residual / f_char,
+            tolerance / f_char,
+        )
 
     def begin_run(self) -> None:
         """Forget the previous run's solver state (cached Jacobians, stored factors)."""

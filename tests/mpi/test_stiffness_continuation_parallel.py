@@ -51,3 +51,7 @@ def test_floor_continuations_world_equal_self():
     assert np.allclose(energies_par, [r.energy for r in records_ser], rtol=1e-9, atol=0)
     for values in MPI.COMM_WORLD.allgather(energies_par):
         assert values == energies_par
+    # its pairs rest at round-off: the steps accepted there are the same, on every rank
+    round_off = [s[0] for s in solver_par.round_off_steps]
+    assert round_off == [s[0] for s in solver_ser.round_off_steps] != []
+    assert MPI.COMM_WORLD.allgather(solver_par.round_off_steps)[0] == solver_par.round_off_steps

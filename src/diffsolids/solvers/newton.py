@@ -241,6 +241,8 @@ class NewtonSolver:
         self.continued_steps = 0  # steps solved by a stiffness continuation
         self.split_stages = 0  # continuation stages split (gone to halfway first)
         self.floor_continuations = 0  # continuations started by a pair held at a gap floor
+        # (step, residual, tolerance, f_char) of the steps accepted at round-off above tolerance
+        self.round_off_steps: list[tuple[int, float, float, float]] = []
         self._continuation: tuple[float, ...] = ()
         self._stage_splittable = False  # a stalled stage would be split (in a continuation)
         self._stage_rtol = 0.0  # an intermediate continuation stage's looser tolerance
@@ -845,8 +847,9 @@ class NewtonSolver:
         return guards[0].max_step(self.x, self._work) <= 0.0
 
     def reset(self) -> None:
-        """Forget cached Jacobians and contact matrix entries (before a new run)."""
+        """Forget cached Jacobians, contact matrix entries and round-off steps (new run)."""
         self._jacobian_key = None
+        self.round_off_steps = []
         if self.patterns.active:
             self._use_matrix(self.patterns.restart(self.A))
 
@@ -1056,6 +1059,8 @@ class NewtonSolver:
         finally:
             x0.destroy()
         tolerance = self._tolerance()
+        if converged and self._fnorm > tolerance:  # the Newton increment reached round-off
+            self.round_off_steps.append((step, self._fnorm, tolerance, self._f_char))
         keep = converged and its > 0 and self._exact_factors and not self.quadratic
         if keep and self.factor_store is not None:  # the adjoint needs the exact Jacobian's
             self.factor_store.keep(step, self.snes)
