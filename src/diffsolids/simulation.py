@@ -452,9 +452,9 @@ class Simulation:
         """Warn when steps ended at round-off with their residual above ``_ROUND_OFF_WARN``.
 
         A step whose Newton increment vanished at machine precision is accepted whatever its
-        residual (nothing is left to gain); its state, and J and its gradient with it, then
-        hold only to about its residual over the characteristic force, not to ``rtol``. The
-        first such run of a simulation warns, later ones log at info level.
+        residual (nothing is left to gain): its state balances the forces only to that
+        residual, not to ``rtol``, and J and its gradient may carry the imbalance. The first
+        such run of a simulation warns, later ones log at info level.
         """
         steps = [s for s in self.solver.round_off_steps if s[1] > _ROUND_OFF_WARN * s[3]]
         if not steps:
@@ -466,8 +466,9 @@ class Simulation:
             level,
             "%d step(s) converged only to round-off (the Newton step vanished) with the "
             "residual above its tolerance: at step %d %.3g of the characteristic force "
-            "(tolerance %.3g). Their states, J and its gradient hold to about that precision, "
-            "not to rtol. With contact: pairs resting within a few hundred ulps of the "
+            "(tolerance %.3g). Their forces balance only to that residual, not to rtol, and J "
+            "and its gradient may carry the imbalance (a line scan or central differences "
+            "show how much). With contact: pairs resting within a few hundred ulps of the "
             "coordinates; a stiffer barrier (e.g. ContactTerm's suggested stiffness) holds "
             "them farther apart.",
             len(steps),
