@@ -38,9 +38,6 @@ if TYPE_CHECKING:
 __all__ = ["CanonicalValues", "Simulation"]
 
 logger = logging.getLogger("diffsolids")
-# steps accepted at round-off with a residual above this fraction of the characteristic
-# force are reported (well-converged steps stop below 1e-8 where round-off ends them)
-_ROUND_OFF_WARN = 1e-7
 
 
 @dataclass(frozen=True)
@@ -449,14 +446,14 @@ class Simulation:
         return traj
 
     def _report_round_off(self) -> None:
-        """Warn when steps ended at round-off with their residual above ``_ROUND_OFF_WARN``.
+        """Warn when steps ended at round-off above the residual the solver reports.
 
         A step whose Newton increment vanished at machine precision is accepted whatever its
         residual (nothing is left to gain): its state balances the forces only to that
         residual, not to ``rtol``, and J and its gradient may carry the imbalance. The first
         such run of a simulation warns, later ones log at info level.
         """
-        steps = [s for s in self.solver.round_off_steps if s[1] > _ROUND_OFF_WARN * s[3]]
+        steps = self.solver.reported_round_off_steps()
         if not steps:
             return
         step, residual, tolerance, f_char = max(steps, key=lambda s: s[1] / s[3])

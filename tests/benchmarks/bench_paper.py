@@ -151,7 +151,7 @@ def measure(name: str, args, comm) -> dict:
     in_contact = [n for n, c in zip(per_step, contact.records, strict=True) if c.num_collisions]
     in_contact = in_contact or per_step
     # steps that ended at round-off above 1e-7 f_char: the precision of this J
-    round_off = [r / f for _, r, _, f in sim.solver.round_off_steps if r > 1e-7 * f]
+    round_off = [r / f for _, r, _, f in sim.solver.reported_round_off_steps()]
     contact.timings.clear()  # from here: the contact work of the gradient only
     t0, c0 = time.perf_counter(), time.process_time()
     g = rf.gradient(q)

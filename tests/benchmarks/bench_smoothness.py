@@ -84,14 +84,22 @@ def paper_scene(name: str, args):
 
 
 def contact_iterations(scene) -> dict:
-    """Newton iterations of the steps with contact pairs in the last run."""
+    """Newton iterations of the steps with contact pairs in the last run, and its precision.
+
+    ``round_off_steps``: the steps that ended at round-off with a residual above 1e-7 f_char
+    (the Simulation's warning), the largest of those residuals over f_char.
+    """
     records = scene.rf.trajectory.records
     pairs = [r.num_collisions for r in scene.contact.records]
     its = [rec.iterations for rec, n in zip(records, pairs, strict=True) if n > 0]
+    solver = scene.rf.simulation.solver
+    round_off = [r / f for _, r, _, f in solver.reported_round_off_steps()]
     return {
         "contact_steps": len(its),
         "max_iterations": max(its, default=0),
         "mean_iterations": float(np.mean(its)) if its else 0.0,
+        "round_off_steps": len(round_off),
+        "round_off_worst_relative_residual": max(round_off, default=0.0),
     }
 
 
@@ -164,7 +172,9 @@ def main(argv=None) -> dict:
                 f"{name}: {result['jumps']} jumps (worst {result['worst_deviation']:.2e} of the "
                 f"range), central differences random {result['fd_errors_random']}, gradient "
                 f"{result['fd_errors_gradient']}, Newton its per contact step max "
-                f"{result['max_iterations']} mean {result['mean_iterations']:.1f} "
+                f"{result['max_iterations']} mean {result['mean_iterations']:.1f}, "
+                f"{result['round_off_steps']} steps ended at round-off (worst residual "
+                f"{result['round_off_worst_relative_residual']:.2g} f_char) "
                 f"({result['seconds']:.0f} s)",
                 flush=True,
             )

@@ -55,6 +55,9 @@ SADDLE_STREAK = 8
 # of ~100 (the fig22 ball at its kappa 1e4: 1e-2 -> 19% fewer iterations than converging
 # them fully, 1e-1 -> 25%, 0.3 fails: the last stage starts with pairs pressed unevenly).
 _STAGE_RTOL = 1e-2
+# steps accepted at round-off with a residual above this fraction of f_char are reported
+# (well-converged steps that round-off ends stop below 1e-8)
+ROUND_OFF_REPORTED = 1e-7
 # In a continuation an uncut Newton step is extended by doublings, at most _EXPAND_DOUBLINGS
 # times, while the potential keeps falling along it (see NewtonSolver._expand).
 _EXPAND_DOUBLINGS = 10
@@ -852,6 +855,14 @@ class NewtonSolver:
         self.round_off_steps = []
         if self.patterns.active:
             self._use_matrix(self.patterns.restart(self.A))
+
+    def reported_round_off_steps(self) -> list[tuple[int, float, float, float]]:
+        """The run's steps accepted at round-off with a residual above ``ROUND_OFF_REPORTED``.
+
+        Returns:
+            (step, residual, tolerance, f_char) of each, as in :attr:`round_off_steps`.
+        """
+        return [s for s in self.round_off_steps if s[1] > ROUND_OFF_REPORTED * s[3]]
 
     def set_reference_force(self) -> float:
         """Use the residual norm at the current ``u`` as the simulation's characteristic force."""
