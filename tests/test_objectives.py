@@ -151,6 +151,21 @@ def test_step_weights():
         step_weights(np.ones(3), GRID)
 
 
+def test_reduced_series_in_order_and_objective_series_once_each():
+    from diffsolids.objectives import objective_series, soft_min
+
+    a, b = _leaf("a"), _leaf("b")
+    sa, sb = a * a, a + b
+    Ja = time_integral(sa, "uniform")
+    J = 2.0 * Ja + soft_min(sb).apply(np.exp, np.exp, "exp") - final_value(b) * Ja + 1.0
+    reduced = J.reduced_series()
+    assert len(reduced) == 4
+    assert all(x is y for x, y in zip(reduced, [sa, sb, b, sa], strict=True))
+    found = list(objective_series(J).values())  # each series once, in order
+    assert len(found) == 3
+    assert all(x is y for x, y in zip(found, [sa, sb, b], strict=True))
+
+
 def test_step_values_series():
     a = _leaf("a")
     target = StepValues([0.0, 1.0, 2.0, 3.0, 4.0], "target")

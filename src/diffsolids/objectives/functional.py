@@ -304,6 +304,13 @@ class Objective(_Algebra):
         """Discrete regularisers the objective depends on."""
         raise NotImplementedError
 
+    def reduced_series(self) -> list["Series"]:
+        """The series the objective reduces over the steps (time integrals, soft minima).
+
+        In the order of the expression, a series as often as it is reduced; none by default.
+        """
+        return []
+
     def value(self, table: dict, reg: dict, grid: TimeGrid) -> float:
         """J from leaf values (``table``) and regulariser values (``reg``)."""
         raise NotImplementedError
@@ -371,6 +378,10 @@ class BinaryObjective(_BinaryNode, Objective):
         return self.a.regularisers() + self.b.regularisers()
 
     @override
+    def reduced_series(self) -> list["Series"]:
+        return self.a.reduced_series() + self.b.reduced_series()
+
+    @override
     def value(self, table: dict, reg: dict, grid: TimeGrid) -> float:
         return _binary_value(
             self.op, self.a.value(table, reg, grid), self.b.value(table, reg, grid)
@@ -398,6 +409,10 @@ class MappedObjective(_MappedNode, Objective):
     @override
     def regularisers(self) -> list["Regulariser"]:
         return self.a.regularisers()
+
+    @override
+    def reduced_series(self) -> list["Series"]:
+        return self.a.reduced_series()
 
     @override
     def value(self, table: dict, reg: dict, grid: TimeGrid) -> float:
@@ -491,6 +506,10 @@ class SeriesObjective(Objective):
     @override
     def regularisers(self) -> list["Regulariser"]:
         return []
+
+    @override
+    def reduced_series(self) -> list["Series"]:
+        return [self.series]
 
 
 class TimeIntegral(SeriesObjective):

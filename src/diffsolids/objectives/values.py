@@ -135,18 +135,9 @@ def objective_series(objective: Objective) -> dict[str, Series]:
     gets a ``#k`` suffix. A series reduced twice is listed once.
     """
     found: list[Series] = []
-
-    def walk(node: object) -> None:
-        series = getattr(node, "series", None)
-        if isinstance(series, Series):
-            if all(series is not s for s in found):
-                found.append(series)
-            return
-        for child in (getattr(node, "a", None), getattr(node, "b", None)):
-            if child is not None:
-                walk(child)
-
-    walk(objective)
+    for series in objective.reduced_series():
+        if all(series is not s for s in found):
+            found.append(series)
     labels = [series_label(s) for s in found]
     out: dict[str, Series] = {}
     counts: dict[str, int] = {}
