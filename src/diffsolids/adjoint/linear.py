@@ -84,6 +84,7 @@ class AdjointLinearSolver:
         self._precond = None  # (PETSc.PC, index of the frozen matrix or -1 for the forward one)
         self._precond_step: int | None = None  # the step whose Jacobian it factorised
         self.stats = {"krylov_iterations": 0, "factorisations": 0, "direct_solves": 0}
+        self._quadratic_cache: dict = {}
         self._gmres = PETSc.KSP().create(self.comm)
         self._gmres.setType("fgmres")  # no final preconditioner application
         self._gmres.setTolerances(rtol=self.options.rtol, atol=0.0, max_it=self.options.max_krylov)
@@ -230,7 +231,7 @@ class AdjointLinearSolver:
 
     def destroy(self) -> None:
         """Free PETSc objects."""
-        for ksp in [*self._factor_ksps.values(), *getattr(self, "_quadratic_cache", {}).values()]:
+        for ksp in [*self._factor_ksps.values(), *self._quadratic_cache.values()]:
             ksp.destroy()
         self._gmres.destroy()
         if self._iterative is not None:

@@ -125,6 +125,7 @@ class DeformedCollisionBarrier(NumericIntegral):
         self.surface = CollisionSurface(model.domain, model.V, boundary="nodes")
         self.barrier = ipctk.BarrierPotential(self.dhat, self.stiffness)
         self.broad_phase = ipctk.LBVH()
+        self._last: tuple[np.ndarray, ipctk.NormalCollisions] | None = None
 
     def _state(self, model: "Model") -> tuple[np.ndarray, ipctk.NormalCollisions]:
         if model is not self.model:
@@ -132,7 +133,7 @@ class DeformedCollisionBarrier(NumericIntegral):
         surface = self.surface
         X = surface.current_rest_positions() + surface.gather(model.fields.u.x.array)
         X = np.asfortranarray(X)
-        cached = getattr(self, "_last", None)
+        cached = self._last
         if cached is not None and np.array_equal(cached[0], X):
             return cached
         what = f"{self.name} at t = {float(model.fields.t.value):g}"

@@ -207,7 +207,7 @@ class Obstacle:
             motion: As for :class:`Obstacle`.
             name: As for :class:`Obstacle`.
         """
-        mesh = getattr(domain, "mesh", domain)
+        mesh = domain.mesh if isinstance(domain, Domain) else domain
         tdim, gdim = mesh.topology.dim, mesh.geometry.dim
         if tdim != gdim:
             raise MeshError(f"obstacle from a mesh of tdim {tdim} in {gdim}D: expected a volume")
