@@ -230,9 +230,10 @@ def test_too_soft_for_double_precision_says_so():
 
 
 def test_steps_converged_only_to_round_off_are_reported(caplog):
-    """At kappa = 0.1 the block's pairs rest ~1e-14 m apart: its steps end where the Newton
-    step vanishes at a residual ~1e-3 of the characteristic force, far above rtol. The run says
-    so (a warning once per simulation, then info); at the suggested kappa nothing is said.
+    """At kappa = 0.1 the block's pairs settle ~5e-13 m apart (200 times the gap of kappa =
+    5e-4 above): its steps end where the Newton step vanishes at a residual ~1e-3 of the
+    characteristic force, far above rtol. The run says so (a warning once per simulation,
+    then info); at the suggested kappa nothing is said.
     """
     model, _ = _too_soft_block(0.1)
     sim = ds.Simulation(model, ds.BDF(1, DT, 3), progress=False)
