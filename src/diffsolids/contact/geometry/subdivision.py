@@ -46,9 +46,8 @@ _FACE012 = 3
 
 
 def _lagrange_element(V: fem.FunctionSpace):  # noqa: ANN202  (basix FiniteElement)
-    e = V.ufl_element()
-    sub = getattr(e, "sub_elements", None)
-    return (sub[0] if sub else e).basix_element
+    # a blocked (vector) element gives its scalar sub-element's
+    return V.ufl_element().basix_element
 
 
 def reference_lambdas(V: fem.FunctionSpace) -> dict[tuple[int, ...], np.ndarray]:
