@@ -142,6 +142,9 @@ def test_vectorised_contact_adjoint_equals_the_loops(
     loop_ids = [np.asarray(c.vertex_ids(E, F)) for g in groups for c in g]
     assert np.array_equal(ids, np.array(loop_ids))
     assert len(np.unique(kind)) >= 2  # more than one collision type in play
+    # their weights: read for the merged ones, from the areas for the others
+    weighted = friction_collision_arrays(C, contact.surface.mesh, x, weights=True)
+    assert _rel(weighted.weight, np.array([c.weight for g in groups for c in g])) <= TOL
 
     # the friction force's rest-position adjoint, and its area-weight part on its own
     vectorised = contact.adjoint.friction_rest(ev, lam_c)

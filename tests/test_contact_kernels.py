@@ -227,6 +227,28 @@ def test_contact_derivative_kernels(dim, degree, order, eps_v, formulation):
         model.domain.mesh.geometry.x[:] = x0
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_friction_coefficient_kernel_without_friction(dim):
+    """The coefficients' gradient where every coefficient is 0 (no friction in the forward)
+    against a one-sided difference (the residual is linear in mu, so exact to round-off)."""
+    model, contact, _, u, _ = _scene(dim, 1, 1, 0.5, comm=MPI.COMM_SELF)
+    chk = _Checker(model, contact, u)
+    lam = chk.random()
+    mu0 = contact.friction_coefficients
+    contact.friction_coefficients = np.zeros_like(mu0)
+    r0 = chk.dot(lam, chk.residual())
+    gmu = contact.adjoint_friction(u, lam)
+    for k, pair in enumerate(contact.friction_pairs):
+        mu = np.zeros_like(mu0)
+        mu[k] = 1.0
+        contact.friction_coefficients = mu
+        fd = chk.dot(lam, chk.residual()) - r0
+        if pair == (1, 2):
+            chk.assert_close(fd, gmu[k], f"friction {pair} at mu = 0")
+        else:
+            assert gmu[k] == 0.0 and abs(fd) < 1e-12
+
+
 def test_shape_derivative_differs_from_ipctks():
     """ipctk's own 3D shape derivative (1.6.0, 1.6.1) misses by percents at mollified pairs (the
     check can fail)."""

@@ -14,6 +14,7 @@ import pytest
 from smoothness_scenes import drop, drop_2d
 
 import diffsolids as ds
+from diffsolids.contact.detection.collision_arrays import collision_arrays, read_weights
 from diffsolids.contact.geometry.flat import flat_edge_mask, flat_vertex_mask
 from diffsolids.contact.geometry.obstacle import _edges_of
 from diffsolids.verification import line_scan
@@ -88,6 +89,30 @@ def test_2d_drop_independent_of_the_ground_segments(formulation):
     assert abs(J - J1) <= 1e-9 * abs(J1), (J, J1)
     u1, u = one.rf.trajectory.u[-1], joints.rf.trajectory.u[-1]
     assert np.abs(u - u1).max() <= 1e-9
+
+
+@pytest.mark.parametrize("formulation", ["ipc", "convergent"])
+@pytest.mark.parametrize("dim", [2, 3])
+def test_collision_weights_from_areas_equal_ipctks(dim, formulation):
+    """The set's weights (the merged and flat-corrected ones read, the others from the areas)
+    equal ipctk's, one by one, on a ground with flat joints after the landing (3D: the ground
+    of 4 triangles, whose flat centre vertex is under a vertex of the block)."""
+    if dim == 3:
+        scene = drop(4, steps=6, formulation=formulation)
+    else:
+        scene = drop_2d(steps=15, formulation=formulation)
+    scene.rf(scene.q0)
+    model, contact = scene.rf.simulation.model, scene.contact
+    model.fields.u.x.array[:] = scene.rf.trajectory.u[-1]
+    C = contact._evaluate(model.fields.u).collisions
+    mesh = contact.surface.mesh
+    lists = (C.vv_collisions, C.ev_collisions, C.ee_collisions, C.fv_collisions)
+    expected = np.array([c.weight for group in lists for c in group])
+    assert len(expected) > 0
+    if dim == 3 and formulation == "convergent":  # the pair at the ground's flat centre vertex
+        assert len(C.vv_collisions) > 0
+    weights = read_weights(C, collision_arrays(C, mesh), mesh)
+    assert np.abs(weights - expected).max() <= 1e-14 * np.abs(expected).max()
 
 
 def test_drop_gradient_and_scan():

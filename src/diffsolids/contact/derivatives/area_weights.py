@@ -112,10 +112,14 @@ def _sparse_parts(g: tuple | scipy.sparse.spmatrix) -> tuple[np.ndarray, np.ndar
     return g.indices, g.data
 
 
-def weight_gradient_rows(collisions: list, size: int) -> scipy.sparse.csr_matrix:
-    """The weight gradients of ``collisions`` read from ipctk, one row per collision."""
+def weight_gradient_rows(collisions: list, size: int) -> tuple[scipy.sparse.csr_matrix, np.ndarray]:
+    """(the weight gradients of ``collisions``, one row each; their weights), read from ipctk.
+
+    A weight reads at ~4 us (a base-class attribute), a weight gradient at ~7 us.
+    """
+    weights = np.array([c.weight for c in collisions], dtype=float)
     if not len(collisions):
-        return scipy.sparse.csr_matrix((0, size))
+        return scipy.sparse.csr_matrix((0, size)), weights
     with _sparse_as_arrays():
         raw = [c.weight_gradient for c in collisions]
     grads = [_sparse_parts(g) for g in raw]
@@ -123,7 +127,8 @@ def weight_gradient_rows(collisions: list, size: int) -> scipy.sparse.csr_matrix
     indptr = np.concatenate([[0], np.cumsum(counts)])
     index = np.concatenate([g[0] for g in grads]).astype(np.int64)
     data = np.concatenate([g[1] for g in grads])
-    return scipy.sparse.csr_matrix((data, index, indptr), shape=(len(collisions), size))
+    rows = scipy.sparse.csr_matrix((data, index, indptr), shape=(len(collisions), size))
+    return rows, weights
 
 
 def merged_weight_collisions(collisions: ipctk.NormalCollisions, dim: int) -> list:

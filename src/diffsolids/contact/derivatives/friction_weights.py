@@ -23,6 +23,10 @@ face-vertex and edge-edge collisions (and 2D edge-vertex ones) are sums of verte
 area gradients, applied in bulk (:mod:`~diffsolids.contact.derivatives.area_weights`); those
 of vertex-vertex and 3D edge-vertex collisions are read per collision.
 
+The friction force is linear in each collision's coefficient, so the same per-collision terms
+with mu_c = 1 and the weights w_c give its derivative w.r.t. the coefficient of each pair of
+bodies (:func:`friction_coefficient_adjoint`).
+
 Under MPI the normal collisions are this rank's share and the caller sums the result over the
 ranks.
 """
@@ -33,9 +37,13 @@ import scipy.sparse
 
 from diffsolids.contact.derivatives.area_weights import weight_gradient_adjoint
 from diffsolids.contact.detection.collision_arrays import CollisionArrays
-from diffsolids.contact.energy.lagged_arrays import FrictionArrays, friction_arrays
+from diffsolids.contact.energy.lagged_arrays import (
+    FrictionArrays,
+    collision_sides,
+    friction_arrays,
+)
 
-__all__ = ["friction_weight_adjoint"]
+__all__ = ["friction_coefficient_adjoint", "friction_weight_adjoint"]
 
 
 def _collision_terms(
@@ -97,3 +105,51 @@ def friction_weight_adjoint(
     )
     s = -_collision_terms(lagged, velocities, lam, eps_v)
     return weight_gradient_adjoint(mesh, lagged.collisions, s, merged_rows)
+
+
+def friction_coefficient_adjoint(
+    C: ipctk.NormalCollisions,
+    mesh: ipctk.CollisionMesh,
+    lagged_positions: np.ndarray,
+    velocities: np.ndarray,
+    lam: np.ndarray,
+    barrier: ipctk.BarrierPotential,
+    stiffness: float,
+    eps_v: float,
+    pair_table: np.ndarray,
+    num_pairs: int,
+    body_index: np.ndarray,
+    arrays: CollisionArrays | None = None,
+) -> np.ndarray:
+    """(d g / d mu_p)^T lam for each pair p of bodies, g = -F the friction part of the residual.
+
+    F_c is linear in mu_c: -dF_c/dmu_c . lam = w_c N_c f1(|tau_c|)/|tau_c| tau_c . (P_c^T
+    Gamma_c lam), summed over the collisions of each pair (module docstring).
+
+    Args:
+        C: Normal collisions at ``lagged_positions`` (the friction collisions are those ipctk
+            lags from them).
+        mesh: The collision mesh.
+        lagged_positions: (num_vertices, dim) positions x^{i-1}.
+        velocities: (num_vertices, dim) velocities v.
+        lam: (num_vertices * dim,) adjoint vector.
+        barrier: The barrier potential of the build (dmin = 0).
+        stiffness: Its stiffness kappa.
+        eps_v: Friction smoothing velocity.
+        pair_table: (num_bodies, num_bodies) index of each pair of bodies among the pairs.
+        num_pairs: Number of pairs.
+        body_index: Body index of each collision vertex.
+        arrays: C's ``collision_arrays`` (with their weights) if already read.
+
+    Returns:
+        (num_pairs,) this rank's collisions' part.
+    """
+    if len(C) == 0:
+        return np.zeros(num_pairs)
+    unit = np.ones(pair_table.shape)
+    lagged = friction_arrays(
+        C, mesh, lagged_positions, barrier, stiffness, unit, body_index, True, arrays
+    )
+    a, b = collision_sides(lagged.ids, body_index)
+    terms = _collision_terms(lagged, velocities, lam, eps_v)
+    return np.bincount(pair_table[a, b], weights=terms, minlength=num_pairs)

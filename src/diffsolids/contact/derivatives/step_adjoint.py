@@ -23,8 +23,15 @@ from diffsolids.contact.derivatives.area_weights import (
     weight_gradient_rows,
 )
 from diffsolids.contact.derivatives.barrier_shape import barrier_shape_adjoint
-from diffsolids.contact.derivatives.friction_weights import friction_weight_adjoint
-from diffsolids.contact.detection.collision_arrays import CollisionArrays, collision_arrays
+from diffsolids.contact.derivatives.friction_weights import (
+    friction_coefficient_adjoint,
+    friction_weight_adjoint,
+)
+from diffsolids.contact.detection.collision_arrays import (
+    CollisionArrays,
+    collision_arrays,
+    read_weights,
+)
 from diffsolids.contact.energy.contact_potential import ContactPotential
 from diffsolids.contact.energy.evaluation import Evaluation
 from diffsolids.contact.energy.lagging import LaggedFriction
@@ -230,13 +237,28 @@ class ContactAdjoint:
         The set at x^i serves the barrier of step i and the lagged friction of step i + 1
         (the builder keeps it for both); the two last read sets are kept.
         """
+        return self._merged_weights(C)[0]
+
+    def _merged_weights(self, C: ipctk.NormalCollisions) -> tuple[sp.csr_matrix, np.ndarray]:
+        """(:meth:`merged_rows`, the merged collisions' weights), read in one pass per set."""
         return self._read_once(self._merged, C, self._weight_rows)
 
     def collision_arrays(self, C: ipctk.NormalCollisions) -> CollisionArrays:
         """C's ids and types, read once per set (kept for the last two, as :meth:`merged_rows`)."""
         return self._read_once(self._arrays, C, lambda C: collision_arrays(C, self.surface.mesh))
 
-    def _weight_rows(self, C: ipctk.NormalCollisions) -> sp.csr_matrix:
+    def weighted_arrays(self, C: ipctk.NormalCollisions) -> CollisionArrays:
+        """C's :meth:`collision_arrays` with the collisions' weights, read once per set.
+
+        The merged weights are read with their gradients when C has weight gradients.
+        """
+        arrays = self.collision_arrays(C)
+        if arrays.weight is None:
+            merged = self._merged_weights(C)[1] if C.enable_shape_derivatives else None
+            arrays.weight = read_weights(C, arrays, self.surface.mesh, merged)
+        return arrays
+
+    def _weight_rows(self, C: ipctk.NormalCollisions) -> tuple[sp.csr_matrix, np.ndarray]:
         return weight_gradient_rows(merged_weight_collisions(C, self.dim), self.surface.mesh.ndof)
 
     @staticmethod
@@ -252,22 +274,28 @@ class ContactAdjoint:
     def friction(self, ev: Evaluation, lam: fem.Function | np.ndarray) -> np.ndarray:
         """(d g / d mu_p)^T lam for each pair p of bodies (global, the same on all ranks).
 
-        Each rank's collisions give their part, summed over the ranks.
-
-        The friction gradient is linear in each collision's mu (static = kinetic): per pair, its
-        gradient with mu = 1 on that pair and 0 elsewhere (one ipctk call per pair, measured
-        faster than reading every collision's ids and weights for a batched sum with two or
-        three bodies).
+        Each rank's collisions give their part, summed over the ranks; one batched pass over
+        the collisions lagged from x^{i-1} (``friction_coefficient_adjoint``), also where the
+        current coefficients are 0.
         """
-        lam_c = self.surface_vector(lam)
-        V = np.asfortranarray(self.lagging.velocity(ev.U))
-        out = np.zeros(self.num_pairs)
-        for p in range(self.num_pairs):
-            unit = np.zeros(self.num_pairs)
-            unit[p] = 1.0
-            T = self.lagging.tangential_collisions(
-                self.lagging.mu_table(unit), self.potential.barrier
-            )
-            if len(T):
-                out[p] = self.friction_potential.gradient(T, self.surface.mesh, V) @ lam_c
+        # the set with weight gradients at x^{i-1} if the shape kernel built it (its ids are
+        # read already), else the forward's: the same collisions
+        x = self.surface.rest_positions + self.lagging.step.lagged
+        C = self.builder.kept_shape_set(x)
+        if C is None:
+            x, C = self.lagging.lagged_state()
+        out = friction_coefficient_adjoint(
+            C,
+            self.surface.mesh,
+            x,
+            self.lagging.velocity(ev.U),
+            self.surface_vector(lam),
+            self.potential.barrier,
+            self.potential.stiffness,
+            self.eps_v,
+            self.lagging.pair_table,
+            self.num_pairs,
+            self.surface.body_index,
+            self.weighted_arrays(C),
+        )
         return self.partition.sum(out)

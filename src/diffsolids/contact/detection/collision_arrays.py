@@ -85,11 +85,46 @@ def collision_arrays(
     return CollisionArrays(ids, kind, ee_ids[:, :2], ee_ids[:, 2], ee[:, 3])
 
 
-def read_weights(collisions: ipctk.NormalCollisions) -> np.ndarray:
-    """The weights of the collisions of a set, in the order of :func:`collision_arrays`."""
-    lists = (collisions.vv_collisions, collisions.ev_collisions)
-    lists += (collisions.ee_collisions, collisions.fv_collisions)
-    return np.concatenate([_rows(items, "weight")[:, 0] for items in lists])
+def read_weights(
+    collisions: ipctk.NormalCollisions,
+    arrays: CollisionArrays,
+    mesh: ipctk.CollisionMesh,
+    merged: np.ndarray | None = None,
+) -> np.ndarray:
+    """The weights of the collisions of a set, in the order of :func:`collision_arrays`.
+
+    Without area weighting they are 1. With it, ``NormalCollisionsBuilder`` gives a face-vertex
+    collision 0.25 A_v, an edge-edge one 0.25 (A_ea + A_eb) and a 2D edge-vertex one 0.5 A_v
+    (the mesh's vertex and edge areas), computed here; the vertex-vertex and 3D edge-vertex
+    ones may sum the shares of several candidates (and the flat regions' corrections) and are
+    read from ipctk, one attribute each.
+
+    Args:
+        collisions: The set.
+        arrays: Its :func:`collision_arrays`.
+        mesh: The collision mesh of the build.
+        merged: The weights of the vertex-vertex (and 3D edge-vertex) collisions if already
+            read.
+    """
+    kind, ids = arrays.kind, arrays.ids
+    if not collisions.use_area_weighting:
+        return np.ones(len(kind))
+    if merged is None:
+        read = list(collisions.vv_collisions)
+        if mesh.dim == 3:
+            read += list(collisions.ev_collisions)
+        merged = np.array([c.weight for c in read], dtype=float)
+    weight = np.empty(len(kind))
+    weight[: len(merged)] = merged
+    vertex_areas = np.asarray(mesh.vertex_areas).ravel()
+    edge_areas = np.asarray(mesh.edge_areas()).ravel()
+    if mesh.dim == 2:
+        ev = kind == 1
+        weight[ev] = 0.5 * vertex_areas[ids[ev, 0]]
+    weight[kind == 2] = 0.25 * edge_areas[arrays.ee_edges].sum(axis=1)
+    fv = kind == 3
+    weight[fv] = 0.25 * vertex_areas[ids[fv, 0]]
+    return weight
 
 
 def cross_squared_norms(edge_positions: np.ndarray) -> np.ndarray:

@@ -108,14 +108,22 @@ class CollisionBuilder:
         """
         surf = self.surface
         if shape_derivatives:
-            for mesh, static, xc, C in self._shape_builds:
-                if mesh is surf.mesh and static is surf.static and np.array_equal(xc, x):
-                    return C
+            kept = self.kept_shape_set(x)
+            if kept is not None:
+                return kept
         C = self.whole_set(x, shape_derivatives)
         self.partition.keep_share(C)
         if shape_derivatives:
             self._shape_builds = [(surf.mesh, surf.static, np.array(x), C), *self._shape_builds[:1]]
         return C
+
+    def kept_shape_set(self, x: np.ndarray) -> ipctk.NormalCollisions | None:
+        """The kept set with weight gradients at positions x on the current surface, or None."""
+        surf = self.surface
+        for mesh, static, xc, C in self._shape_builds:
+            if mesh is surf.mesh and static is surf.static and np.array_equal(xc, x):
+                return C
+        return None
 
     def whole_set(self, x: np.ndarray, shape_derivatives: bool = False) -> ipctk.NormalCollisions:
         """The whole collision set at positions x (the same on every rank)."""

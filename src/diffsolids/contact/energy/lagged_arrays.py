@@ -64,11 +64,11 @@ def friction_collision_arrays(
 
     ipctk's rule: C's collisions in order, less the edge-edge pairs whose cross squared norm
     is below their mollifier threshold eps_x at the lagged positions. ``arrays``: C's
-    :func:`collision_arrays` if already read.
+    :func:`collision_arrays` if already read (with their weights, if read).
     """
     arrays = collision_arrays(C, mesh) if arrays is None else arrays
-    if weights:
-        arrays = replace(arrays, weight=read_weights(C))
+    if weights and arrays.weight is None:
+        arrays = replace(arrays, weight=read_weights(C, arrays, mesh))
     if not len(arrays.ee_eps):
         return arrays
     x = lagged_positions[arrays.ids[arrays.kind == 2]]
