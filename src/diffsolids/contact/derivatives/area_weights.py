@@ -112,14 +112,10 @@ def _sparse_parts(g: tuple | scipy.sparse.spmatrix) -> tuple[np.ndarray, np.ndar
     return g.indices, g.data
 
 
-def weight_gradient_rows(collisions: list, size: int) -> tuple[scipy.sparse.csr_matrix, np.ndarray]:
-    """(the weight gradients of ``collisions``, one row each; their weights), read from ipctk.
-
-    A weight reads at ~4 us (a base-class attribute), a weight gradient at ~7 us.
-    """
-    weights = np.array([c.weight for c in collisions], dtype=float)
+def weight_gradient_rows(collisions: list, size: int) -> scipy.sparse.csr_matrix:
+    """The weight gradients of ``collisions`` read from ipctk, one row per collision."""
     if not len(collisions):
-        return scipy.sparse.csr_matrix((0, size)), weights
+        return scipy.sparse.csr_matrix((0, size))
     with _sparse_as_arrays():
         raw = [c.weight_gradient for c in collisions]
     grads = [_sparse_parts(g) for g in raw]
@@ -127,8 +123,7 @@ def weight_gradient_rows(collisions: list, size: int) -> tuple[scipy.sparse.csr_
     indptr = np.concatenate([[0], np.cumsum(counts)])
     index = np.concatenate([g[0] for g in grads]).astype(np.int64)
     data = np.concatenate([g[1] for g in grads])
-    rows = scipy.sparse.csr_matrix((data, index, indptr), shape=(len(collisions), size))
-    return rows, weights
+    return scipy.sparse.csr_matrix((data, index, indptr), shape=(len(collisions), size))
 
 
 def merged_weight_collisions(collisions: ipctk.NormalCollisions, dim: int) -> list:

@@ -336,7 +336,7 @@ def _weight_term(
     out = weight_gradient_adjoint(mesh, c.without_ee(mollified), s[kept], merged_rows)
     if mollified.any():
         listed = collisions.ee_collisions
-        rows, _ = weight_gradient_rows([listed[k] for k in np.flatnonzero(mollified)], out.size)
+        rows = weight_gradient_rows([listed[k] for k in np.flatnonzero(mollified)], out.size)
         out += rows.T @ s[ee][mollified]
     return out
 

@@ -237,10 +237,6 @@ class ContactAdjoint:
         The set at x^i serves the barrier of step i and the lagged friction of step i + 1
         (the builder keeps it for both); the two last read sets are kept.
         """
-        return self._merged_weights(C)[0]
-
-    def _merged_weights(self, C: ipctk.NormalCollisions) -> tuple[sp.csr_matrix, np.ndarray]:
-        """(:meth:`merged_rows`, the merged collisions' weights), read in one pass per set."""
         return self._read_once(self._merged, C, self._weight_rows)
 
     def collision_arrays(self, C: ipctk.NormalCollisions) -> CollisionArrays:
@@ -248,17 +244,13 @@ class ContactAdjoint:
         return self._read_once(self._arrays, C, lambda C: collision_arrays(C, self.surface.mesh))
 
     def weighted_arrays(self, C: ipctk.NormalCollisions) -> CollisionArrays:
-        """C's :meth:`collision_arrays` with the collisions' weights, read once per set.
-
-        The merged weights are read with their gradients when C has weight gradients.
-        """
+        """C's :meth:`collision_arrays` with the collisions' weights, read once per set."""
         arrays = self.collision_arrays(C)
         if arrays.weight is None:
-            merged = self._merged_weights(C)[1] if C.enable_shape_derivatives else None
-            arrays.weight = read_weights(C, arrays, self.surface.mesh, merged)
+            arrays.weight = read_weights(C, arrays, self.surface.mesh)
         return arrays
 
-    def _weight_rows(self, C: ipctk.NormalCollisions) -> tuple[sp.csr_matrix, np.ndarray]:
+    def _weight_rows(self, C: ipctk.NormalCollisions) -> sp.csr_matrix:
         return weight_gradient_rows(merged_weight_collisions(C, self.dim), self.surface.mesh.ndof)
 
     @staticmethod

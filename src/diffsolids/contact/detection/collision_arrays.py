@@ -89,7 +89,6 @@ def read_weights(
     collisions: ipctk.NormalCollisions,
     arrays: CollisionArrays,
     mesh: ipctk.CollisionMesh,
-    merged: np.ndarray | None = None,
 ) -> np.ndarray:
     """The weights of the collisions of a set, in the order of :func:`collision_arrays`.
 
@@ -103,19 +102,15 @@ def read_weights(
         collisions: The set.
         arrays: Its :func:`collision_arrays`.
         mesh: The collision mesh of the build.
-        merged: The weights of the vertex-vertex (and 3D edge-vertex) collisions if already
-            read.
     """
     kind, ids = arrays.kind, arrays.ids
     if not collisions.use_area_weighting:
         return np.ones(len(kind))
-    if merged is None:
-        read = list(collisions.vv_collisions)
-        if mesh.dim == 3:
-            read += list(collisions.ev_collisions)
-        merged = np.array([c.weight for c in read], dtype=float)
+    merged = list(collisions.vv_collisions)
+    if mesh.dim == 3:
+        merged += list(collisions.ev_collisions)
     weight = np.empty(len(kind))
-    weight[: len(merged)] = merged
+    weight[: len(merged)] = [c.weight for c in merged]
     vertex_areas = np.asarray(mesh.vertex_areas).ravel()
     edge_areas = np.asarray(mesh.edge_areas()).ravel()
     if mesh.dim == 2:
