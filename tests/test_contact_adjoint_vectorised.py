@@ -265,3 +265,34 @@ def test_area_gradients_equal_ipctk(dim):
         _rel(area_gradient_adjoint(mesh, alpha, beta), _ipctk_area_gradients(mesh, alpha, beta))
         <= TOL
     )
+
+
+def _probe(tip: np.ndarray) -> np.ndarray:
+    """A small triangle pointing down with its tip at ``tip``."""
+    return tip + np.array([[0, 0, 0], [0.1, 0.05, 0.2], [-0.05, 0.1, 0.2]])
+
+
+@pytest.mark.parametrize(("formulation", "area_weighting"), [("ipc", True), ("ipc", False)])
+def test_read_weights_equal_ipctks_with_merged_collisions(formulation, area_weighting):
+    """A roof of two triangles and small triangles pointing at its ridge (one collision merged
+    from the two faces' and the edges' candidates: weight 2 and more without area weights) and
+    at its corner; the weights read and computed equal ipctk's one by one."""
+    from diffsolids.contact.detection.collision_arrays import collision_arrays, read_weights
+    from diffsolids.contact.detection.collision_set import new_collision_set
+
+    roof = np.array([[0, 0, 0], [1, 0, 0], [0.5, -1, -0.2], [0.5, 1, -0.2]], dtype=float)
+    gap = 1e-3
+    X = np.vstack([roof, _probe(np.array([0.3, 0.0, gap])), _probe(np.array([1.0 + gap, 0, 0]))])
+    F = np.array([[0, 2, 1], [0, 1, 3], [4, 5, 6], [7, 8, 9]])
+    mesh = ipctk.CollisionMesh(X, ipctk.edges(F), F)
+    candidates = ipctk.Candidates()
+    candidates.build(mesh, X, 2 * gap)
+    C = new_collision_set(formulation, area_weighting)
+    C.build(candidates, mesh, X, 2 * gap, 0.0)
+    lists = (C.vv_collisions, C.ev_collisions, C.ee_collisions, C.fv_collisions)
+    expected = np.array([c.weight for group in lists for c in group])
+    assert len(C.vv_collisions) > 0 and len(C.ev_collisions) > 0
+    if not area_weighting:
+        assert expected.max() >= 2.0  # merged from several candidates
+    weights = read_weights(C, collision_arrays(C, mesh), mesh)
+    assert _rel(weights, expected) <= TOL

@@ -91,12 +91,14 @@ def test_2d_drop_independent_of_the_ground_segments(formulation):
     assert np.abs(u - u1).max() <= 1e-9
 
 
-@pytest.mark.parametrize("formulation", ["ipc", "convergent"])
+@pytest.mark.parametrize(
+    ("formulation", "area_weighting"), [("ipc", True), ("ipc", False), ("convergent", True)]
+)
 @pytest.mark.parametrize("dim", [2, 3])
-def test_collision_weights_from_areas_equal_ipctks(dim, formulation):
-    """The set's weights (the merged and flat-corrected ones read, the others from the areas)
-    equal ipctk's, one by one, on a ground with flat joints after the landing (3D: the ground
-    of 4 triangles, whose flat centre vertex is under a vertex of the block)."""
+def test_collision_weights_from_areas_equal_ipctks(dim, formulation, area_weighting):
+    """The set's weights (the merged and flat-corrected ones read, the others from the areas
+    or 1) equal ipctk's, one by one, on a ground with flat joints after the landing (3D: the
+    ground of 4 triangles, whose flat centre vertex is under a vertex of the block)."""
     if dim == 3:
         scene = drop(4, steps=6, formulation=formulation)
     else:
@@ -104,7 +106,13 @@ def test_collision_weights_from_areas_equal_ipctks(dim, formulation):
     scene.rf(scene.q0)
     model, contact = scene.rf.simulation.model, scene.contact
     model.fields.u.x.array[:] = scene.rf.trajectory.u[-1]
-    C = contact._evaluate(model.fields.u).collisions
+    x = contact._evaluate(model.fields.u).x
+    builder = contact.builder
+    builder.area_weighting = area_weighting
+    try:
+        C = builder.whole_set(x)
+    finally:
+        builder.area_weighting = True
     mesh = contact.surface.mesh
     lists = (C.vv_collisions, C.ev_collisions, C.ee_collisions, C.fv_collisions)
     expected = np.array([c.weight for group in lists for c in group])

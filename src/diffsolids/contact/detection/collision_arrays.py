@@ -92,11 +92,11 @@ def read_weights(
 ) -> np.ndarray:
     """The weights of the collisions of a set, in the order of :func:`collision_arrays`.
 
-    Without area weighting they are 1. With it, ``NormalCollisionsBuilder`` gives a face-vertex
-    collision 0.25 A_v, an edge-edge one 0.25 (A_ea + A_eb) and a 2D edge-vertex one 0.5 A_v
-    (the mesh's vertex and edge areas), computed here; the vertex-vertex and 3D edge-vertex
-    ones may sum the shares of several candidates (and the flat regions' corrections) and are
-    read from ipctk, one attribute each.
+    ``NormalCollisionsBuilder`` gives a face-vertex collision 0.25 A_v, an edge-edge one
+    0.25 (A_ea + A_eb) and a 2D edge-vertex one 0.5 A_v (the mesh's vertex and edge areas),
+    or 1 each without area weighting, computed here; the vertex-vertex and 3D edge-vertex ones
+    may sum the shares of several candidates (without area weighting: count them) and the
+    flat regions' corrections, and are read from ipctk, one attribute each.
 
     Args:
         collisions: The set.
@@ -104,13 +104,13 @@ def read_weights(
         mesh: The collision mesh of the build.
     """
     kind, ids = arrays.kind, arrays.ids
-    if not collisions.use_area_weighting:
-        return np.ones(len(kind))
     merged = list(collisions.vv_collisions)
     if mesh.dim == 3:
         merged += list(collisions.ev_collisions)
-    weight = np.empty(len(kind))
+    weight = np.ones(len(kind))
     weight[: len(merged)] = [c.weight for c in merged]
+    if not collisions.use_area_weighting:
+        return weight
     vertex_areas = np.asarray(mesh.vertex_areas).ravel()
     edge_areas = np.asarray(mesh.edge_areas()).ravel()
     if mesh.dim == 2:
