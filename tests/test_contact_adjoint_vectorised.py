@@ -20,6 +20,7 @@ import diffsolids.contact.derivatives.barrier_shape as contact_shape
 import diffsolids.contact.derivatives.step_adjoint as step_adjoint
 from diffsolids.contact.derivatives.area_weights import area_gradient_adjoint
 from diffsolids.contact.derivatives.step_adjoint import ContactAdjoint
+from diffsolids.contact.detection.collision_arrays import collision_arrays, read_weights
 from diffsolids.contact.energy.lagged_arrays import (
     barrier_derivatives,
     friction_collision_arrays,
@@ -142,9 +143,14 @@ def test_vectorised_contact_adjoint_equals_the_loops(
     loop_ids = [np.asarray(c.vertex_ids(E, F)) for g in groups for c in g]
     assert np.array_equal(ids, np.array(loop_ids))
     assert len(np.unique(kind)) >= 2  # more than one collision type in play
-    # their weights: read for the merged ones, from the areas for the others
+    # their weights: read for the merged ones, from the areas for the others; and those of
+    # the whole set (the convergent formulation's negative mollified edge-edge terms read)
     weighted = friction_collision_arrays(C, contact.surface.mesh, x, weights=True)
     assert _rel(weighted.weight, np.array([c.weight for g in groups for c in g])) <= TOL
+    whole = (C.vv_collisions, C.ev_collisions, C.ee_collisions, C.fv_collisions)
+    mesh = contact.surface.mesh
+    expected = np.array([c.weight for g in whole for c in g])
+    assert _rel(read_weights(C, collision_arrays(C, mesh), mesh, x), expected) <= TOL
 
     # the friction force's rest-position adjoint, and its area-weight part on its own
     vectorised = contact.adjoint.friction_rest(ev, lam_c)
@@ -277,7 +283,6 @@ def test_read_weights_equal_ipctks_with_merged_collisions(formulation, area_weig
     """A roof of two triangles and small triangles pointing at its ridge (one collision merged
     from the two faces' and the edges' candidates: weight 2 and more without area weights) and
     at its corner; the weights read and computed equal ipctk's one by one."""
-    from diffsolids.contact.detection.collision_arrays import collision_arrays, read_weights
     from diffsolids.contact.detection.collision_set import new_collision_set
 
     roof = np.array([[0, 0, 0], [1, 0, 0], [0.5, -1, -0.2], [0.5, 1, -0.2]], dtype=float)
@@ -294,5 +299,5 @@ def test_read_weights_equal_ipctks_with_merged_collisions(formulation, area_weig
     assert len(C.vv_collisions) > 0 and len(C.ev_collisions) > 0
     if not area_weighting:
         assert expected.max() >= 2.0  # merged from several candidates
-    weights = read_weights(C, collision_arrays(C, mesh), mesh)
+    weights = read_weights(C, collision_arrays(C, mesh), mesh, X)
     assert _rel(weights, expected) <= TOL

@@ -119,7 +119,7 @@ def test_collision_weights_from_areas_equal_ipctks(dim, formulation, area_weight
     assert len(expected) > 0
     if dim == 3 and formulation == "convergent":  # the pair at the ground's flat centre vertex
         assert len(C.vv_collisions) > 0
-    weights = read_weights(C, collision_arrays(C, mesh), mesh)
+    weights = read_weights(C, collision_arrays(C, mesh), mesh, x)
     assert np.abs(weights - expected).max() <= 1e-14 * np.abs(expected).max()
 
 

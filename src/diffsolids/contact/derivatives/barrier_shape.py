@@ -41,7 +41,7 @@ from diffsolids.contact.derivatives.area_weights import (
 from diffsolids.contact.detection.collision_arrays import (
     CollisionArrays,
     collision_arrays,
-    cross_squared_norms,
+    merged_edge_edge,
 )
 from diffsolids.contact.energy.lagged_arrays import barrier_derivatives
 from diffsolids.contact.geometry.tangent_frames import squared_distances
@@ -55,7 +55,6 @@ _POINT_LINE = {4: (2, 0, 1), 5: (3, 0, 1), 6: (0, 2, 3), 7: (1, 2, 3)}
 _LINE_LINE = 8
 # edge_edge_mollifier_threshold: eps_x = 1e-3 |ea|^2 |eb|^2 at rest
 _EPS_SCALE = 1e-3
-_IPC_SET = ipctk.NormalCollisions.CollisionSetType.IPC
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -328,9 +327,7 @@ def _weight_term(
     ``NormalCollisionsBuilder``).
     """
     ee = c.kind == 2
-    mollified = np.zeros(int(ee.sum()), dtype=bool)
-    if ee.any() and collisions.collision_set_type != _IPC_SET:
-        mollified = cross_squared_norms(x[c.ids[ee]]) < c.ee_eps * (1.0 + 1e-6)
+    mollified = merged_edge_edge(collisions, c, x)
     kept = np.ones(len(s), dtype=bool)
     kept[ee] = ~mollified
     out = weight_gradient_adjoint(mesh, c.without_ee(mollified), s[kept], merged_rows)

@@ -243,11 +243,14 @@ class ContactAdjoint:
         """C's ids and types, read once per set (kept for the last two, as :meth:`merged_rows`)."""
         return self._read_once(self._arrays, C, lambda C: collision_arrays(C, self.surface.mesh))
 
-    def weighted_arrays(self, C: ipctk.NormalCollisions) -> CollisionArrays:
-        """C's :meth:`collision_arrays` with the collisions' weights, read once per set."""
+    def weighted_arrays(self, C: ipctk.NormalCollisions, x: np.ndarray) -> CollisionArrays:
+        """C's :meth:`collision_arrays` with its collisions' weights, read once per set.
+
+        x: the positions C was built at.
+        """
         arrays = self.collision_arrays(C)
         if arrays.weight is None:
-            arrays.weight = read_weights(C, arrays, self.surface.mesh)
+            arrays.weight = read_weights(C, arrays, self.surface.mesh, x)
         return arrays
 
     def _weight_rows(self, C: ipctk.NormalCollisions) -> sp.csr_matrix:
@@ -288,6 +291,6 @@ class ContactAdjoint:
             self.lagging.pair_table,
             self.num_pairs,
             self.surface.body_index,
-            self.weighted_arrays(C),
+            self.weighted_arrays(C, x),
         )
         return self.partition.sum(out)

@@ -17,6 +17,7 @@ __all__ = [
     "CollisionArrays",
     "collision_arrays",
     "cross_squared_norms",
+    "merged_edge_edge",
     "read_weights",
     "stencil_blocks",
 ]
@@ -85,10 +86,27 @@ def collision_arrays(
     return CollisionArrays(ids, kind, ee_ids[:, :2], ee_ids[:, 2], ee[:, 3])
 
 
+def merged_edge_edge(
+    collisions: ipctk.NormalCollisions, arrays: CollisionArrays, positions: np.ndarray
+) -> np.ndarray:
+    """Which edge-edge collisions (one flag each) may carry merged weights.
+
+    The convergent formulation (``NormalCollisionsBuilder``) adds negative terms to the
+    edge-edge pairs below their mollifier threshold eps_x at the build's positions; those
+    within round-off of it (1e-6 relative) are flagged too. None in the IPC formulation.
+    """
+    ee = arrays.kind == 2
+    ipc = collisions.collision_set_type == ipctk.NormalCollisions.CollisionSetType.IPC
+    if ipc or not ee.any():
+        return np.zeros(int(ee.sum()), dtype=bool)
+    return cross_squared_norms(positions[arrays.ids[ee]]) < arrays.ee_eps * (1.0 + 1e-6)
+
+
 def read_weights(
     collisions: ipctk.NormalCollisions,
     arrays: CollisionArrays,
     mesh: ipctk.CollisionMesh,
+    positions: np.ndarray,
 ) -> np.ndarray:
     """The weights of the collisions of a set, in the order of :func:`collision_arrays`.
 
@@ -96,12 +114,14 @@ def read_weights(
     0.25 (A_ea + A_eb) and a 2D edge-vertex one 0.5 A_v (the mesh's vertex and edge areas),
     or 1 each without area weighting, computed here; the vertex-vertex and 3D edge-vertex ones
     may sum the shares of several candidates (without area weighting: count them) and the
-    flat regions' corrections, and are read from ipctk, one attribute each.
+    flat regions' corrections, and the edge-edge ones of :func:`merged_edge_edge` negative
+    terms: those are read from ipctk, one attribute each.
 
     Args:
         collisions: The set.
         arrays: Its :func:`collision_arrays`.
         mesh: The collision mesh of the build.
+        positions: (num_vertices, dim) the positions the set was built at.
     """
     kind, ids = arrays.kind, arrays.ids
     merged = list(collisions.vv_collisions)
@@ -109,16 +129,19 @@ def read_weights(
         merged += list(collisions.ev_collisions)
     weight = np.ones(len(kind))
     weight[: len(merged)] = [c.weight for c in merged]
-    if not collisions.use_area_weighting:
-        return weight
-    vertex_areas = np.asarray(mesh.vertex_areas).ravel()
-    edge_areas = np.asarray(mesh.edge_areas()).ravel()
-    if mesh.dim == 2:
-        ev = kind == 1
-        weight[ev] = 0.5 * vertex_areas[ids[ev, 0]]
-    weight[kind == 2] = 0.25 * edge_areas[arrays.ee_edges].sum(axis=1)
-    fv = kind == 3
-    weight[fv] = 0.25 * vertex_areas[ids[fv, 0]]
+    if collisions.use_area_weighting:
+        vertex_areas = np.asarray(mesh.vertex_areas).ravel()
+        edge_areas = np.asarray(mesh.edge_areas()).ravel()
+        if mesh.dim == 2:
+            ev = kind == 1
+            weight[ev] = 0.5 * vertex_areas[ids[ev, 0]]
+        weight[kind == 2] = 0.25 * edge_areas[arrays.ee_edges].sum(axis=1)
+        fv = kind == 3
+        weight[fv] = 0.25 * vertex_areas[ids[fv, 0]]
+    read = np.flatnonzero(merged_edge_edge(collisions, arrays, positions))
+    if len(read):
+        ee = collisions.ee_collisions
+        weight[np.flatnonzero(kind == 2)[read]] = [ee[k].weight for k in read]
     return weight
 
 

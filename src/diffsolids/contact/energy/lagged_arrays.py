@@ -68,7 +68,7 @@ def friction_collision_arrays(
     """
     arrays = collision_arrays(C, mesh) if arrays is None else arrays
     if weights and arrays.weight is None:
-        arrays = replace(arrays, weight=read_weights(C, arrays, mesh))
+        arrays = replace(arrays, weight=read_weights(C, arrays, mesh, lagged_positions))
     if not len(arrays.ee_eps):
         return arrays
     x = lagged_positions[arrays.ids[arrays.kind == 2]]
