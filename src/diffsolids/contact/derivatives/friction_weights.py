@@ -31,6 +31,8 @@ Under MPI the normal collisions are this rank's share and the caller sums the re
 ranks.
 """
 
+from dataclasses import dataclass
+
 import ipctk
 import numpy as np
 import scipy.sparse
@@ -43,7 +45,7 @@ from diffsolids.contact.energy.lagged_arrays import (
     friction_arrays,
 )
 
-__all__ = ["friction_coefficient_adjoint", "friction_weight_adjoint"]
+__all__ = ["LaggedSet", "friction_coefficient_adjoint", "friction_weight_adjoint"]
 
 
 def _collision_terms(
@@ -62,64 +64,83 @@ def _collision_terms(
     return lagged.coefficients * f1_over_y * np.einsum("kt,kt->k", tau, q)
 
 
+@dataclass
+class LaggedSet:
+    """The normal collisions a step's friction is lagged from, with what its terms read.
+
+    Attributes:
+        collisions: Normal collisions at ``positions`` (this rank's share; the friction
+            collisions are those ipctk lags from them).
+        mesh: The collision mesh.
+        positions: (num_vertices, dim) positions x^{i-1} of the build.
+        velocities: (num_vertices, dim) velocities v of the step.
+        barrier: The barrier potential of the build (dmin = 0).
+        stiffness: Its stiffness kappa.
+        eps_v: Friction smoothing velocity.
+        body_index: Body index of each collision vertex.
+        arrays: The collisions' ``collision_arrays`` if already read (with their weights if
+            read).
+    """
+
+    collisions: ipctk.NormalCollisions
+    mesh: ipctk.CollisionMesh
+    positions: np.ndarray
+    velocities: np.ndarray
+    barrier: ipctk.BarrierPotential
+    stiffness: float
+    eps_v: float
+    body_index: np.ndarray
+    arrays: CollisionArrays | None = None
+
+    def terms(
+        self, lam: np.ndarray, mu_table: np.ndarray, weighted: bool
+    ) -> tuple[FrictionArrays, np.ndarray]:
+        """The friction collisions with ``mu_table``'s coefficients and their terms with lam.
+
+        The terms are mu_c N_c f1(|tau_c|)/|tau_c| tau_c . (P_c^T Gamma_c lam), times w_c
+        when ``weighted``.
+        """
+        lagged = friction_arrays(
+            self.collisions,
+            self.mesh,
+            self.positions,
+            self.barrier,
+            self.stiffness,
+            mu_table,
+            self.body_index,
+            weighted,
+            self.arrays,
+        )
+        return lagged, _collision_terms(lagged, self.velocities, lam, self.eps_v)
+
+
 def friction_weight_adjoint(
-    C: ipctk.NormalCollisions,
-    mesh: ipctk.CollisionMesh,
-    lagged_positions: np.ndarray,
-    velocities: np.ndarray,
+    lagged: LaggedSet,
     lam: np.ndarray,
-    barrier: ipctk.BarrierPotential,
-    stiffness: float,
-    eps_v: float,
     mu_table: np.ndarray,
-    body_index: np.ndarray,
     merged_rows: scipy.sparse.csr_matrix,
-    arrays: CollisionArrays | None = None,
 ) -> np.ndarray:
     """sum_c (F_c . lam / w_c) grad_X w_c over the friction collisions (module docstring).
 
     Args:
-        C: Normal collisions at ``lagged_positions``, with shape derivatives (the friction
-            collisions are those ipctk lags from them).
-        mesh: The collision mesh.
-        lagged_positions: (num_vertices, dim) positions x^{i-1} of the lagged build.
-        velocities: (num_vertices, dim) velocities v.
+        lagged: The lagged set (its collisions with shape derivatives).
         lam: (num_vertices * dim,) adjoint vector.
-        barrier: The barrier potential of the build (dmin = 0).
-        stiffness: Its stiffness kappa.
-        eps_v: Friction smoothing velocity.
         mu_table: (num_bodies, num_bodies) friction coefficient of each pair of bodies (the
             blend of the build; static and kinetic equal).
-        body_index: Body index of each collision vertex.
-        merged_rows: Weight gradients of C's collisions with merged weights, one row each
+        merged_rows: Weight gradients of the collisions with merged weights, one row each
             (``area_weights.merged_weight_collisions``).
-        arrays: C's ``collision_arrays`` if already read.
 
     Returns:
         (num_vertices * dim,) the weight part of (dF/dX)^T lam.
     """
-    if len(C) == 0:
-        return np.zeros(lagged_positions.size)
-    lagged = friction_arrays(
-        C, mesh, lagged_positions, barrier, stiffness, mu_table, body_index, False, arrays
-    )
-    s = -_collision_terms(lagged, velocities, lam, eps_v)
-    return weight_gradient_adjoint(mesh, lagged.collisions, s, merged_rows)
+    if len(lagged.collisions) == 0:
+        return np.zeros(lagged.positions.size)
+    friction, terms = lagged.terms(lam, mu_table, weighted=False)
+    return weight_gradient_adjoint(lagged.mesh, friction.collisions, -terms, merged_rows)
 
 
 def friction_coefficient_adjoint(
-    C: ipctk.NormalCollisions,
-    mesh: ipctk.CollisionMesh,
-    lagged_positions: np.ndarray,
-    velocities: np.ndarray,
-    lam: np.ndarray,
-    barrier: ipctk.BarrierPotential,
-    stiffness: float,
-    eps_v: float,
-    pair_table: np.ndarray,
-    num_pairs: int,
-    body_index: np.ndarray,
-    arrays: CollisionArrays | None = None,
+    lagged: LaggedSet, lam: np.ndarray, pair_table: np.ndarray, num_pairs: int
 ) -> np.ndarray:
     """(d g / d mu_p)^T lam for each pair p of bodies, g = -F the friction part of the residual.
 
@@ -127,29 +148,16 @@ def friction_coefficient_adjoint(
     Gamma_c lam), summed over the collisions of each pair (module docstring).
 
     Args:
-        C: Normal collisions at ``lagged_positions`` (the friction collisions are those ipctk
-            lags from them).
-        mesh: The collision mesh.
-        lagged_positions: (num_vertices, dim) positions x^{i-1}.
-        velocities: (num_vertices, dim) velocities v.
+        lagged: The lagged set.
         lam: (num_vertices * dim,) adjoint vector.
-        barrier: The barrier potential of the build (dmin = 0).
-        stiffness: Its stiffness kappa.
-        eps_v: Friction smoothing velocity.
         pair_table: (num_bodies, num_bodies) index of each pair of bodies among the pairs.
         num_pairs: Number of pairs.
-        body_index: Body index of each collision vertex.
-        arrays: C's ``collision_arrays`` (with their weights) if already read.
 
     Returns:
         (num_pairs,) this rank's collisions' part.
     """
-    if len(C) == 0:
+    if len(lagged.collisions) == 0:
         return np.zeros(num_pairs)
-    unit = np.ones(pair_table.shape)
-    lagged = friction_arrays(
-        C, mesh, lagged_positions, barrier, stiffness, unit, body_index, True, arrays
-    )
-    a, b = collision_sides(lagged.ids, body_index)
-    terms = _collision_terms(lagged, velocities, lam, eps_v)
+    friction, terms = lagged.terms(lam, np.ones(pair_table.shape), weighted=True)
+    a, b = collision_sides(friction.ids, lagged.body_index)
     return np.bincount(pair_table[a, b], weights=terms, minlength=num_pairs)

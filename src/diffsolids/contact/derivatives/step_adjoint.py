@@ -24,6 +24,7 @@ from diffsolids.contact.derivatives.area_weights import (
 )
 from diffsolids.contact.derivatives.barrier_shape import barrier_shape_adjoint
 from diffsolids.contact.derivatives.friction_weights import (
+    LaggedSet,
     friction_coefficient_adjoint,
     friction_weight_adjoint,
 )
@@ -216,19 +217,24 @@ class ContactAdjoint:
         if not self.area_weighting:
             return out
         x, C = self.lagging.lagged_state(shape_derivatives=True)
-        return out + friction_weight_adjoint(
+        lagged = self._lagged_set(ev, C, x, self.collision_arrays(C))
+        mu_table = self.lagging.mu_table(self.lagging.mu)
+        return out + friction_weight_adjoint(lagged, lam_c, mu_table, self.merged_rows(C))
+
+    def _lagged_set(
+        self, ev: Evaluation, C: ipctk.NormalCollisions, x: np.ndarray, arrays: CollisionArrays
+    ) -> LaggedSet:
+        """The set C built at x^{i-1} = x and what the friction terms read at ev."""
+        return LaggedSet(
             C,
             self.surface.mesh,
             x,
             self.lagging.velocity(ev.U),
-            lam_c,
             self.potential.barrier,
             self.potential.stiffness,
             self.eps_v,
-            self.lagging.mu_table(self.lagging.mu),
             self.surface.body_index,
-            self.merged_rows(C),
-            self.collision_arrays(C),
+            arrays,
         )
 
     def merged_rows(self, C: ipctk.NormalCollisions) -> sp.csr_matrix:
@@ -279,18 +285,8 @@ class ContactAdjoint:
         C = self.builder.kept_shape_set(x)
         if C is None:
             x, C = self.lagging.lagged_state()
+        lagged = self._lagged_set(ev, C, x, self.weighted_arrays(C, x))
         out = friction_coefficient_adjoint(
-            C,
-            self.surface.mesh,
-            x,
-            self.lagging.velocity(ev.U),
-            self.surface_vector(lam),
-            self.potential.barrier,
-            self.potential.stiffness,
-            self.eps_v,
-            self.lagging.pair_table,
-            self.num_pairs,
-            self.surface.body_index,
-            self.weighted_arrays(C, x),
+            lagged, self.surface_vector(lam), self.lagging.pair_table, self.num_pairs
         )
         return self.partition.sum(out)
