@@ -176,7 +176,7 @@ def test_vectorised_contact_adjoint_equals_the_loops(
     # the barrier shape adjoint against ipctk's shape derivative (corrected in 3D): its product
     # with the Hessian of the same set, the weight terms and the mollifier threshold's terms
     contact.potential.hessian(ev)
-    Hb_lam = ev.extras["barrier_hessian"] @ lam_c
+    Hb_lam = ev.barrier_hessian @ lam_c
     batched = contact_shape.barrier_shape_adjoint(
         *args, lam_c, Hb_lam, contact.adjoint.merged_rows(C)
     )

@@ -149,7 +149,7 @@ def test_contact_derivative_kernels(dim, degree, order, eps_v, formulation):
     chk = _Checker(model, contact, u)
     comm = chk.comm
     ev = contact._evaluate(u)
-    assert len(ev.collisions) > 0 and len(ev.extras["friction"]) > 0
+    assert len(ev.collisions) > 0 and len(ev.friction) > 0
     if dim == 3:  # mollified edge-edge pairs present: the ipctk shape-derivative bug is in play
         rest = contact.surface.rest_positions
         assert any(True for _ in _mollified_pairs(ev.collisions, contact.surface.mesh, rest, ev.x))

@@ -298,7 +298,7 @@ def test_collision_stencils_are_the_barrier_hessians_blocks(dim, formulation):
     ev = contact._evaluate(u)
     contact.potential.hessian(ev)
     nv = contact.surface.num_vertices
-    exact = block_pattern(ev.extras["barrier_hessian"], dim=dim, num_vertices=nv)
+    exact = block_pattern(ev.barrier_hessian, dim=dim, num_vertices=nv)
     stencils = stencil_blocks(collision_arrays(ev.collisions, contact.surface.mesh), nv)
     assert np.any(exact // nv != exact % nv)  # off-diagonal blocks in play
     assert np.array_equal(stencils, exact)

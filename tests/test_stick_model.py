@@ -61,7 +61,7 @@ def test_friction_arrays_equal_ipctk_collisions(dim, formulation):
     contact.set_friction(1, 2, 0.3)
     contact.set_friction(1, 1, 0.7)
     ev = contact._evaluate(u)
-    T = ev.extras["friction"]
+    T = ev.friction
     assert T is not None and len(T) > 0
     kinds = [len(g) > 0 for g in (T.vv_collisions, T.ev_collisions, T.ee_collisions)]
     assert sum(kinds) + (len(T.fv_collisions) > 0) >= 2  # more than one collision type

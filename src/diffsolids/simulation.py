@@ -386,21 +386,13 @@ class Simulation:
         numeric = [b for b in self.solver.step_bounds if b in self.model.numeric_terms]
         if not numeric:
             return False
-        x, dx = self.solver.x, self.solver._work
-        n = len(x.array_r)
-        prev = self._guess_origin
-        x.array_w[:] = prev[:n]
-        dx.array_w[:] = arr[:n] - prev[:n]
-        return min(b.max_step(x, dx) for b in numeric) <= 1.0
+        return self.solver.path_bound(self._guess_origin, arr, numeric) <= 1.0
 
     def _inverts(self, arr: np.ndarray) -> bool:
         """Whether the state ``arr`` fails a step bound that is not a numeric term's (inversion)."""
         numeric = self.model.numeric_terms
         guards = [b for b in self.solver.step_bounds if b not in numeric]
-        x, dx = self.solver.x, self.solver._work
-        dx.set(0.0)
-        x.array_w[:] = arr[: len(x.array_r)]
-        return any(g.max_step(x, dx) <= 0.0 for g in guards)
+        return self.solver.path_bound(arr, arr, guards) <= 0.0
 
     # -- run -----------------------------------------------------------------------------
     def run(self, checkpoints: RunDriver | None = None) -> Trajectory | RunRecord:

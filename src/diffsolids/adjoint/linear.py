@@ -173,8 +173,8 @@ class AdjointLinearSolver:
     def _solve_quadratic(self, b: PETSc.Vec, x: PETSc.Vec) -> int:
         """Constant Jacobian (per beta dt): direct solves with one factorisation each."""
         newton = self.newton
-        key = newton._current_key()
-        if key == newton._jacobian_key:  # the forward factors are of this very matrix
+        key = newton.quadratic_key()
+        if newton.holds_factors_of(key):  # the forward factors are of this very matrix
             newton.snes.getKSP().solve(b, x)
         else:
             if key not in self._quadratic_cache:

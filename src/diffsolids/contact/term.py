@@ -388,8 +388,7 @@ class ContactTerm(NumericTerm):
         if C is None:
             with self._timed("build"):
                 C = self.builder.build_on_segment(U, x, self._token)
-        ev = Evaluation(U, x, C, self._token)
-        ev.extras["friction"] = T
+        ev = Evaluation(U, x, C, self._token, friction=T)
         self._eval = ev
         return ev
 
@@ -588,8 +587,7 @@ class ContactTerm(NumericTerm):
         ev = self._eval
         if ev is not None and ev.token != self._token:
             friction = self._friction()
-            ev = Evaluation(ev.U, ev.x, ev.collisions, self._token)
-            ev.extras["friction"] = friction
+            ev = Evaluation(ev.U, ev.x, ev.collisions, self._token, friction=friction)
             self._eval = ev
         return ev
 

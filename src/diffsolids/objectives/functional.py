@@ -70,6 +70,8 @@ class _Algebra:
     _kind: type
     _binary_node: type
     _mapped_node: type
+    # a short name for labels and messages (None: the type's name is used)
+    name: str | None = None
 
     def _operation(
         self, other: "_Algebra | float", op: str, reflected: bool = False
@@ -436,7 +438,7 @@ Objective._binary_node, Objective._mapped_node = BinaryObjective, MappedObjectiv
 
 def series_name(series: Series) -> str:
     """A short name of a series for messages (the Integral's or node's name, else its type)."""
-    return str(getattr(series, "name", None) or type(series).__name__)
+    return str(series.name or type(series).__name__)
 
 
 def check_finite_steps(series: Series, values: np.ndarray, steps: npt.ArrayLike) -> None:

@@ -51,7 +51,7 @@ def series_label(s: Series) -> str:
         return f"({series_label(s.a)}{s.op}{series_label(s.b)})"
     if isinstance(s, MappedSeries):
         return f"{s.name}({series_label(s.a)})"
-    return str(getattr(s, "name", None) or type(s).__name__)
+    return str(s.name or type(s).__name__)
 
 
 def term_label(node: Objective) -> str:
@@ -62,7 +62,7 @@ def term_label(node: Objective) -> str:
     if isinstance(node, ConstantObjective):
         return f"{node.c:g}"
     if isinstance(node, Regulariser):
-        return str(getattr(node, "name", type(node).__name__))
+        return str(node.name or type(node).__name__)
     if isinstance(node, MappedObjective):
         return f"{node.name}({term_label(node.a)})"
     if isinstance(node, BinaryObjective):
@@ -71,7 +71,7 @@ def term_label(node: Objective) -> str:
         if node.op == "*" and isinstance(node.b, ConstantObjective):
             return f"{node.b.c:g}*{term_label(node.a)}"
         return f"({term_label(node.a)}{node.op}{term_label(node.b)})"
-    return str(getattr(node, "name", None) or type(node).__name__)
+    return str(node.name or type(node).__name__)
 
 
 def _flatten(node: Objective, sign: float, out: list) -> None:

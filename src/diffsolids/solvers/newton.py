@@ -347,7 +347,7 @@ class NewtonSolver:
         self.assemble_residual(b)
 
     def _jacobian(self, snes: PETSc.SNES, x: PETSc.Vec, A: PETSc.Mat, P: PETSc.Mat) -> None:
-        if self.quadratic and self._jacobian_key == self._current_key():
+        if self.quadratic and self._jacobian_key == self.quadratic_key():
             return  # the Hessian of a quadratic potential does not change: keep the factors
         self._assign(x)
         below = np.inf if self._exact_from_start else self.options.exact_hessian_below
@@ -360,11 +360,16 @@ class NewtonSolver:
         else:
             self.assemble_jacobian(A)
             self._exact_factors = True
-        self._jacobian_key = self._current_key()
+        self._jacobian_key = self.quadratic_key()
 
-    def _current_key(self) -> tuple[float, float]:
+    def quadratic_key(self) -> tuple[float, float]:
+        """(beta dt, dt) now: all that a quadratic potential's Jacobian depends on."""
         f = self.model.fields
         return (float(f.beta_dt.value), float(f.dt.value))
+
+    def holds_factors_of(self, key: tuple[float, float]) -> bool:
+        """Whether the KSP holds factors of the quadratic Jacobian at ``key``."""
+        return self._jacobian_key is not None and self._jacobian_key == key
 
     def _energy_at(self, x: PETSc.Vec) -> float:
         """Assign ``x`` to ``u`` and return the potential there.
@@ -813,6 +818,28 @@ class NewtonSolver:
         """Largest admissible fraction of ``direction`` from ``x`` (inf without step bounds)."""
         return min((g.max_step(self.x, direction) for g in self.step_bounds), default=np.inf)
 
+    def path_bound(self, origin: np.ndarray, target: np.ndarray, bounds: list) -> float:
+        """Largest admissible fraction of the straight path from ``origin`` to ``target``.
+
+        Args:
+            origin: Local dof array of the path's start (owned entries are used).
+            target: Local dof array of its end; ``origin`` itself checks that state alone
+                (a bound <= 0: the state is not admissible).
+            bounds: The step bounds to apply (some of :attr:`step_bounds`).
+
+        Returns:
+            The smallest fraction the bounds admit (inf without bounds). Uses the solver's
+            ``x`` and a work vector, not ``u``.
+        """
+        x, dx = self.x, self._work
+        n = len(x.array_r)
+        x.array_w[:] = origin[:n]
+        if target is origin:
+            dx.set(0.0)
+        else:
+            dx.array_w[:] = target[:n] - origin[:n]
+        return min((b.max_step(x, dx) for b in bounds), default=np.inf)
+
     def advance(self, direction: PETSc.Vec, fraction: float = 1.0) -> None:
         """Set ``u`` to ``x + fraction * direction``."""
         self.x.axpy(fraction, direction)
@@ -845,9 +872,8 @@ class NewtonSolver:
         if not guards:
             return False
         self.u.x.scatter_forward()
-        self.x.array_w[:] = self.u.x.petsc_vec.array_r
-        self._work.set(0.0)
-        return guards[0].max_step(self.x, self._work) <= 0.0
+        state = self.u.x.petsc_vec.array_r
+        return self.path_bound(state, state, guards[:1]) <= 0.0
 
     def reset(self) -> None:
         """Forget cached Jacobians, contact matrix entries and round-off steps (new run)."""

@@ -126,11 +126,11 @@ class ContactAdjoint:
 
     def lagged_jacobian(self, ev: Evaluation) -> sp.csc_matrix:
         """dF/dU^{i-1} at ev (kept with ev: the history and shape kernels both need it)."""
-        J = ev.extras.get("friction_lagged_jacobian")
+        J = ev.friction_lagged_jacobian
         if J is None:
             wrt = ipctk.FrictionPotential.DiffWRT.LAGGED_DISPLACEMENTS
-            J = self.friction_jacobian(ev, ev.extras["friction"], wrt)
-            ev.extras["friction_lagged_jacobian"] = J
+            J = self.friction_jacobian(ev, ev.friction, wrt)
+            ev.friction_lagged_jacobian = J
         return J
 
     def history(self, ev: Evaluation, lam: fem.Function | np.ndarray) -> dict[int, np.ndarray]:
@@ -139,7 +139,7 @@ class ContactAdjoint:
         g is the contact part of the step residual: friction depends on u^{i-1} through the
         lagged normal forces and tangent bases and on u^{i-1}..u^{i-m} through the velocity.
         """
-        T = ev.extras["friction"]
+        T = ev.friction
         step = self.lagging.step
         lags = range(1, len(step.alpha) + 1)
         if T is None:
@@ -150,7 +150,7 @@ class ContactAdjoint:
         # g_f = -F(X, U^{i-1}, v):  dg/dU^{i-j} = -dF/dv dv/dU^{i-j}  (- dF/dU_lag, j = 1),
         # -dF/dv = Hess_v D: the friction Hessian of the step's exact Hessian at ev when the
         # adjoint solve computed it (symmetric), else ipctk's velocity Jacobian
-        Hf = ev.extras.get("friction_hessian")
+        Hf = ev.friction_hessian
         if Hf is not None:
             vbar = Hf @ lam_c
         else:
@@ -176,7 +176,7 @@ class ContactAdjoint:
         C = self.builder.build(ev.x, shape_derivatives=True)
         x = np.asfortranarray(ev.x)
         self.potential.hessian(ev)  # exact; keeps its barrier part
-        Hb_lam = ev.extras["barrier_hessian"] @ lam_c
+        Hb_lam = ev.barrier_hessian @ lam_c
         g = barrier_shape_adjoint(
             C,
             mesh,

@@ -121,7 +121,7 @@ class ContactPotential:
     def _gradient_now(self, ev: Evaluation) -> None:
         """The gradient summed over the ranks (the same on all); its barrier part kept local."""
         with timed(self.timings, "gradient"):
-            g, ev.extras["barrier_gradient_share"] = contact_gradient(
+            g, ev.barrier_gradient_share = contact_gradient(
                 self.barrier,
                 self.friction_potential,
                 self.surface.mesh,
@@ -133,10 +133,10 @@ class ContactPotential:
 
     def barrier_gradient(self, ev: Evaluation) -> np.ndarray:
         """The barrier part of the gradient at ev, summed over the ranks (collective)."""
-        if "barrier_gradient" not in ev.extras:
+        if ev.barrier_gradient is None:
             self.gradient(ev)
-            ev.extras["barrier_gradient"] = self.partition.sum(ev.extras["barrier_gradient_share"])
-        return ev.extras["barrier_gradient"]
+            ev.barrier_gradient = self.partition.sum(ev.barrier_gradient_share)
+        return ev.barrier_gradient
 
     def hessian(self, ev: Evaluation, project: bool = False) -> sp.csc_matrix:
         """This rank's share of the Hessian at ev (PSD-projected with ``project``)."""
@@ -159,7 +159,7 @@ class ContactPotential:
 
     # -- Newton steps holding sliding contacts at stick (stick_model) ------------------------
     def _stick_model(self, ev: Evaluation) -> StickModel | None:
-        T = ev.extras["friction"]
+        T = ev.friction
         if T is None or not len(T):
             return None
         if self._stick is None or self._stick_of is not T:

@@ -156,4 +156,4 @@ class LaggedFriction:
 
     def friction_velocity(self, ev: Evaluation) -> np.ndarray | None:
         """The velocity at ev when the step has friction (None without)."""
-        return None if ev.extras["friction"] is None else self.velocity(ev.U)
+        return None if ev.friction is None else self.velocity(ev.U)

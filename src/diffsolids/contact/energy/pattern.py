@@ -58,7 +58,7 @@ class ContactPattern:
             # the barrier's blocks are its collisions' stencils (no Hessian needed for them)
             arrays = collision_arrays(ev.collisions, surf.mesh)
             needed = stencil_blocks(arrays, surf.num_vertices)
-            T = ev.extras["friction"]
+            T = ev.friction
             if T is not None:
                 if step.friction_pattern is None:
                     # at zero sliding velocity the friction Hessian covers every stencil
