@@ -76,3 +76,59 @@ def test_a_planted_upward_import_breaks_the_contract() -> None:
     assert any(
         d.importer == "diffsolids.errors" and d.imported == "diffsolids.simulation" for d in chains
     )
+
+
+# DOLFINx's own private names the package uses: the C++ object of a form or function, and the
+# ghost update of a PETSc vector (dolfinx.la.petsc has no public equivalent in 0.11)
+_FOREIGN_PRIVATE = {"_cpp_object", "_ghost_update"}
+
+
+def _private_reach_ins(source: str) -> list[tuple[int, str]]:
+    """(line, name) of private attributes read on other objects that this source never defines.
+
+    A module may use the private members of its own classes on any instance (``other._x`` in
+    the class that sets ``self._x``); a private name it does not define belongs to another
+    module, and reading it there is reaching into that module's internals.
+    """
+    tree = ast.parse(source)
+    defined = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.FunctionDef | ast.ClassDef):
+            defined.add(node.name)
+        elif isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store):
+            defined.add(node.attr)
+        elif isinstance(node, ast.AnnAssign | ast.Assign):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            defined.update(t.id for t in targets if isinstance(t, ast.Name))
+    hits = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Attribute) or not node.attr.startswith("_"):
+            continue
+        if node.attr.startswith("__") or node.attr in _FOREIGN_PRIVATE:
+            continue
+        if isinstance(node.value, ast.Name) and node.value.id in ("self", "cls"):
+            continue
+        if node.attr not in defined:
+            hits.append((node.lineno, f"{ast.unparse(node.value)}.{node.attr}"))
+    return hits
+
+
+def test_no_module_reads_another_modules_private_members() -> None:
+    """The forward, the adjoint and the optimiser talk through public members only."""
+    found = [
+        f"{path.relative_to(ROOT)}:{line}: {name}"
+        for path in sorted((ROOT / "src" / "diffsolids").rglob("*.py"))
+        for line, name in _private_reach_ins(path.read_text())
+    ]
+    assert not found, "private members read across modules:\n" + "\n".join(found)
+
+
+def test_a_planted_private_reach_in_is_found() -> None:
+    """The check above flags a read of another class's private member, not one of its own."""
+    planted = "def f(solver):\n    return solver._work\n"
+    assert _private_reach_ins(planted) == [(2, "solver._work")]
+    own = (
+        "class A:\n    def __init__(self):\n        self._w = 1\n"
+        "    def g(self, o):\n        return o._w\n"
+    )
+    assert _private_reach_ins(own) == []

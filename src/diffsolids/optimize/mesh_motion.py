@@ -118,7 +118,7 @@ class MeshMotion(spla.LinearOperator):
         self._owned_design_slot = self._design_slot[owned_design]
 
         self.cell_weight = self._cell_weight(stiffening)
-        self._a = compile_form(self._stiffness(self.W, self.cell_weight))
+        self._a = compile_form(self.stiffness_form(self.cell_weight))
         self.K = dolfinx.fem.petsc.assemble_matrix(self._a)
         self.K.assemble()
         constrained = np.union1d(self._design_nodes, fixed_nodes).astype(np.int32)
@@ -129,7 +129,7 @@ class MeshMotion(spla.LinearOperator):
         bs = self.dim
         owned_c = constrained[constrained < self._owned]
         self._owned_constrained_dofs = (owned_c[:, None] * bs + np.arange(bs)).ravel()
-        self._fixed_nodes = fixed_nodes
+        self.fixed_nodes = fixed_nodes
         self.reference = mesh.geometry.x.copy()
         self._b, self._x, self._r, self._w = (
             dolfinx.fem.petsc.create_vector(self.W) for _ in range(4)
@@ -170,10 +170,9 @@ class MeshMotion(spla.LinearOperator):
         weight.x.array[Q.dofmap.list[:, 0]] = (mean / vol) ** float(chi)
         return weight
 
-    def _stiffness(
-        self, W: fem.FunctionSpace, weight: fem.Function | fem.Constant, mass: float = 0.0
-    ) -> ufl.Form:
-        u, v = ufl.TrialFunction(W), ufl.TestFunction(W)
+    def stiffness_form(self, weight: fem.Function | fem.Constant, mass: float = 0.0) -> ufl.Form:
+        """The extension's bilinear form on ``W`` with a cell weight (plus a mass term)."""
+        u, v = ufl.TrialFunction(self.W), ufl.TestFunction(self.W)
         if self.extension == "harmonic":
             a = weight * ufl.inner(ufl.grad(u), ufl.grad(v)) * ufl.dx
         else:
@@ -203,7 +202,7 @@ class MeshMotion(spla.LinearOperator):
         w, b = self._w, self._b
         w_owned = w.getArray()
         w_owned[:] = 0.0
-        w_owned.reshape(-1, self.dim)[self._owned_design_nodes] = q[self._owned_design_slot]
+        self.scatter_design(q, w_owned)
         self.K.mult(w, b)
         b_owned = b.getArray()
         b_owned *= -1.0
@@ -223,8 +222,19 @@ class MeshMotion(spla.LinearOperator):
         y.getArray()[self._owned_constrained_dofs] = 0.0
         self.K.multTranspose(y, self._r)
         dq_local = (y_owned - self._owned_array(self._r)).reshape(-1, self.dim)
+        return self.gather_design(dq_local)
+
+    def scatter_design(self, q: np.ndarray, owned: np.ndarray) -> None:
+        """Write design values q (num_design_vertices, dim) into their owned nodes of ``owned``.
+
+        ``owned``: an array over the owned nodes of ``W`` (flat or (nodes, dim)).
+        """
+        owned.reshape(-1, self.dim)[self._owned_design_nodes] = q[self._owned_design_slot]
+
+    def gather_design(self, owned: np.ndarray) -> np.ndarray:
+        """The design nodes' values of an owned-node array of ``W``, flat (collective)."""
         out = np.zeros((self.design.size, self.dim))
-        out[self._owned_design_slot] = dq_local[self._owned_design_nodes]
+        out[self._owned_design_slot] = owned.reshape(-1, self.dim)[self._owned_design_nodes]
         return collective_comm(self.comm).allreduce(out, op=MPI.SUM).ravel()
 
     def riesz_map(self, mass_weight: float | None = None, scale: float = 1.0) -> "RieszMap":
@@ -272,8 +282,8 @@ class RieszMap:
                 raise ControlError("the Riesz map needs mass_weight >= 0 and scale > 0")
             self.mass_weight, self.scale = float(mass_weight), float(scale)
             one = fem.Constant(domain.mesh, PETSc.ScalarType(1.0))
-            self._a = compile_form(motion._stiffness(motion.W, one, self.mass_weight))
-            bc = fem.dirichletbc(fem.Function(motion.W), motion._fixed_nodes.astype(np.int32))
+            self._a = compile_form(motion.stiffness_form(one, self.mass_weight))
+            bc = fem.dirichletbc(fem.Function(motion.W), motion.fixed_nodes.astype(np.int32))
             self.R = dolfinx.fem.petsc.assemble_matrix(self._a, bcs=[bc])
         finally:
             geometry[:] = current
@@ -293,17 +303,11 @@ class RieszMap:
         g = np.asarray(g, dtype=float)
         if g.shape != (self.size,):
             raise ControlError(f"Riesz map expects a vector of length {self.size}")
-        dim = m.dim
-        b = self._b
-        arr = b.getArray()
+        arr = self._b.getArray()
         arr[:] = 0.0
-        gv = g.reshape(-1, dim)
-        arr.reshape(-1, dim)[m._owned_design_nodes] = gv[m._owned_design_slot]
-        self._ksp.solve(b, self._x)
-        x = self._x.getArray(readonly=True).reshape(-1, dim)
-        out = np.zeros((m.design.size, dim))
-        out[m._owned_design_slot] = x[m._owned_design_nodes]
-        return self.scale * collective_comm(m.comm).allreduce(out, op=MPI.SUM).ravel()
+        m.scatter_design(g.reshape(-1, m.dim), arr)
+        self._ksp.solve(self._b, self._x)
+        return self.scale * m.gather_design(self._x.getArray(readonly=True))
 
 
 class MeshMotionControl(ShapeControl):
