@@ -41,6 +41,7 @@ from diffsolids.contact.derivatives.area_weights import (
 from diffsolids.contact.detection.collision_arrays import (
     CollisionArrays,
     collision_arrays,
+    edge_edge_weights,
     merged_edge_edge,
 )
 from diffsolids.contact.energy.lagged_arrays import barrier_derivatives
@@ -85,7 +86,7 @@ def _mollified_pairs(
     mesh: ipctk.CollisionMesh,
     rest: np.ndarray,
     x: np.ndarray,
-    ee: list | None = None,
+    arrays: CollisionArrays | None = None,
 ) -> _MollifiedPairs:
     """Edge-edge collisions whose cross squared norm is below the mollifier threshold.
 
@@ -94,12 +95,11 @@ def _mollified_pairs(
         mesh: Its collision mesh.
         rest: (num_vertices, 3) rest positions.
         x: (num_vertices, 3) positions.
-        ee: ``collisions.ee_collisions`` if already converted (each conversion copies them).
+        arrays: The set's :func:`collision_arrays` if already read.
     """
-    ee = collisions.ee_collisions if ee is None else ee
-    edges = np.asarray(mesh.edges)
-    pairs = np.array([(c.edge0_id, c.edge1_id) for c in ee], dtype=np.int64).reshape(-1, 2)
-    ids = edges[pairs].reshape(-1, 4)
+    c = collision_arrays(collisions, mesh) if arrays is None else arrays
+    pairs = c.ee_edges
+    ids = c.ids[c.kind == 2]
     xr, xp = rest[ids], x[ids]
     ea, eb = xr[:, 0] - xr[:, 1], xr[:, 2] - xr[:, 3]
     eps = _EPS_SCALE * _dot(ea, ea) * _dot(eb, eb)
@@ -179,19 +179,19 @@ def _ee_terms(
     x: np.ndarray,
     barrier: ipctk.BarrierPotential,
     stiffness: float,
-    ee: list,
+    arrays: CollisionArrays,
 ) -> _Terms | None:
     """The correction's ingredients for every mollified pair (None: no mollified pair).
 
-    ``ee`` is ``collisions.ee_collisions``, converted once by the caller.
+    ``arrays``: the set's :func:`collision_arrays`.
     """
-    pairs = _mollified_pairs(collisions, mesh, mesh.rest_positions, x, ee)
+    pairs = _mollified_pairs(collisions, mesh, mesh.rest_positions, x, arrays)
     if not len(pairs):
         return None
-    dtype = np.array([ee[k].dtype.value for k in pairs.index], dtype=np.int64)
+    dtype = arrays.ee_dtype[pairs.index]
     # the pair's own weight: area weights, merged duplicates and the convergent formulation's
     # negative edge-edge terms
-    w = np.array([ee[k].weight for k in pairs.index], dtype=float)
+    w = edge_edge_weights(collisions, arrays, mesh, x)[pairs.index]
     xp, xr, eps, s = pairs.positions, pairs.rest, pairs.eps, pairs.s
     d, grad_d = _edge_edge_distance(xp, dtype)
     b, db = barrier_derivatives(barrier.barrier, d, barrier.dhat**2)
@@ -222,11 +222,12 @@ def _ee_correction(
     x: np.ndarray,
     barrier: ipctk.BarrierPotential,
     stiffness: float,
-    ee: list,
+    arrays: CollisionArrays | None = None,
 ) -> sp.csc_matrix:
     """The sum over mollified edge-edge pairs of the difference in the module docstring."""
     n = x.size
-    t = _ee_terms(collisions, mesh, x, barrier, stiffness, ee)
+    arrays = collision_arrays(collisions, mesh) if arrays is None else arrays
+    t = _ee_terms(collisions, mesh, x, barrier, stiffness, arrays)
     if t is None:
         return sp.csc_matrix((n, n))
 
@@ -258,9 +259,8 @@ def barrier_shape_derivative(
         stiffness: Its stiffness kappa.
     """
     S = barrier.shape_derivative(collisions, mesh, x)
-    ee = collisions.ee_collisions if x.shape[1] == 3 else []
-    if ee:
-        S = S + _ee_correction(collisions, mesh, x, barrier, stiffness, ee)
+    if x.shape[1] == 3 and len(collisions.ee_collisions):
+        S = S + _ee_correction(collisions, mesh, x, barrier, stiffness)
     return sp.csc_matrix(S)
 
 
@@ -382,8 +382,8 @@ def barrier_shape_adjoint(
     if collisions.use_area_weighting:
         s = _directional_barrier(c, rest, x, lam, barrier, stiffness)
         g += _weight_term(collisions, mesh, c, s, x, merged_rows)
-    ee = collisions.ee_collisions if x.shape[1] == 3 else []
-    t = _ee_terms(collisions, mesh, x, barrier, stiffness, ee) if ee else None
+    has_ee = x.shape[1] == 3 and bool(np.any(c.kind == 2))
+    t = _ee_terms(collisions, mesh, x, barrier, stiffness, c) if has_ee else None
     if t is not None:
         lc = lam[t.dofs]
         col = lambda a: a[:, None]  # noqa: E731

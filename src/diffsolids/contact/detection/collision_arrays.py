@@ -17,6 +17,7 @@ __all__ = [
     "CollisionArrays",
     "collision_arrays",
     "cross_squared_norms",
+    "edge_edge_weights",
     "merged_edge_edge",
     "read_weights",
     "stencil_blocks",
@@ -131,17 +132,35 @@ def read_weights(
     weight[: len(merged)] = [c.weight for c in merged]
     if collisions.use_area_weighting:
         vertex_areas = np.asarray(mesh.vertex_areas).ravel()
-        edge_areas = np.asarray(mesh.edge_areas()).ravel()
         if mesh.dim == 2:
             ev = kind == 1
             weight[ev] = 0.5 * vertex_areas[ids[ev, 0]]
-        weight[kind == 2] = 0.25 * edge_areas[arrays.ee_edges].sum(axis=1)
         fv = kind == 3
         weight[fv] = 0.25 * vertex_areas[ids[fv, 0]]
+    weight[kind == 2] = edge_edge_weights(collisions, arrays, mesh, positions)
+    return weight
+
+
+def edge_edge_weights(
+    collisions: ipctk.NormalCollisions,
+    arrays: CollisionArrays,
+    mesh: ipctk.CollisionMesh,
+    positions: np.ndarray,
+) -> np.ndarray:
+    """The weights of a set's edge-edge collisions (one per ee row of ``arrays``).
+
+    0.25 (A_ea + A_eb) (1 without area weighting), read from ipctk for the pairs of
+    :func:`merged_edge_edge` only (see :func:`read_weights`).
+    """
+    if collisions.use_area_weighting:
+        edge_areas = np.asarray(mesh.edge_areas()).ravel()
+        weight = 0.25 * edge_areas[arrays.ee_edges].sum(axis=1)
+    else:
+        weight = np.ones(len(arrays.ee_edges))
     read = np.flatnonzero(merged_edge_edge(collisions, arrays, positions))
     if len(read):
         ee = collisions.ee_collisions
-        weight[np.flatnonzero(kind == 2)[read]] = [ee[k].weight for k in read]
+        weight[read] = [ee[k].weight for k in read]
     return weight
 
 
