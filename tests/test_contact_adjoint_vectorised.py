@@ -18,9 +18,17 @@ from test_contact_kernels import _Checker, _scene
 
 import diffsolids.contact.derivatives.barrier_shape as contact_shape
 import diffsolids.contact.derivatives.step_adjoint as step_adjoint
-from diffsolids.contact.derivatives.area_weights import area_gradient_adjoint
+from diffsolids.contact.derivatives.area_weights import (
+    area_gradient_adjoint,
+    merged_weight_collisions,
+    weight_gradient_rows,
+)
 from diffsolids.contact.derivatives.step_adjoint import ContactAdjoint
-from diffsolids.contact.detection.collision_arrays import collision_arrays, read_weights
+from diffsolids.contact.detection.collision_arrays import (
+    collision_arrays,
+    read_weights,
+    weights_from_gradients,
+)
 from diffsolids.contact.energy.lagged_arrays import (
     barrier_derivatives,
     friction_collision_arrays,
@@ -300,3 +308,67 @@ def test_read_weights_equal_ipctks_with_merged_collisions(formulation, area_weig
         assert expected.max() >= 2.0  # merged from several candidates
     weights = read_weights(C, collision_arrays(C, mesh), mesh, X)
     assert _rel(weights, expected) <= TOL
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_merged_weights_from_their_gradients_equal_ipctks(dim):
+    """Euler's identity on the homogeneous areas: w = X . grad w / k (k = 1 in 2D, 2 in 3D)
+    recovers every merged weight from its gradient; None in 3D with a codimensional edge."""
+    from diffsolids.contact.detection.collision_set import new_collision_set
+
+    gap = 1e-3
+    if dim == 3:
+        roof = np.array([[0, 0, 0], [1, 0, 0], [0.5, -1, -0.2], [0.5, 1, -0.2]], dtype=float)
+        X = np.vstack([roof, _probe(np.array([0.3, 0.0, gap])), _probe(np.array([1 + gap, 0, 0]))])
+        F = np.array([[0, 2, 1], [0, 1, 3], [4, 5, 6], [7, 8, 9]])
+        E = ipctk.edges(F)
+    else:  # a V-shaped ground and a wedge pointing at its corner
+        X = np.array([[-1, 0.5], [0, 0], [1, 0.4], [0.2, 1], [0.0, gap], [-0.3, 1.1]], float)
+        E = np.array([[0, 1], [1, 2], [3, 4], [4, 5]])
+        F = np.zeros((0, 3), dtype=int)
+    mesh = ipctk.CollisionMesh(X, E, F)
+    mesh.init_area_jacobians()
+    candidates = ipctk.Candidates()
+    candidates.build(mesh, X, 2 * gap)
+    C = new_collision_set("ipc", True, shape_derivatives=True)
+    C.build(candidates, mesh, X, 2 * gap, 0.0)
+    merged = merged_weight_collisions(C, dim)
+    assert len(merged) > 0
+    rows = weight_gradient_rows(merged, X.size)
+    recovered = weights_from_gradients(C, mesh, rows)
+    assert _rel(recovered, np.array([c.weight for c in merged])) <= TOL
+    lists = (C.vv_collisions, C.ev_collisions, C.ee_collisions, C.fv_collisions)
+    expected = np.array([c.weight for group in lists for c in group])
+    assert _rel(read_weights(C, collision_arrays(C, mesh), mesh, X, recovered), expected) <= TOL
+    if dim == 3:  # a segment in no face: lengths (degree 1) beside areas (degree 2)
+        Xc = np.vstack([X, [[3, 3, 3], [4, 3, 3]]])
+        Ec = np.vstack([E, [[10, 11]]])
+        codim = ipctk.CollisionMesh(Xc, Ec, F)
+        assert weights_from_gradients(C, codim, sp.csr_matrix((0, Xc.size))) is None
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_friction_kernel_with_weights_from_gradients_equals_read(dim, monkeypatch):
+    """The friction coefficients' kernel after the shape kernel (merged weights recovered from
+    the gradients it read) equals the kernel alone (merged weights read from ipctk)."""
+    recovered = []
+    original = step_adjoint.weights_from_gradients
+
+    def spy(C, mesh, rows):
+        out = original(C, mesh, rows)
+        recovered.append(out)
+        return out
+
+    monkeypatch.setattr(step_adjoint, "weights_from_gradients", spy)
+    values = []
+    for shape_first in (False, True):
+        model, contact, _, u, _ = _scene(dim, 1, 1, 0.5, comm=MPI.COMM_SELF)
+        lam = _Checker(model, contact, u).random()
+        ev = contact._evaluate(u)
+        if shape_first:
+            contact.adjoint.shape(ev, lam)
+        values.append(contact.adjoint.friction(ev, lam))
+    merged = [w for w in recovered if w is not None]
+    assert len(merged) == 1 and len(merged[0]) > 0  # the second scene, merged collisions
+    assert np.any(values[0] != 0.0)  # the pair in contact
+    assert _rel(values[1], values[0]) <= TOL

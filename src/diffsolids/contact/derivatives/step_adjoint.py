@@ -32,6 +32,7 @@ from diffsolids.contact.detection.collision_arrays import (
     CollisionArrays,
     collision_arrays,
     read_weights,
+    weights_from_gradients,
 )
 from diffsolids.contact.energy.contact_potential import ContactPotential
 from diffsolids.contact.energy.evaluation import Evaluation
@@ -256,18 +257,27 @@ class ContactAdjoint:
         """
         arrays = self.collision_arrays(C)
         if arrays.weight is None:
-            arrays.weight = read_weights(C, arrays, self.surface.mesh, x)
+            mesh = self.surface.mesh
+            # the merged weights from their gradients when the shape kernel read them
+            rows = self._held(self._merged, C)
+            merged = None if rows is None else weights_from_gradients(C, mesh, rows)
+            arrays.weight = read_weights(C, arrays, mesh, x, merged)
         return arrays
 
     def _weight_rows(self, C: ipctk.NormalCollisions) -> sp.csr_matrix:
         return weight_gradient_rows(merged_weight_collisions(C, self.dim), self.surface.mesh.ndof)
 
     @staticmethod
-    def _read_once(kept: list[tuple], C: ipctk.NormalCollisions, read: Callable) -> Any:
+    def _held(kept: list[tuple], C: ipctk.NormalCollisions) -> Any:
+        """What ``kept`` holds for C (one of its last two sets), else None."""
+        return next((value for collisions, value in kept if collisions is C), None)
+
+    @classmethod
+    def _read_once(cls, kept: list[tuple], C: ipctk.NormalCollisions, read: Callable) -> Any:
         """``read(C)``, or what it gave for C if C is one of the last two sets in ``kept``."""
-        for collisions, value in kept:
-            if collisions is C:
-                return value
+        value = cls._held(kept, C)
+        if value is not None:
+            return value
         value = read(C)
         kept[:] = [(C, value), *kept[:1]]
         return value

@@ -21,6 +21,7 @@ __all__ = [
     "merged_edge_edge",
     "read_weights",
     "stencil_blocks",
+    "weights_from_gradients",
 ]
 
 
@@ -108,6 +109,7 @@ def read_weights(
     arrays: CollisionArrays,
     mesh: ipctk.CollisionMesh,
     positions: np.ndarray,
+    merged: np.ndarray | None = None,
 ) -> np.ndarray:
     """The weights of the collisions of a set, in the order of :func:`collision_arrays`.
 
@@ -123,13 +125,17 @@ def read_weights(
         arrays: Its :func:`collision_arrays`.
         mesh: The collision mesh of the build.
         positions: (num_vertices, dim) the positions the set was built at.
+        merged: The weights of the vertex-vertex and 3D edge-vertex collisions if known
+            (:func:`weights_from_gradients`), else they are read.
     """
     kind, ids = arrays.kind, arrays.ids
-    merged = list(collisions.vv_collisions)
-    if mesh.dim == 3:
-        merged += list(collisions.ev_collisions)
     weight = np.ones(len(kind))
-    weight[: len(merged)] = [c.weight for c in merged]
+    if merged is None:
+        listed = list(collisions.vv_collisions)
+        if mesh.dim == 3:
+            listed += list(collisions.ev_collisions)
+        merged = [c.weight for c in listed]
+    weight[: len(merged)] = merged
     if collisions.use_area_weighting:
         vertex_areas = np.asarray(mesh.vertex_areas).ravel()
         if mesh.dim == 2:
@@ -139,6 +145,38 @@ def read_weights(
         weight[fv] = 0.25 * vertex_areas[ids[fv, 0]]
     weight[kind == 2] = edge_edge_weights(collisions, arrays, mesh, positions)
     return weight
+
+
+def weights_from_gradients(
+    collisions: ipctk.NormalCollisions, mesh: ipctk.CollisionMesh, gradients: object
+) -> np.ndarray | None:
+    """Area weights recovered from their rest-position gradients (one per row), or None.
+
+    A collision's area weight is a sum of multiples of vertex and edge areas of the collision
+    mesh, and those are homogeneous in the rest positions X: of degree 2 for the areas of
+    triangles (3D), 1 for lengths. Where all have one degree k (2D; 3D with every vertex and
+    edge in a face), Euler's identity gives w = X . grad w / k. None where it does not apply
+    (no area weighting, or 3D vertices or edges in no face).
+
+    Args:
+        collisions: The set (for its area weighting).
+        mesh: Its collision mesh.
+        gradients: (n, num_vertices * dim) sparse rows, the weights' gradients.
+    """
+    if not collisions.use_area_weighting:
+        return None
+    X = np.asarray(mesh.rest_positions)
+    degree = 1
+    if mesh.dim == 3:
+        F = np.asarray(mesh.faces)
+        in_face = np.zeros(mesh.num_vertices, dtype=bool)
+        in_face[F.ravel()] = True
+        edge_in_face = np.zeros(mesh.num_edges, dtype=bool)
+        edge_in_face[np.asarray(mesh.faces_to_edges).ravel()] = True
+        if not (in_face.all() and edge_in_face.all()):
+            return None
+        degree = 2
+    return np.asarray(gradients @ X.ravel()).ravel() / degree
 
 
 def edge_edge_weights(
