@@ -8,6 +8,7 @@ import pytest
 from mpi4py import MPI
 
 import diffsolids as ds
+from diffsolids.controls import ControlError
 from diffsolids.mesh import Domain, create_box, create_rectangle
 
 
@@ -154,6 +155,50 @@ def test_parameter_fields_are_validated(square):
         ds.Model(square, ds.NeoHookean(E=1.0, nu=0.3), fields={"E": E})
     with pytest.raises(ds.ParameterError, match=r"unknown parameter fields \['youngs'\]"):
         ds.Model(square, ds.NeoHookean(E=1.0, nu=0.3), fields={"youngs": E})
+
+
+def _sag_problem(square):
+    """A clamped square sagging under gravity, J its mean sag, and its parameter fields."""
+    model = ds.Model(square, ds.NeoHookean(E=1e5, nu=0.3, density=10.0))
+    model.add_gravity(9.81)
+    model.add_dirichlet("left", 0.0)
+    sim = ds.Simulation(model, ds.Static(), ds.SolverOptions(rtol=1e-10), progress=False)
+    sag = ds.final_value(ds.Integral(lambda f: -f.u[1] * f.dx, "sag"))
+    return model, sim, sag
+
+
+def _fields(model) -> dict:
+    return {name: f.x.array.copy() for name, f in model.coefficients.items()}
+
+
+def test_a_refused_parameter_point_leaves_the_model_as_it_was(square):
+    """A trial point with a non-physical value is refused as a whole: every parameter field
+    and every control's value stay those of the last accepted point, also when another field
+    of the same point was valid, and another control's problem runs on after it."""
+    model, sim, sag = _sag_problem(square)
+    controls = [
+        ds.ParameterControl(model, "E", "uniform", log=True),
+        ds.ParameterControl(model, "nu", "uniform"),
+        ds.ParameterControl(model, "density", "scale"),
+    ]
+    rf = ds.ReducedFunctional(sim, sag, controls)
+    q0 = np.array([np.log(2e5), 0.25, 2.0])
+    J0 = rf(q0)
+    before = _fields(model)
+    for bad in ([np.log(3e5), 0.5, 2.0], [np.log(3e5), 0.3, -1.0], [np.nan, 0.3, 2.0]):
+        with pytest.raises((ds.ParameterError, ControlError)):
+            rf(np.array(bad))
+        after = _fields(model)
+        assert all(np.array_equal(after[k], before[k]) for k in before), bad
+        assert np.array_equal(rf.controls.value(), q0), bad
+    assert rf(q0) == J0
+    # a single control assigned directly, then a problem of another control
+    E_control = ds.ParameterControl(model, "E", "uniform")
+    with pytest.raises(ds.ParameterError, match="field E has"):
+        E_control.assign(np.array([-5.0]))
+    assert np.array_equal(model.coefficients["E"].x.array, before["E"])
+    other = ds.ReducedFunctional(sim, sag, ds.ParameterControl(model, "nu", "uniform"))
+    assert np.isfinite(other(np.array([0.3])))
 
 
 def test_displacement_degree(square):

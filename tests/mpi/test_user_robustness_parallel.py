@@ -1,12 +1,14 @@
 """Run under ``mpiexec -n 2``: the optimiser's and the output's robustness on 2 ranks.
 
-A trial with an overflowing field is rejected and the run goes on; a failed remesh ends the run
+A trial with an overflowing field is rejected and the run goes on; a refused parameter point
+leaves every field and control as they were on every rank; a failed remesh ends the run
 at the accepted point; a folded boundary is refused on every rank; each trajectory is written
 on its own rest shape; a checkpoint directory that is a file is an error on every rank.
 """
 
 import numpy as np
 import pytest
+import test_materials_and_errors as materials  # its tests, run here on 2 ranks
 import test_optimize as serial  # its tests, run here on 2 ranks (not collected again)
 from mpi4py import MPI
 
@@ -25,6 +27,12 @@ def test_optimiser_robustness_on_two_ranks():
     serial.test_a_trial_with_an_overflowing_field_is_rejected_and_the_run_goes_on()
     serial.test_a_failed_remesh_ends_the_run_at_the_accepted_point()
     serial.test_shape_control_refuses_a_boundary_folded_into_another_body()
+
+
+def test_a_refused_parameter_point_on_two_ranks():
+    assert COMM.size > 1, "run with mpiexec -n 2"
+    square = materials.square.__wrapped__()
+    materials.test_a_refused_parameter_point_leaves_the_model_as_it_was(square)
 
 
 def test_trajectories_on_their_own_rest_shapes_on_two_ranks(tmp_path_factory):

@@ -1,5 +1,6 @@
 """Controls of model coefficients: material fields, density, damping, load vectors."""
 
+import functools
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, override
 
@@ -159,18 +160,19 @@ class ParameterControl(Control):
     def assign(self, q: np.ndarray) -> None:
         p = self.map.forward(np.asarray(q, dtype=float))
         arr = self.function.x.array
-        if self.mode == "field":
-            self.layout.scatter(p, self.function)
-        elif self.mode == "bodies":
-            view = arr.reshape(-1, self.bs)
-            for k, cells in enumerate(self._cells):
-                view[cells] = p[k * self.bs : (k + 1) * self.bs]
-        elif self.mode == "uniform":
-            arr.reshape(-1, self.bs)[:] = p
-        else:
-            arr[:] = self.base * p[0]
-            self._scale = float(p[0])
-        self.model.parameters_changed()
+        with self.model.parameter_update():  # a refused value leaves the fields as they were
+            if self.mode == "field":
+                self.layout.scatter(p, self.function)
+            elif self.mode == "bodies":
+                view = arr.reshape(-1, self.bs)
+                for k, cells in enumerate(self._cells):
+                    view[cells] = p[k * self.bs : (k + 1) * self.bs]
+            elif self.mode == "uniform":
+                arr.reshape(-1, self.bs)[:] = p
+            else:
+                arr[:] = self.base * p[0]
+                self.model.undo_on_refusal(functools.partial(setattr, self, "_scale", self._scale))
+                self._scale = float(p[0])
 
     @override
     def targets(self) -> Targets:

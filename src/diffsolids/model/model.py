@@ -111,6 +111,7 @@ class Model:
         self.numeric_terms: list[NumericTerm] = []
         self._frozen = False
         self._deferred_validation = 0
+        self._undo: list[Callable[[], None]] | None = None  # of the open parameter_update
 
     # -- construction helpers -------------------------------------------------------------
     def _body_materials(
@@ -148,19 +149,48 @@ class Model:
     def parameter_update(self) -> Iterator[None]:
         """Change several parameter fields, then validate them together once.
 
-        Controls that each set one field (lmbda, then mu) validate at the end of the block, so
-        that restoring a valid point after a trial with a non-finite field does not fail on the
-        fields not yet restored. Blocks nest; an exception inside skips the validation.
+        Controls that each set one field (lmbda, then mu) validate at the end of the block.
+        Blocks nest; the outermost one is all or nothing: when its fields are non-physical, or
+        an exception leaves it, every parameter field gets back its values from before the
+        block (and the callbacks given to :meth:`undo_on_refusal` run), so that a refused
+        trial point leaves the model at the last accepted one.
 
         Raises:
             ParameterError: The fields at the end of the block are non-physical.
         """
-        self._deferred_validation += 1
+        if self._deferred_validation > 0:  # nested: the outermost block validates
+            self._deferred_validation += 1
+            try:
+                yield
+            finally:
+                self._deferred_validation -= 1
+            return
+        saved = {name: f.x.array.copy() for name, f in self.coefficients.items()}
+        self._undo = []
         try:
-            yield
+            self._deferred_validation += 1
+            try:
+                yield
+            finally:
+                self._deferred_validation -= 1
+            self.validate_parameters()
+        except BaseException:
+            for name, values in saved.items():
+                self.coefficients[name].x.array[:] = values
+            for undo in reversed(self._undo):
+                undo()
+            raise
         finally:
-            self._deferred_validation -= 1
-        self.parameters_changed()
+            self._undo = None
+
+    def undo_on_refusal(self, undo: Callable[[], None]) -> None:
+        """Have the open :meth:`parameter_update` call ``undo`` if its fields are refused.
+
+        For state kept outside the parameter fields (a control's own copy of its value).
+        Outside a block it is not called.
+        """
+        if self._undo is not None:
+            self._undo.append(undo)
 
     def parameters_changed(self) -> None:
         """Validate the parameter fields after a change, unless inside :meth:`parameter_update`.
