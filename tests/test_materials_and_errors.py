@@ -201,6 +201,40 @@ def test_a_refused_parameter_point_leaves_the_model_as_it_was(square):
     assert np.isfinite(other(np.array([0.3])))
 
 
+def test_a_refused_point_puts_every_control_back(square):
+    """Shape, initial velocity, a Dirichlet value and an affine map over E change before E's
+    field is refused: all of them, and the geometry and initial state, return to the last
+    accepted point (before, the shape stayed moved and a later run used it silently)."""
+    from diffsolids.controls import AffineControl, DirichletControl, InitialCondition, ShapeControl
+
+    model = ds.Model(square, ds.NeoHookean(E=1e5, nu=0.3, density=10.0))
+    model.add_gravity(9.81)
+    pull = model.add_dirichlet("right", np.array([0.0, 0.0]))
+    model.add_dirichlet("left", 0.0)
+    sim = ds.Simulation(model, ds.BDF(1, 0.01, 2), progress=False)
+    sag = ds.final_value(ds.Integral(lambda f: -f.u[1] * f.dx, "sag"))
+    E = ds.ParameterControl(model, "E", "uniform")
+    controls = [
+        ShapeControl(model, "all"),
+        InitialCondition(sim, "velocity"),
+        DirichletControl(sim, pull),
+        AffineControl(E, np.array([[2.0]]), np.array([1e4])),
+    ]
+    rf = ds.ReducedFunctional(sim, sag, controls)
+    q0 = rf.initial_parameters() + 1e-4  # an accepted point away from the start
+    q0[-1] = 5e4
+    J0 = rf(q0)
+    X0, v0 = square.mesh.geometry.x.copy(), sim.v0.copy()
+    bad = q0 + 1e-3
+    bad[-1] = -1e5  # E = 2 q + 1e4 < 0
+    with pytest.raises(ds.ParameterError, match="field E has"):
+        rf(bad)
+    assert np.array_equal(rf.controls.value(), q0)
+    assert np.array_equal(square.mesh.geometry.x, X0) and np.array_equal(sim.v0, v0)
+    assert np.all(model.coefficients["E"].x.array == 1.1e5)
+    assert rf(q0) == J0
+
+
 def test_displacement_degree(square):
     with pytest.raises(ds.ParameterError, match="displacement degree 4 not supported"):
         ds.Model(square, ds.LinearElastic(E=1.0, nu=0.3), degree=4)
@@ -366,3 +400,25 @@ def test_static_and_bdf_argument_orders_are_named_in_the_error():
     """Static(dt, num_steps) (the BDF order of dt first) is refused with both signatures."""
     with pytest.raises(ds.ParameterError, match=r"Static\(num_steps, dt\) and BDF\(order, dt"):
         ds.Static(0.1, 10)
+
+
+def test_a_refused_point_puts_the_friction_coefficients_back():
+    """FrictionControl's coefficients are state of the contact term: a point whose E is
+    refused leaves them (and the control's value) at the last accepted point."""
+    from test_gradients_contact import incline_scene
+
+    from diffsolids.controls import FrictionControl
+
+    model, contact, sim, objective = incline_scene(1, 1, num_steps=2)
+    controls = [
+        FrictionControl(contact, pairs=[("slab", "block")]),
+        ds.ParameterControl(model, "E", "bodies"),
+    ]
+    rf = ds.ReducedFunctional(sim, objective, controls)
+    q0 = np.array([0.35, 2e5, 1.5e5])
+    rf(q0)
+    mu0 = contact.friction_coefficients
+    with pytest.raises(ds.ParameterError, match="field E has"):
+        rf(np.array([0.6, 2e5, -1.0]))
+    assert np.array_equal(contact.friction_coefficients, mu0)
+    assert np.array_equal(rf.controls.value(), q0)

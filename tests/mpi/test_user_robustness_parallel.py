@@ -33,6 +33,8 @@ def test_a_refused_parameter_point_on_two_ranks():
     assert COMM.size > 1, "run with mpiexec -n 2"
     square = materials.square.__wrapped__()
     materials.test_a_refused_parameter_point_leaves_the_model_as_it_was(square)
+    materials.test_a_refused_point_puts_every_control_back(square)
+    materials.test_a_refused_point_puts_the_friction_coefficients_back()
 
 
 def test_trajectories_on_their_own_rest_shapes_on_two_ranks(tmp_path_factory):

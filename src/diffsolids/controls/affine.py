@@ -1,5 +1,6 @@
 """Parameters that drive several controls through an affine map p = A q + b."""
 
+import functools
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, override
 
@@ -8,6 +9,7 @@ import numpy.typing as npt
 
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.controls.base import Control, ControlError, ControlSet
+from diffsolids.model import undo_on_refusal
 
 if TYPE_CHECKING:
     from diffsolids.simulation import Simulation
@@ -88,6 +90,7 @@ class AffineControl(Control):
     def assign(self, q: np.ndarray) -> None:
         q = np.asarray(q, dtype=float)
         p = self.matrix @ q + self.offset
+        undo_on_refusal(functools.partial(setattr, self, "q", self.q))
         for c, a, b in zip(self.controls, self._offsets[:-1], self._offsets[1:], strict=True):
             c.assign(p[a:b])
         self.q = q.copy()

@@ -1,5 +1,6 @@
 """Control of contact parameters: friction coefficients per pair of bodies."""
 
+import functools
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, override
 
@@ -8,6 +9,7 @@ import numpy as np
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.controls.base import Control, ControlError
 from diffsolids.controls.maps import Identity, ParameterMap, as_map
+from diffsolids.model import undo_on_refusal
 
 if TYPE_CHECKING:
     from diffsolids.contact.term import ContactTerm
@@ -75,6 +77,9 @@ class FrictionControl(Control):
         if np.any(mu_new < 0) or not np.all(np.isfinite(mu_new)):
             raise ControlError(f"friction coefficients {mu_new} must be finite and >= 0")
         mu = self.contact.friction_coefficients
+        undo_on_refusal(
+            functools.partial(setattr, self.contact, "friction_coefficients", mu.copy())
+        )
         mu[self.index] = mu_new
         self.contact.friction_coefficients = mu
 

@@ -1,5 +1,6 @@
 """Control of prescribed (Dirichlet) displacement values, constant or per step."""
 
+import functools
 from typing import TYPE_CHECKING, override
 
 import numpy as np
@@ -7,6 +8,7 @@ from mpi4py import MPI
 
 from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.controls.base import Control, ControlError
+from diffsolids.model import undo_on_refusal
 from diffsolids.parallel import collective_comm
 
 if TYPE_CHECKING:
@@ -71,8 +73,13 @@ class DirichletControl(Control):
             out[comps] = q[k]
             return out
 
+        undo_on_refusal(functools.partial(self._restore, self.condition.condition.value, self.q))
         self.condition.set_value(value)
         self.q = q.ravel().copy()
+
+    def _restore(self, value: object, q: np.ndarray) -> None:
+        self.condition.set_value(value)
+        self.q = q
 
     @override
     def targets(self) -> Targets:

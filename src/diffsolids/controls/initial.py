@@ -1,5 +1,6 @@
 """Controls of the initial conditions u^0, v^0 (paper sec. 4.2, g^u and g^v)."""
 
+import functools
 from typing import TYPE_CHECKING, override
 
 import numpy as np
@@ -10,6 +11,7 @@ from diffsolids.adjoint.sensitivities import Sensitivities, Targets
 from diffsolids.controls.base import Control, ControlError
 from diffsolids.controls.transfer import interpolate_nonmatching
 from diffsolids.mesh.ordering import CanonicalLayout
+from diffsolids.model import undo_on_refusal
 from diffsolids.parallel import collective_comm
 
 if TYPE_CHECKING:
@@ -66,7 +68,9 @@ class InitialCondition(_InitialStateControl):
     @override
     def assign(self, q: np.ndarray) -> None:
         self.layout.scatter(q, self._f)
-        self._array()[:] = self._f.x.array
+        state = self._array()
+        undo_on_refusal(functools.partial(state.__setitem__, slice(None), state.copy()))
+        state[:] = self._f.x.array
 
     @override
     def targets(self) -> Targets:
@@ -149,8 +153,13 @@ class RigidVelocity(_InitialStateControl):
     def assign(self, q: np.ndarray) -> None:
         q = np.asarray(q, dtype=float)
         v0 = self.sim.v0.reshape(-1, self.dim)
+        undo_on_refusal(functools.partial(self._restore, v0[self.nodes].copy(), self.q))
         v0[self.nodes] = self._velocity(q)
         self.q = q.copy()
+
+    def _restore(self, velocities: np.ndarray, q: np.ndarray) -> None:
+        self.sim.v0.reshape(-1, self.dim)[self.nodes] = velocities
+        self.q = q
 
     @override
     def targets(self) -> Targets:

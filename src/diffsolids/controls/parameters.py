@@ -13,6 +13,7 @@ from diffsolids.controls.base import Control, ControlError
 from diffsolids.controls.maps import ParameterMap, as_map
 from diffsolids.controls.transfer import interpolate_nonmatching
 from diffsolids.mesh.ordering import CanonicalLayout
+from diffsolids.model import undo_on_refusal
 from diffsolids.parallel import collective_comm
 
 if TYPE_CHECKING:
@@ -171,7 +172,7 @@ class ParameterControl(Control):
                 arr.reshape(-1, self.bs)[:] = p
             else:
                 arr[:] = self.base * p[0]
-                self.model.undo_on_refusal(functools.partial(setattr, self, "_scale", self._scale))
+                undo_on_refusal(functools.partial(setattr, self, "_scale", self._scale))
                 self._scale = float(p[0])
 
     @override

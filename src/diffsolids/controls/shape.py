@@ -1,5 +1,6 @@
 """Shape control: rest positions of mesh vertices (paper: the geometric map q-bar)."""
 
+import functools
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, override
 
@@ -14,6 +15,7 @@ from diffsolids.contact.boundary_intersection import BoundaryIntersection
 from diffsolids.controls.base import Control, ControlError
 from diffsolids.errors import InvertedElementError
 from diffsolids.mesh import Domain, inverted_cells
+from diffsolids.model import undo_on_refusal
 from diffsolids.parallel import collective_comm
 
 if TYPE_CHECKING:
@@ -162,7 +164,13 @@ class ShapeControl(Control):
                 "the shape update folds the boundary over itself (or into another body or an "
                 "obstacle); the shape was not changed"
             )
+        # a point refused as a whole (another control's field) moves the shape back
+        undo_on_refusal(functools.partial(self._restore, old, self.q))
         self.q = np.asarray(q, dtype=float).copy()
+
+    def _restore(self, X: np.ndarray, q: np.ndarray) -> None:
+        self._move_rest(X)
+        self.q = q
 
     def _move_rest(self, X: np.ndarray) -> None:
         self.model.domain.mesh.geometry.x[:, : self.dim] = X

@@ -2,7 +2,7 @@
 
 from diffsolids.model.boundary_conditions import DirichletCondition, OnBody, RealisedDirichlet
 from diffsolids.model.materials import LinearElastic, Material, NeoHookean, StVenantKirchhoff
-from diffsolids.model.model import Model
+from diffsolids.model.model import Model, undo_on_refusal
 from diffsolids.model.numeric import NumericTerm
 from diffsolids.model.terms import (
     BodyForce,
@@ -33,4 +33,5 @@ __all__ = [
     "StepFields",
     "Term",
     "Traction",
+    "undo_on_refusal",
 ]

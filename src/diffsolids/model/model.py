@@ -7,6 +7,7 @@ model: terms, loads, contact and Dirichlet conditions are added before.
 """
 
 import contextlib
+import contextvars
 import functools
 import numbers
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -39,7 +40,25 @@ from diffsolids.parallel import collective_comm
 
 NumericTermT = TypeVar("NumericTermT", bound=NumericTerm)
 
-__all__ = ["Model"]
+__all__ = ["Model", "undo_on_refusal"]
+
+# the undo callbacks of the open outermost Model.parameter_update (None outside one)
+_REFUSAL_UNDO: contextvars.ContextVar[list | None] = contextvars.ContextVar(
+    "refusal_undo", default=None
+)
+
+
+def undo_on_refusal(undo: Callable[[], None]) -> None:
+    """Have the open :meth:`Model.parameter_update` call ``undo`` if its point is refused.
+
+    For state a control keeps outside the parameter fields (the shape, initial values, its own
+    copy of its value): the control registers how to put it back before changing it. Outside
+    a ``parameter_update`` block nothing is registered.
+    """
+    pending = _REFUSAL_UNDO.get()
+    if pending is not None:
+        pending.append(undo)
+
 
 _PARAMETERS = ("density", "damping_psi", "damping_phi")
 
@@ -111,7 +130,6 @@ class Model:
         self.numeric_terms: list[NumericTerm] = []
         self._frozen = False
         self._deferred_validation = 0
-        self._undo: list[Callable[[], None]] | None = None  # of the open parameter_update
 
     # -- construction helpers -------------------------------------------------------------
     def _body_materials(
@@ -152,8 +170,8 @@ class Model:
         Controls that each set one field (lmbda, then mu) validate at the end of the block.
         Blocks nest; the outermost one is all or nothing: when its fields are non-physical, or
         an exception leaves it, every parameter field gets back its values from before the
-        block (and the callbacks given to :meth:`undo_on_refusal` run), so that a refused
-        trial point leaves the model at the last accepted one.
+        block (and the callbacks given to :func:`undo_on_refusal` run), so that a refused
+        trial point leaves the model and its controls at the last accepted one.
 
         Raises:
             ParameterError: The fields at the end of the block are non-physical.
@@ -166,7 +184,8 @@ class Model:
                 self._deferred_validation -= 1
             return
         saved = {name: f.x.array.copy() for name, f in self.coefficients.items()}
-        self._undo = []
+        undo: list[Callable[[], None]] = []
+        token = _REFUSAL_UNDO.set(undo)
         try:
             self._deferred_validation += 1
             try:
@@ -177,20 +196,11 @@ class Model:
         except BaseException:
             for name, values in saved.items():
                 self.coefficients[name].x.array[:] = values
-            for undo in reversed(self._undo):
-                undo()
+            for step in reversed(undo):
+                step()
             raise
         finally:
-            self._undo = None
-
-    def undo_on_refusal(self, undo: Callable[[], None]) -> None:
-        """Have the open :meth:`parameter_update` call ``undo`` if its fields are refused.
-
-        For state kept outside the parameter fields (a control's own copy of its value).
-        Outside a block it is not called.
-        """
-        if self._undo is not None:
-            self._undo.append(undo)
+            _REFUSAL_UNDO.reset(token)
 
     def parameters_changed(self) -> None:
         """Validate the parameter fields after a change, unless inside :meth:`parameter_update`.
