@@ -1,5 +1,7 @@
 """InversionGuard.max_step against cell volumes computed independently from moved vertices."""
 
+import re
+
 import numpy as np
 import pytest
 from dolfinx import fem
@@ -70,3 +72,22 @@ def test_inverted_state_and_bad_limit():
     assert InversionGuard(V, 2).max_step(du.x.petsc_vec, du.x.petsc_vec) == np.inf
     with pytest.raises(ParameterError, match="limit"):
         InversionGuard(V, 2, limit=0.0)
+
+
+def test_a_solve_cut_by_the_inversion_guard_says_so():
+    """A load far beyond what the mesh can carry in one step: the failure counts the cuts by
+    their bound and advises smaller steps and a finer mesh, not a stiffer contact barrier."""
+    import diffsolids as ds
+
+    facets = {1: lambda x: np.isclose(x[0], 0)}
+    domain = create_rectangle(MPI.COMM_WORLD, [[0, 0], [2, 0.2]], [20, 2], facets=facets)
+    model = ds.Model(domain, ds.NeoHookean(E=1e2, nu=0.3, density=10.0))
+    model.add_gravity(9.81e3)
+    model.add_dirichlet(1, 0.0)
+    sim = ds.Simulation(model, ds.BDF(1, 0.5, 3), progress=False)
+    with pytest.raises(ds.NewtonConvergenceError) as failure:
+        sim.run()
+    text = str(failure.value)
+    assert re.search(r"cut by a step bound \(\d+ to an inversion-free, 0 to a collision-free", text)
+    assert "the steps would invert elements: a smaller time or load step" in text
+    assert "barrier" not in text

@@ -226,6 +226,7 @@ def test_too_soft_for_double_precision_says_so():
     assert "the barrier is too soft for this load" in text
     assert "ulps of the coordinates" in text and "cannot in double precision" in text
     assert "most Newton steps were cut by a step bound; what to try:" in text
+    assert "0 to an inversion-free" in text and "a stiffer barrier" in text  # not the mesh's
     assert "then the step again through a stiffness continuation (factors" in text
 
 

@@ -444,13 +444,16 @@ class NewtonSolver:
             y.axpy(1.0, F)
             slope = y.dot(F)
             self.fallbacks += 1
-        bound = np.inf
+        bound, binding = np.inf, None
         if self.step_bounds:
             y.scale(-1.0)
-            bound = min(b.max_step(x, y) for b in self.step_bounds)
+            bounds = [b.max_step(x, y) for b in self.step_bounds]
             y.scale(-1.0)
+            k = int(np.argmin(bounds))
+            bound, binding = bounds[k], self.step_bounds[k]
         if bound * self.options.step_safety < 1.0:
             scale = self.options.step_safety * bound
+            self._cuts_by_inversion += isinstance(binding, InversionGuard)
             self._cut_streak += 1
             o = self.options
             # in the stiffer stages of a continuation (a soft barrier: pairs rest far inside
@@ -707,10 +710,11 @@ class NewtonSolver:
                 if self.marched_substeps
                 else ""
             )
+            by = self._cuts_by_inversion
             lines.append(
                 f"{self.bounded_steps} of {iterations} Newton steps were cut by a step bound "
-                f"(collision-free or inversion-free fraction; the last one to "
-                f"{self._last_cut:.2e} of the Newton step{marched})"
+                f"({by} to an inversion-free, {self.bounded_steps - by} to a collision-free "
+                f"fraction; the last one to {self._last_cut:.2e} of the Newton step{marched})"
             )
         if self._exact_from_start:
             lines.append(
@@ -733,12 +737,19 @@ class NewtonSolver:
         o = self.options
         more = f"SolverOptions(max_iterations={2 * o.max_iterations}) if the residual still fell"
         if self.bounded_steps * 2 >= max(iterations, 1):
-            tips = [
-                "if contact pairs are held far inside dhat (see above), a stiffer barrier (the "
-                "suggested stiffness, or a larger dhat)",
-                "a smaller time step (less motion to stop per step)",
-                more,
-            ]
+            if self._cuts_by_inversion * 2 >= self.bounded_steps:
+                tips = [
+                    "the steps would invert elements: a smaller time or load step",
+                    "a finer mesh where the elements are squeezed",
+                    more,
+                ]
+            else:
+                tips = [
+                    "if contact pairs are held far inside dhat (see above), a stiffer barrier "
+                    "(the suggested stiffness, or a larger dhat)",
+                    "a smaller time step (less motion to stop per step)",
+                    more,
+                ]
             if o.march_after != 1 or o.march_below < 1.0:
                 tips.append("SolverOptions(march_after=1, march_below=1.0): extend every cut step")
             return "most Newton steps were cut by a step bound; what to try: " + "; ".join(tips)
@@ -1053,6 +1064,7 @@ class NewtonSolver:
         self._exact_factors = True
         self.fallbacks = 0
         self.bounded_steps = 0
+        self._cuts_by_inversion = 0  # of bounded_steps, those the inversion guard bounded
         self.marched_substeps = 0
         self.expanded_steps = 0
         self._cut_streak = 0
