@@ -46,6 +46,7 @@ def _parse(argv):
             "damping_polyfem",
             "sliding_bunny",
             "throw",
+            "throw_reference",
         ],
         help="scenes to scan",
     )
@@ -62,7 +63,8 @@ def _parse(argv):
 
 
 def paper_scene(name: str, args):
-    """The sliding bunny (mu) or the throw (v0) as a smoothness Scene, or None."""
+    """The sliding bunny (mu) or the throw (v0; with its run at q0 as the branch reference of
+    every forward: ``throw_reference``) as a smoothness Scene, or None without the data."""
     from demo_modules import load_demo
     from mpi4py import MPI
     from smoothness_scenes import Scene
@@ -79,7 +81,19 @@ def paper_scene(name: str, args):
     demo = load_demo("paper_throw_bunnies")
     if not (DATA / demo.FOLDER / "opt.json").is_file():
         return None
-    _, problem = demo.throw_problem(DATA, MPI.COMM_WORLD, args.throw_steps)
+    if name == "throw_reference":  # the run at q0 as every forward's branch reference
+        from paper_common import polyfem_problem
+
+        _, problem = polyfem_problem(
+            DATA,
+            MPI.COMM_WORLD,
+            demo.FOLDER,
+            args.throw_steps,
+            contact_options={"area_weighting": True},
+            follow_branch=True,
+        )
+    else:
+        _, problem = demo.throw_problem(DATA, MPI.COMM_WORLD, args.throw_steps)
     return Scene(problem.rf, problem.q0, 0.01, problem.contact)
 
 
@@ -90,6 +104,9 @@ def contact_iterations(scene) -> dict:
     (the Simulation's warning), the largest of those residuals over f_char.
     """
     records = scene.rf.trajectory.records
+    reference = scene.rf.simulation.branch_reference
+    if reference is not None and not any(r.iterations for r in records):
+        records = reference.records  # the run at q0 is the reference: its own solve's counts
     pairs = [r.num_collisions for r in scene.contact.records]
     its = [rec.iterations for rec, n in zip(records, pairs, strict=True) if n > 0]
     solver = scene.rf.simulation.solver
