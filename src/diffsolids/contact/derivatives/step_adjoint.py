@@ -258,9 +258,12 @@ class ContactAdjoint:
         arrays = self.collision_arrays(C)
         if arrays.weight is None:
             mesh = self.surface.mesh
-            # the merged weights from their gradients when the shape kernel read them
+            # the merged weights from their gradients when the shape kernel read them, but
+            # not where the flat regions' correction changed weights alone (convergent)
             rows = self._held(self._merged, C)
-            merged = None if rows is None else weights_from_gradients(C, mesh, rows)
+            corrected = self.builder.formulation == "convergent" and bool(self.surface.flat)
+            usable = rows is not None and not corrected
+            merged = weights_from_gradients(C, mesh, rows) if usable else None
             arrays.weight = read_weights(C, arrays, mesh, x, merged)
         return arrays
 
