@@ -122,7 +122,6 @@ def test_collision_weights_from_areas_equal_ipctks(dim, formulation, area_weight
     weights = read_weights(C, collision_arrays(C, mesh), mesh, x)
     assert np.abs(weights - expected).max() <= 1e-14 * np.abs(expected).max()
     if area_weighting:  # the adjoint's weights once it holds the merged weight gradients
-        builder.area_weighting = area_weighting
         S = builder.whole_set(x, shape_derivatives=True)
         contact.adjoint.merged_rows(S)
         held = contact.adjoint.weighted_arrays(S, x).weight

@@ -19,7 +19,7 @@ import ipctk
 import numpy as np
 import scipy.sparse
 
-from diffsolids.contact.detection.collision_arrays import CollisionArrays
+from diffsolids.contact.detection.collision_arrays import CollisionArrays, in_faces
 
 __all__ = [
     "area_gradient_adjoint",
@@ -75,12 +75,9 @@ def area_gradient_adjoint(
     E, F = np.asarray(mesh.edges), np.asarray(mesh.faces)
     dim = X.shape[1]
     out = np.zeros_like(X)
-    in_face = np.zeros(len(X), dtype=bool)
-    edge_in_face = np.zeros(len(E), dtype=bool)
+    in_face, edge_in_face = in_faces(mesh)
     if dim == 3 and len(F):
         FE = np.asarray(mesh.faces_to_edges)
-        in_face[F.ravel()] = True
-        edge_in_face[FE.ravel()] = True
         c = (alpha[F].sum(axis=1) + beta[FE].sum(axis=1)) / 3.0
         grad = _triangle_area_gradients(X[F])
         _add_at(out, F, c[:, None, None] * grad)

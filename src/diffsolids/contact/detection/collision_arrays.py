@@ -18,6 +18,7 @@ __all__ = [
     "collision_arrays",
     "cross_squared_norms",
     "edge_edge_weights",
+    "in_faces",
     "merged_edge_edge",
     "read_weights",
     "stencil_blocks",
@@ -168,15 +169,21 @@ def weights_from_gradients(
     X = np.asarray(mesh.rest_positions)
     degree = 1
     if mesh.dim == 3:
-        F = np.asarray(mesh.faces)
-        in_face = np.zeros(mesh.num_vertices, dtype=bool)
-        in_face[F.ravel()] = True
-        edge_in_face = np.zeros(mesh.num_edges, dtype=bool)
-        edge_in_face[np.asarray(mesh.faces_to_edges).ravel()] = True
+        in_face, edge_in_face = in_faces(mesh)
         if not (in_face.all() and edge_in_face.all()):
             return None
         degree = 2
     return np.asarray(gradients @ X.ravel()).ravel() / degree
+
+
+def in_faces(mesh: ipctk.CollisionMesh) -> tuple[np.ndarray, np.ndarray]:
+    """(vertex, edge) flags of the collision mesh's vertices and edges in some face (3D)."""
+    in_face = np.zeros(mesh.num_vertices, dtype=bool)
+    edge_in_face = np.zeros(mesh.num_edges, dtype=bool)
+    if mesh.dim == 3 and len(np.asarray(mesh.faces)):
+        in_face[np.asarray(mesh.faces).ravel()] = True
+        edge_in_face[np.asarray(mesh.faces_to_edges).ravel()] = True
+    return in_face, edge_in_face
 
 
 def edge_edge_weights(
