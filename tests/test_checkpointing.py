@@ -228,15 +228,11 @@ def test_auto_keeps_a_small_run_in_memory_on_a_busy_node(monkeypatch):
     ranks = node.size
     node.Free()
     run_mb = (BEAM_STEPS + 1) * state_mb * ranks
-    store = sim.solver.factor_store
-    sim.solver.factor_store = fs.FactorStore()
-    try:
+    with sim.solver.keeping_factors_in(fs.FactorStore()):
         for share, expected in ((0.009, "all"), (0.02, "memory")):
             available = run_mb / share
             monkeypatch.setattr(ckpt, "node_memory_mb", lambda a=available: (a, 5 * a))
             assert Checkpointing().resolve(sim).policy == expected, share
-    finally:
-        sim.solver.factor_store = store
 
 
 @pytest.mark.parametrize(("states", "expected"), [(1000, "all"), (10, "memory"), (3, "disk")])
@@ -252,20 +248,16 @@ def test_auto_policy_follows_available_memory(monkeypatch, states, expected):
     # room for `states` states (and a bit) per rank: half of the available memory
     available = 2 * ranks * state_mb * (states + 0.5)
     monkeypatch.setattr(ckpt, "node_memory_mb", lambda: (available, 4 * available))
-    store = sim.solver.factor_store
-    sim.solver.factor_store = None  # no store: nothing reserved for factorisations
-    try:
+    with sim.solver.keeping_factors_in(None):  # no store: nothing reserved for factorisations
         policy = Checkpointing().resolve(sim)
         assert policy.policy == expected
         if expected == "memory":
             assert policy.snaps == states // 2  # checkpoints of d = 2 states
-        # a store keeping factors by spare memory leaves a quarter of the total to them: 0 spare
-        # (4 x available total), so the states get the 1% of the available memory of any run
-        sim.solver.factor_store = fs.FactorStore()
+    # a store keeping factors by spare memory leaves a quarter of the total to them: 0 spare
+    # (4 x available total), so the states get the 1% of the available memory of any run
+    with sim.solver.keeping_factors_in(fs.FactorStore()):
         floor = int(ckpt._SMALL_RUN_SHARE * available / ranks // state_mb)
         busy = "all" if floor >= BEAM_STEPS + 1 else "memory" if floor // 2 >= 2 else "disk"
         assert Checkpointing().resolve(sim).policy == busy
-    finally:
-        sim.solver.factor_store = store
     monkeypatch.undo()
     assert ckpt.Checkpointing("auto").resolve(sim).policy == "all"  # this machine: tiny run

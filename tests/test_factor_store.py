@@ -270,3 +270,22 @@ def test_factor_store_argument_is_checked():
     for bad in ({"factor_store": "disk"}, {"factor_store": FactorStore(), "factor_memory_mb": 10}):
         with pytest.raises(ds.ParameterError, match="factor_store must be a FactorStore"):
             ReducedFunctional(rf.simulation, rf.objective, rf.controls.controls, **bad)
+
+
+def test_keeping_factors_in_puts_the_previous_store_back(tmp_path):
+    """The solver's factor store is set for a block only; the block's end (also by an error)
+    restores the previous one, and assigning it directly warns that it is deprecated."""
+    rf = _reduced_functional(steps=2)
+    solver = rf.simulation.solver
+    store = FactorStore(directory=tmp_path)
+    with solver.keeping_factors_in(store) as kept:
+        assert kept is store and solver.factor_store is store
+        with pytest.raises(RuntimeError, match="inner"):
+            with solver.keeping_factors_in(None):
+                assert solver.factor_store is None
+                raise RuntimeError("inner")
+        assert solver.factor_store is store
+    assert solver.factor_store is None
+    with pytest.warns(DeprecationWarning, match="keeping_factors_in"):
+        solver.factor_store = store
+    assert solver.factor_store is store

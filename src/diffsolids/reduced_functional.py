@@ -3,7 +3,7 @@
 import contextlib
 import logging
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -176,16 +176,9 @@ class ReducedFunctional:
         integ = self.simulation.integrator
         return TimeGrid(integ.num_steps, integ.dt, integ.dynamic)
 
-    @contextlib.contextmanager
-    def _own_factor_store(self) -> Iterator[None]:
+    def _own_factor_store(self) -> contextlib.AbstractContextManager:
         """The solver keeps this functional's factorisations while it runs, and only then."""
-        solver = self.simulation.solver
-        previous = solver.factor_store
-        solver.factor_store = self.factor_store
-        try:
-            yield
-        finally:
-            solver.factor_store = previous
+        return self.simulation.solver.keeping_factors_in(self.factor_store)
 
     # -- forward ---------------------------------------------------------------------------
     def forward(self, q: npt.ArrayLike) -> float:

@@ -335,7 +335,6 @@ class Simulation:
         solver, model = self.solver, self.model
         u = model.fields.u
         t = self.integrator.time(i)
-        store = solver.factor_store
         for substep in range(self.max_substeps):
             y = solver.lifted_step()
             try:
@@ -355,11 +354,10 @@ class Simulation:
                 y.destroy()
             for d in model.dirichlet:
                 d.prescribe(u.x.array)  # hold the prescribed dofs where they are now
-            solver.factor_store = None  # keep only the factors of the step's own solve
             try:
-                solver.solve(i)
+                with solver.keeping_factors_in(None):  # only the step's own solve keeps them
+                    solver.solve(i)
             finally:
-                solver.factor_store = store
                 model.update_time(t)
         raise NewtonConvergenceError(
             i,
@@ -470,8 +468,6 @@ class Simulation:
         """Forget the previous run's solver state (cached Jacobians, stored factors)."""
         self.solver.reset()
         self.substeps = {}
-        if self.solver.factor_store is not None:
-            self.solver.factor_store.begin_run(self.solver.snes)
 
     def advance(self, i: int, traj: StateRecorder, replay: bool = False) -> None:
         """Solve (or prescribe) step ``i`` from the states of ``traj`` and append u^i, v^i.

@@ -455,42 +455,43 @@ class CheckpointedRun:
         """Steps n0 + 1..n1 from the working states at n0 (factors kept when ``adj``)."""
         sim = self.sim
         solver = sim.solver
-        store = solver.factor_store
-        traj = self.trajectory
         warm = sim.warm_start
         sim.warm_start = self.warm_start  # the initial guesses of the first forward
-        solver.factor_store = store if adj else None
+        try:
+            with solver.keeping_factors_in(solver.factor_store if adj else None):
+                for i in range(n0 + 1, n1 + 1):
+                    self._advance_one(i, adj, first)
+        finally:
+            sim.warm_start = warm
+        self._n = n1
+
+    def _advance_one(self, i: int, adj: bool, first: bool) -> None:
+        """Step i from the working states (recorded in the trajectory on the first forward)."""
+        traj = self.trajectory
 
         def record(j: int, t: float, rec: "StepRecord") -> None:
             traj.times.append(t)
             traj.records.append(rec)
 
-        try:
-            for i in range(n0 + 1, n1 + 1):
-                if first:
-                    view = _StateView(self._work, lambda i=i: i, record)
-                    view.next = i
-                else:
-                    view = _StateView(self._work, lambda: self.N + 1)
-                    view.next = i
-                sim.advance(i, view, replay=not first)
-                self.stats["forward_steps" if first else "recomputed_steps"] += 1
-                if adj:
-                    self._adj[i] = self._work[i]
-                if i == self.N:
-                    self._keep[i] = self._work[i]
-                if first:
-                    if self._on_state is not None:
-                        self._on_state(i, _StateView(self._work, lambda i=i: i + 1))
-                    if self._stepped is not None:
-                        self._stepped(i, _StateView(self._work, lambda i=i: i + 1))
-                self._count()
-                for j in [j for j in self._work if j <= i - self.depth]:
-                    del self._work[j]
-        finally:
-            solver.factor_store = store
-            sim.warm_start = warm
-        self._n = n1
+        if first:
+            view = _StateView(self._work, lambda i=i: i, record)
+        else:
+            view = _StateView(self._work, lambda: self.N + 1)
+        view.next = i
+        self.sim.advance(i, view, replay=not first)
+        self.stats["forward_steps" if first else "recomputed_steps"] += 1
+        if adj:
+            self._adj[i] = self._work[i]
+        if i == self.N:
+            self._keep[i] = self._work[i]
+        if first:
+            if self._on_state is not None:
+                self._on_state(i, _StateView(self._work, lambda i=i: i + 1))
+            if self._stepped is not None:
+                self._stepped(i, _StateView(self._work, lambda i=i: i + 1))
+        self._count()
+        for j in [j for j in self._work if j <= i - self.depth]:
+            del self._work[j]
 
     def _action(self, action: CheckpointAction, first: bool = False) -> None:
         schedule = self.schedule

@@ -102,7 +102,7 @@ class AdjointLinearSolver:
         store = self.newton.factor_store
         self._stored = dict(store.factors) if store is not None else {}
         # Without a store the SNES's KSP still holds the factors of the last Newton iterate.
-        self._precond = None if store is not None else (self.newton.snes.getKSP().getPC(), -1)
+        self._precond = None if store is not None else (self.newton.last_factors(), -1)
         self._precond_step = None
         self.stats = {"krylov_iterations": 0, "factorisations": 0, "direct_solves": 0}
         self._quadratic_cache = {}
@@ -175,7 +175,7 @@ class AdjointLinearSolver:
         newton = self.newton
         key = newton.quadratic_key()
         if newton.holds_factors_of(key):  # the forward factors are of this very matrix
-            newton.snes.getKSP().solve(b, x)
+            newton.solve_with_last_factors(b, x)
         else:
             if key not in self._quadratic_cache:
                 A = newton.create_matrix()

@@ -5,8 +5,10 @@ the step (no inverted element; the contact term adds its collision-free bound to
 and a residual tolerance scaled by a characteristic force of the simulation.
 """
 
+import contextlib
 import logging
-from collections.abc import Callable
+import warnings
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from numbers import Real
 from typing import TYPE_CHECKING
@@ -256,7 +258,7 @@ class NewtonSolver:
         self.reference_force = 0.0
         self._energy_cache: tuple[PETSc.Vec, float] | None = None
         self._line_search: dict | None = None
-        self.factor_store: FactorStore | None = None
+        self._factor_store: FactorStore | None = None
         self._jacobian_key = None
         self._length_scale = 1e-8 * model.domain.characteristic_length()
         self._make_snes()
@@ -887,11 +889,56 @@ class NewtonSolver:
         return self.path_bound(state, state, guards[:1]) <= 0.0
 
     def reset(self) -> None:
-        """Forget cached Jacobians, contact matrix entries and round-off steps (new run)."""
+        """Start a new run: forget cached Jacobians, contact matrix entries, round-off steps.
+
+        The factor store in use (:meth:`keeping_factors_in`) forgets the previous run's
+        factorisations too.
+        """
         self._jacobian_key = None
         self.round_off_steps = []
         if self.patterns.active:
             self._use_matrix(self.patterns.restart(self.A))
+        if self._factor_store is not None:
+            self._factor_store.begin_run(self.snes)
+
+    # -- the factorisations kept for the adjoint -----------------------------------------------
+    @property
+    def factor_store(self) -> FactorStore | None:
+        """Where converged steps keep their factorisations (None: nowhere); read-only.
+
+        Set it for a block of solves with :meth:`keeping_factors_in`.
+        """
+        return self._factor_store
+
+    @factor_store.setter
+    def factor_store(self, store: FactorStore | None) -> None:
+        warnings.warn(
+            "assigning NewtonSolver.factor_store is deprecated (removed in 0.12): solve inside "
+            "'with solver.keeping_factors_in(store):', which puts the previous store back",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        self._factor_store = store
+
+    @contextlib.contextmanager
+    def keeping_factors_in(self, store: FactorStore | None) -> Iterator[FactorStore | None]:
+        """Converged steps keep their factorisations in ``store`` (None: nowhere) in the block.
+
+        The previous store is back afterwards, also when the block raises.
+        """
+        previous, self._factor_store = self._factor_store, store
+        try:
+            yield store
+        finally:
+            self._factor_store = previous
+
+    def last_factors(self) -> PETSc.PC:
+        """The preconditioner holding the factors of the last Newton Jacobian (not kept ones)."""
+        return self.snes.getKSP().getPC()
+
+    def solve_with_last_factors(self, b: PETSc.Vec, x: PETSc.Vec) -> None:
+        """Solve with the last Newton Jacobian's factors (e.g. a quadratic potential's)."""
+        self.snes.getKSP().solve(b, x)
 
     def reported_round_off_steps(self) -> list[tuple[int, float, float, float]]:
         """The run's steps accepted at round-off with a residual above ``ROUND_OFF_REPORTED``.
@@ -1111,8 +1158,8 @@ class NewtonSolver:
         if converged and self._fnorm > tolerance:  # the Newton increment reached round-off
             self.round_off_steps.append((step, self._fnorm, tolerance, self._f_char))
         keep = converged and its > 0 and self._exact_factors and not self.quadratic
-        if keep and self.factor_store is not None:  # the adjoint needs the exact Jacobian's
-            self.factor_store.keep(step, self.snes)
+        if keep and self._factor_store is not None:  # the adjoint needs the exact Jacobian's
+            self._factor_store.keep(step, self.snes)
         if not converged:
             why = reason_name(PETSc.SNES.ConvergedReason, reason)
             if reason > 0:
