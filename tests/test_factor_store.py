@@ -280,10 +280,9 @@ def test_keeping_factors_in_puts_the_previous_store_back(tmp_path):
     store = FactorStore(directory=tmp_path)
     with solver.keeping_factors_in(store) as kept:
         assert kept is store and solver.factor_store is store
-        with pytest.raises(RuntimeError, match="inner"):
-            with solver.keeping_factors_in(None):
-                assert solver.factor_store is None
-                raise RuntimeError("inner")
+        with pytest.raises(RuntimeError, match="inner"), solver.keeping_factors_in(None):
+            assert solver.factor_store is None
+            raise RuntimeError("inner")
         assert solver.factor_store is store
     assert solver.factor_store is None
     with pytest.warns(DeprecationWarning, match="keeping_factors_in"):

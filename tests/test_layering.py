@@ -132,3 +132,37 @@ def test_a_planted_private_reach_in_is_found() -> None:
         "    def g(self, o):\n        return o._w\n"
     )
     assert _private_reach_ins(own) == []
+
+
+def _attribute_uses(source: str, name: str) -> list[int]:
+    """Lines where an attribute ``name`` of an object other than self is read or set."""
+    return [
+        node.lineno
+        for node in ast.walk(ast.parse(source))
+        if isinstance(node, ast.Attribute)
+        and node.attr == name
+        and not (isinstance(node.value, ast.Name) and node.value.id == "self")
+    ]
+
+
+def test_the_newton_solvers_petsc_objects_stay_in_the_solvers_package() -> None:
+    """Outside diffsolids.solvers nobody drives the SNES or swaps the factor store of a
+    NewtonSolver: they ask it (``last_factors``, ``keeping_factors_in``, ``reset``)."""
+    solvers = ROOT / "src" / "diffsolids" / "solvers"
+    found = []
+    for path in sorted((ROOT / "src" / "diffsolids").rglob("*.py")):
+        if solvers in path.parents:
+            continue
+        source = path.read_text()
+        found += [f"{path.relative_to(ROOT)}:{n}: .snes" for n in _attribute_uses(source, "snes")]
+        tree = ast.parse(source)
+        found += [
+            f"{path.relative_to(ROOT)}:{node.lineno}: factor_store assigned"
+            for node in ast.walk(tree)
+            if isinstance(node, ast.Attribute)
+            and isinstance(node.ctx, ast.Store)
+            and node.attr == "factor_store"
+            and not (isinstance(node.value, ast.Name) and node.value.id == "self")
+        ]
+    assert not found, "\n".join(found)
+    assert _attribute_uses("def f(s):\n    return s.snes.getKSP()\n", "snes") == [2]

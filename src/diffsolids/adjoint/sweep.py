@@ -32,7 +32,6 @@ import dolfinx.la
 import numpy as np
 from dolfinx import fem
 from mpi4py import MPI
-from petsc4py import PETSc
 
 from diffsolids.adjoint.forms import AdjointForms
 from diffsolids.adjoint.linear import AdjointLinearSolver, AdjointSolverOptions
@@ -168,7 +167,9 @@ class BackwardSweep:
         u0, v0 = run.initial_state()
         self._begin(run.N, len(u0), leaf_weights)
         store = self.sim.solver.factor_store
-        frozen = self._freeze_last_factors() if store is None else None
+        # without a store the adjoint preconditions with the factors the SNES holds at its start
+        # (step N's, as after an all-in-memory forward); recomputed steps factorise elsewhere
+        frozen = self.sim.solver.detach_last_factors() if store is None else None
 
         def step(i: int, view: "StateHistory") -> None:
             if store is not None:  # the factors of steps recomputed since the last step
@@ -187,27 +188,6 @@ class BackwardSweep:
             if frozen is not None:
                 frozen.destroy()
         return self._finish((u0, v0))
-
-    def _freeze_last_factors(self) -> PETSc.KSP | None:
-        """Keep the forward's last factors (step N) from the recomputations' Newton solves.
-
-        Without a factor store the adjoint preconditions with the factors the SNES holds at its
-        start, those of step N, as after an all-in-memory forward; recomputed steps solve with
-        a new KSP instead (as :meth:`FactorStore.keep` does).
-        """
-        newton = self.sim.solver
-        old = newton.snes.getKSP()
-        pc = old.getPC()
-        if newton.quadratic or pc.getType() != "lu":
-            return None
-        pc.setReusePreconditioner(True)
-        new = PETSc.KSP().create(old.comm)
-        new.setOptionsPrefix(old.getOptionsPrefix())
-        new.setType(old.getType())
-        new.getPC().setType("lu")
-        new.getPC().setFactorSolverType(pc.getFactorSolverType())
-        newton.snes.setKSP(new)
-        return old
 
     def _begin(self, N: int, n: int, leaf_weights: dict) -> None:
         self._t0 = time.perf_counter()

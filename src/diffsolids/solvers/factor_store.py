@@ -15,7 +15,32 @@ from diffsolids.errors import ParameterError
 from diffsolids.parallel import collective_comm
 from diffsolids.solvers.linear_options import delete_options
 
-__all__ = ["FactorStore", "factor_disk_mb", "factor_memory_mb", "lu_solver", "node_memory_mb"]
+__all__ = [
+    "FactorStore",
+    "detach_ksp",
+    "factor_disk_mb",
+    "factor_memory_mb",
+    "lu_solver",
+    "node_memory_mb",
+]
+
+
+def detach_ksp(snes: PETSc.SNES) -> PETSc.KSP:
+    """Give ``snes`` a new LU KSP like its own (type, options prefix, factor package).
+
+    Returns:
+        The old KSP, with the factorisation it holds (the caller destroys it); later solves of
+        the SNES factorise into the new one.
+    """
+    old = snes.getKSP()
+    pc = old.getPC()
+    new = PETSc.KSP().create(old.comm)
+    new.setOptionsPrefix(old.getOptionsPrefix())
+    new.setType(old.getType())
+    new.getPC().setType("lu")
+    new.getPC().setFactorSolverType(pc.getFactorSolverType() or "mumps")
+    snes.setKSP(new)
+    return old
 
 
 def lu_solver(comm: MPI.Comm, A: PETSc.Mat) -> PETSc.KSP:
@@ -311,7 +336,7 @@ class FactorStore:
         self.sizes_mb[step] = size_mb
         self.used_mb += size_mb
         FactorStore._live += 1
-        self._fresh_ksp(snes)
+        detach_ksp(snes)
 
     def begin_run(self, snes: PETSc.SNES) -> None:
         """Free the last run's factorisations and set ``snes`` up to factorise as stored.
@@ -334,15 +359,4 @@ class FactorStore:
         weakref.finalize(snes, delete_options, prefix, names)  # with the solver's own options
         pc = snes.getKSP().getPC()
         if pc.getType() == "lu" and pc.getFactorSolverType() == "mumps":
-            self._fresh_ksp(snes)
-
-    @staticmethod
-    def _fresh_ksp(snes: PETSc.SNES) -> None:
-        """Give ``snes`` a new LU (MUMPS) KSP of the same type and options prefix."""
-        old = snes.getKSP()
-        new = PETSc.KSP().create(old.comm)
-        new.setOptionsPrefix(old.getOptionsPrefix())
-        new.setType(old.getType())
-        new.getPC().setType("lu")
-        new.getPC().setFactorSolverType("mumps")
-        snes.setKSP(new)
+            detach_ksp(snes)

@@ -25,7 +25,7 @@ from diffsolids.errors import NewtonConvergenceError
 from diffsolids.parallel import collective_comm
 from diffsolids.solvers.callbacks import weak_callback
 from diffsolids.solvers.continuation import ContinuationPath
-from diffsolids.solvers.factor_store import FactorStore
+from diffsolids.solvers.factor_store import FactorStore, detach_ksp
 from diffsolids.solvers.forms import compile_form
 from diffsolids.solvers.inversion import InversionGuard
 from diffsolids.solvers.linear_options import (
@@ -935,6 +935,20 @@ class NewtonSolver:
     def last_factors(self) -> PETSc.PC:
         """The preconditioner holding the factors of the last Newton Jacobian (not kept ones)."""
         return self.snes.getKSP().getPC()
+
+    def detach_last_factors(self) -> PETSc.KSP | None:
+        """Take the KSP holding the last Newton factors out of the solver (LU only).
+
+        Later solves factorise into a new KSP, so the returned one keeps the factors of the
+        Jacobian the solver factorised last (e.g. the forward's last step while a checkpointed
+        sweep recomputes steps). None for a quadratic potential or without an LU
+        factorisation. The caller destroys the returned KSP.
+        """
+        pc = self.last_factors()
+        if self.quadratic or pc.getType() != "lu":
+            return None
+        pc.setReusePreconditioner(True)
+        return detach_ksp(self.snes)
 
     def solve_with_last_factors(self, b: PETSc.Vec, x: PETSc.Vec) -> None:
         """Solve with the last Newton Jacobian's factors (e.g. a quadratic potential's)."""
