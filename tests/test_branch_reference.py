@@ -27,9 +27,9 @@ def scene():
 def test_reference_run_starts_every_step(scene):
     rf = scene.rf
     J0, g = rf.value_and_gradient(scene.q0)
-    sim = rf.simulation
-    assert sim.branch_reference is not None
-    assert sim.branch_reference.num_steps == STEPS
+    assert rf.reference_run is not None
+    assert rf.reference_run.num_steps == STEPS
+    assert rf.simulation.branch_reference is None  # the functional's only while it runs
     # at q_ref each step starts at its own converged state
     its = [r.iterations for r in rf.trajectory.records]
     assert max(its) <= 1, its
@@ -74,9 +74,22 @@ def test_another_functional_on_the_simulation_has_no_reference(scene):
     plain = ds.ReducedFunctional(rf.simulation, rf.objective, rf.controls.controls)
     assert plain.branch_reference is None
     plain(scene.q0 + 0.001)
-    assert rf.simulation.branch_reference is None
+    assert plain.reference_run is None
     rf(scene.q0 - 0.001)
-    assert rf.simulation.branch_reference is not None
+    assert rf.reference_run is not None and rf.simulation.branch_reference is None
+
+
+def test_a_plain_run_after_the_functional_follows_no_reference(scene):
+    """The reference is the functional's: at q_ref the functional's run starts every step
+    converged, a plain run of its simulation afterwards solves every step from its own guess
+    (it used to follow the functional's branch)."""
+    rf = scene.rf
+    rf(scene.q0)
+    assert max(r.iterations for r in rf.trajectory.records) <= 1
+    plain = rf.simulation.run()  # the controls are still at q_ref
+    assert rf.simulation.branch_reference is None
+    its = [r.iterations for r in plain.records]
+    assert max(its) > 1, its
 
 
 @pytest.mark.parametrize("q_ref", [[1.0], [1.0, np.nan], [[1.0, 2.0, 3.0]]])
@@ -108,14 +121,14 @@ def test_failed_solve_from_the_reference_solved_again_from_the_default_guess(
     rf, q = scene.rf, scene.q0 + np.array([0.004, -0.003])
     J_reference_route = rf(q)
     its_reference_route = [r.iterations for r in rf.trajectory.records]
-    reference = rf.simulation.branch_reference
+    reference = rf.reference_run
     rf(scene.q0)  # another point: the next call at q runs again
     forced = _fail_once(rf.simulation, monkeypatch, 7)
     with caplog.at_level("WARNING", logger="diffsolids"):
         J = rf(q)
     assert forced == [(7, False)]  # one attempt from the reference's state, no retries
     assert "step 7: no convergence from the branch reference's state" in caplog.text
-    assert np.isfinite(J) and rf.simulation.branch_reference is reference
+    assert np.isfinite(J) and rf.reference_run is reference
     # step 7 started at the predictor, not at the reference's u^7: more Newton iterations
     # (the failed solve's 1000 counted too), the same minimum here (the block has tipped to
     # the reference's side by step 7)

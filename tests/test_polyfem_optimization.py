@@ -56,7 +56,7 @@ def test_follow_branch_starts_from_the_initial_parameters_run(tmp_path):
     assert np.array_equal(problem.rf.branch_reference, problem.q0)
     J, J_plain = problem.rf(problem.q0), plain.rf(plain.q0)
     assert abs(J - J_plain) <= 1e-8 * abs(J_plain)
-    assert problem.simulation.branch_reference is not None
+    assert problem.rf.reference_run is not None
     for taylor in _taylor_both(problem):
         _check(taylor)
 

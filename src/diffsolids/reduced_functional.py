@@ -3,7 +3,7 @@
 import contextlib
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -58,8 +58,9 @@ class ReducedFunctional:
             gradient of the all-in-memory run; their ``trajectory`` holds u^0, u^N and the
             records only, and does not warm-start later runs.
         branch_reference: Parameters q_ref whose forward run (solved once, when first needed)
-            becomes the simulation's ``branch_reference``: every later forward starts each
-            step's Newton solve at the reference run's state when that state is admissible.
+            (:attr:`reference_run`) is the simulation's ``branch_reference`` while this
+            functional runs: every later forward starts each step's Newton solve at the
+            reference run's state when that state is admissible.
             Use it where a contact step has several local minima (J would jump between
             branches under tiny changes of q): J is then one deterministic function of q,
             smooth near q_ref, independent of the evaluation history, and the optimiser's
@@ -146,16 +147,35 @@ class ReducedFunctional:
             )
         return q_ref
 
-    def _follow_reference(self) -> None:
-        """Install this functional's branch reference in the simulation (solved the first time)."""
+    def _solve_reference(self) -> None:
+        """Solve the run at the branch reference's parameters (the first time it is needed)."""
+        if self.branch_reference is None or self._reference_run is not None:
+            return
         sim = self.simulation
-        if self.branch_reference is not None and self._reference_run is None:
-            sim.branch_reference = None
-            self.controls.assign(self.branch_reference)
-            t0 = time.perf_counter()
+        self.controls.assign(self.branch_reference)
+        t0 = time.perf_counter()
+        with sim.following_branch(None):
             self._reference_run = sim.run()
-            logger.info("branch reference solved (%.2fs)", time.perf_counter() - t0)
-        sim.branch_reference = self._reference_run
+        logger.info("branch reference solved (%.2fs)", time.perf_counter() - t0)
+
+    @property
+    def reference_run(self) -> "Trajectory | None":
+        """The run at the branch reference (None before the first forward or without one)."""
+        return self._reference_run
+
+    @contextlib.contextmanager
+    def _running(self) -> Iterator[None]:
+        """This functional's settings in the simulation while it runs, and only then.
+
+        The solver keeps the factorisations in this functional's store, and the steps follow
+        its branch reference's run (none without a reference): another functional, or a plain
+        ``simulation.run()``, of the same simulation sees its own settings.
+        """
+        sim = self.simulation
+        with sim.solver.keeping_factors_in(self.factor_store):
+            self._solve_reference()
+            with sim.following_branch(self._reference_run):
+                yield
 
     @property
     def size(self) -> int:
@@ -176,20 +196,15 @@ class ReducedFunctional:
         integ = self.simulation.integrator
         return TimeGrid(integ.num_steps, integ.dt, integ.dynamic)
 
-    def _own_factor_store(self) -> contextlib.AbstractContextManager:
-        """The solver keeps this functional's factorisations while it runs, and only then."""
-        return self.simulation.solver.keeping_factors_in(self.factor_store)
-
     # -- forward ---------------------------------------------------------------------------
     def forward(self, q: npt.ArrayLike) -> float:
         """Assign q, run the simulation and evaluate J."""
-        with self._own_factor_store():
+        with self._running():
             return self._forward(q)
 
     def _forward(self, q: npt.ArrayLike) -> float:
         q = np.array(q, dtype=float)
         self._close_run()
-        self._follow_reference()
         self.controls.assign(q)
         t0 = time.perf_counter()
         policy = self.checkpointing.resolve(self.simulation)
@@ -269,7 +284,7 @@ class ReducedFunctional:
         Raises:
             AdjointError: No forward run yet.
         """
-        with self._own_factor_store():
+        with self._running():
             return self._derivative()
 
     def _derivative(self) -> np.ndarray:
@@ -287,7 +302,6 @@ class ReducedFunctional:
                 self.simulation, self.leaves, self.controls.targets(), self.adjoint_options
             )
         t0 = time.perf_counter()
-        self.simulation.branch_reference = self._reference_run  # replays solve as the forward
         run = traj.run if isinstance(traj, CheckpointedTrajectory) else None
         if run is None:
             sens = self._sweep.run(traj, leaf_weights)

@@ -1,9 +1,10 @@
 """Forward simulation: a Model advanced by an Integrator, one Newton solve per step."""
 
+import contextlib
 import logging
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -156,7 +157,8 @@ class Simulation:
             u^{i-1} that other guesses pass. Where a step's incremental potential has several
             local minima, Newton then ends in the minimum of the reference's branch, so J is a
             smooth function of the parameters near the reference, whatever was evaluated
-            before. Set it through ``ReducedFunctional(..., branch_reference=q_ref)``.
+            before. ``ReducedFunctional(..., branch_reference=q_ref)`` sets it to the run at
+            q_ref while the functional runs (:meth:`following_branch`), and only then.
         max_substeps: Intermediate solves allowed per step to reach Dirichlet values that
             cannot be applied in one admissible move (see ``_dirichlet_continuation``).
         substeps: Intermediate solves of the last run, by step (steps that needed any).
@@ -463,6 +465,18 @@ class Simulation:
             residual / f_char,
             tolerance / f_char,
         )
+
+    @contextlib.contextmanager
+    def following_branch(self, reference: Trajectory | None) -> Iterator[None]:
+        """Steps follow ``reference`` (see :attr:`branch_reference`; None: no run) in the block.
+
+        The previous branch reference is back afterwards, also when the block raises.
+        """
+        previous, self.branch_reference = self.branch_reference, reference
+        try:
+            yield
+        finally:
+            self.branch_reference = previous
 
     def begin_run(self) -> None:
         """Forget the previous run's solver state (cached Jacobians, stored factors)."""

@@ -144,8 +144,8 @@ def measure(name: str, args, comm) -> dict:
     forward, forward_cpu = time.perf_counter() - t0, time.process_time() - c0
     contact = next(t for t in sim.model.numeric_terms if isinstance(t, ContactTerm))
     per_step = [r.iterations for r in rf.trajectory.records]
-    if sim.branch_reference is not None:  # this forward solved the reference run first
-        reference = [r.iterations for r in sim.branch_reference.records]
+    if rf.reference_run is not None:  # this forward solved the reference run first
+        reference = [r.iterations for r in rf.reference_run.records]
         per_step = [a + b for a, b in zip(per_step, reference, strict=True)]
     its = sum(per_step)
     in_contact = [n for n, c in zip(per_step, contact.records, strict=True) if c.num_collisions]

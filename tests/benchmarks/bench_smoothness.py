@@ -104,7 +104,7 @@ def contact_iterations(scene) -> dict:
     (the Simulation's warning), the largest of those residuals over f_char.
     """
     records = scene.rf.trajectory.records
-    reference = scene.rf.simulation.branch_reference
+    reference = scene.rf.reference_run
     if reference is not None and not any(r.iterations for r in records):
         records = reference.records  # the run at q0 is the reference: its own solve's counts
     pairs = [r.num_collisions for r in scene.contact.records]

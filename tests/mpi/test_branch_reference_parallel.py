@@ -13,7 +13,7 @@ def test_ridge_with_reference_equals_serial():
     parallel = ridge(COMM, steps=9, offset=OFFSET)
     q = parallel.q0 + np.array([0.003, -0.002])
     J, g = parallel.rf.value_and_gradient(q)
-    assert parallel.rf.simulation.branch_reference is not None
+    assert parallel.rf.reference_run is not None
     serial = ridge(MPI.COMM_SELF, steps=9, offset=OFFSET)
     Js, gs = serial.rf.value_and_gradient(q)
     assert abs(J - Js) <= 1e-10 * abs(Js), (J, Js)

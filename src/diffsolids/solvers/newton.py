@@ -904,7 +904,7 @@ class NewtonSolver:
     # -- the factorisations kept for the adjoint -----------------------------------------------
     @property
     def factor_store(self) -> FactorStore | None:
-        """Where converged steps keep their factorisations (None: nowhere); read-only.
+        """The store converged steps keep their factorisations in, or None; read-only.
 
         Set it for a block of solves with :meth:`keeping_factors_in`.
         """
