@@ -102,7 +102,7 @@ class SolverOptions:
         exact_hessian_below: Numeric terms that offer a PSD-projected Newton matrix (contact)
             give it to Newton while ||residual|| > ``exact_hessian_below * f_char`` and their
             exact Hessian below (quadratic convergence at the end, and the factors the adjoint
-            reuses are those of the exact Jacobian). With contact the step potential is not
+            reuses are mostly those of the exact Jacobian). With contact the step potential is not
             convex: Newton on the exact (indefinite) Hessian, projected only when its step is
             not a descent direction, can end at a different stationary point after a tiny
             change of the parameters, so J jumps; projected steps descend into a minimum, as in
@@ -1171,8 +1171,10 @@ class NewtonSolver:
         tolerance = self._tolerance()
         if converged and self._fnorm > tolerance:  # the Newton increment reached round-off
             self.round_off_steps.append((step, self._fnorm, tolerance, self._f_char))
-        keep = converged and its > 0 and self._exact_factors and not self.quadratic
-        if keep and self._factor_store is not None:  # the adjoint needs the exact Jacobian's
+        # the step's last factors precondition its adjoint solve (the exact Jacobian's, or the
+        # projected one's: closer to the step's exact Jacobian than another step's exact one)
+        keep = converged and its > 0 and not self.quadratic
+        if keep and self._factor_store is not None:
             self._factor_store.keep(step, self.snes)
         if not converged:
             why = reason_name(PETSc.SNES.ConvergedReason, reason)
