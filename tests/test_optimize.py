@@ -425,6 +425,25 @@ def test_warm_start_changes_only_the_newton_guess():
     assert max(np.abs(a - b).max() for a, b in zip(hot.u, cold.u, strict=True)) <= 1e-8 * scale
 
 
+def test_an_optimisation_that_raises_leaves_no_warm_start(monkeypatch):
+    """The warm start is the optimisation's: when a gradient raises part-way, later
+    evaluations of the functional start from their own guesses again."""
+    rf, _ = dynamic_problem(MPI.COMM_WORLD)
+    real, calls = rf.derivative, []
+
+    def derivative():
+        calls.append(1)
+        if len(calls) == 3:
+            raise RuntimeError("gradient failed")
+        return real()
+
+    monkeypatch.setattr(rf, "derivative", derivative)
+    with pytest.raises(RuntimeError, match="gradient failed"):
+        minimize(rf, options=LBFGSOptions(max_iterations=5, warm_start=True))
+    assert len(calls) == 3
+    assert rf.simulation.warm_start is None
+
+
 # -- remeshing hook -----------------------------------------------------------------------------
 class _RefiningRemesher:
     """Rebuilds the bar on a finer mesh once, after iteration 2."""

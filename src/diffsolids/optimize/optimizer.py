@@ -628,11 +628,20 @@ class LBFGS:
     def run(self, q0: npt.ArrayLike | None = None) -> OptimizationResult:
         """Minimise from ``q0`` (default: the controls' current parameters), or resume.
 
+        The functional's warm start (``LBFGSOptions.warm_start``) ends with the run, also
+        when it raises: later evaluations start from their own guesses.
+
         Raises:
             OptimizationError: Bounds excluding the initial point, an initial point where the
                 objective cannot be evaluated, a non-finite objective or gradient at an accepted
                 point, an incompatible checkpoint.
         """
+        try:
+            return self._run(q0)
+        finally:
+            self.rf.warm_start(None)
+
+    def _run(self, q0: npt.ArrayLike | None) -> OptimizationResult:
         self._t_start = time.perf_counter()
         block_limits(self.options.max_change, self.rf.controls)  # malformed limits fail early
         resumed_from = None
@@ -669,7 +678,6 @@ class LBFGS:
             self.output.write_iterate(self.iteration, self.rf.model, p.trajectory)
         if self.output is not None:
             self.output.finish(self.history)
-        self.rf.warm_start(None)
         message = _MESSAGES.get(reason.split(":")[0], reason)
         logger.info("opt stopped after %d iterations: %s", self.iteration, message)
         if reason in ("line_search", "interrupted") or reason.startswith("remesh"):
