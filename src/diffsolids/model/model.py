@@ -177,21 +177,15 @@ class Model:
             ParameterError: The fields at the end of the block are non-physical.
         """
         if self._deferred_validation > 0:  # nested: the outermost block validates
-            self._deferred_validation += 1
-            try:
+            with self._validation_deferred():
                 yield
-            finally:
-                self._deferred_validation -= 1
             return
         saved = {name: f.x.array.copy() for name, f in self.coefficients.items()}
         undo: list[Callable[[], None]] = []
         token = _REFUSAL_UNDO.set(undo)
         try:
-            self._deferred_validation += 1
-            try:
+            with self._validation_deferred():
                 yield
-            finally:
-                self._deferred_validation -= 1
             self.validate_parameters()
         except BaseException:
             for name, values in saved.items():
@@ -201,6 +195,15 @@ class Model:
             raise
         finally:
             _REFUSAL_UNDO.reset(token)
+
+    @contextlib.contextmanager
+    def _validation_deferred(self) -> Iterator[None]:
+        """:meth:`parameters_changed` does not validate inside the block."""
+        self._deferred_validation += 1
+        try:
+            yield
+        finally:
+            self._deferred_validation -= 1
 
     def parameters_changed(self) -> None:
         """Validate the parameter fields after a change, unless inside :meth:`parameter_update`.
